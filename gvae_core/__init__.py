@@ -1,0 +1,38 @@
+"""GaussianVAE core: Blender-free, importable without torch.
+
+`import gvae_core` and the numpy parts (clouds, PLY, cameras, datasets) never import torch; the
+torch-based stages (render, train, lineage, vae, hessian, refine, metrics) load on first use.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from .camera import Camera, orbit
+from .cloud import GaussianCloud, ValidationReport
+
+__version__ = "0.1.0"
+
+# name -> module that defines it; resolved lazily so that torch is imported only when needed.
+_LAZY = {
+    "read_ply": "gvae_core.ply",
+    "write_ply": "gvae_core.ply",
+    "PlyError": "gvae_core.ply",
+    "load_nerf_synthetic": "gvae_core.datasets",
+    "DatasetError": "gvae_core.datasets",
+    "Views": "gvae_core.datasets",
+    "render": "gvae_core.render",
+    "RenderOutput": "gvae_core.render",
+}
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'gvae_core' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+__all__ = ["Camera", "orbit", "GaussianCloud", "ValidationReport", *_LAZY]

@@ -1,0 +1,35 @@
+"""The `gvae` command line: one subcommand per module in this package.
+
+Each module listed in `COMMAND_MODULES` defines `register(subparsers)`, which adds its
+subparser and sets `func` (called with the parsed namespace; returns an exit code).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+COMMAND_MODULES = (
+    "info",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="gvae", description="GaussianVAE: refine 3D Gaussian Splatting "
+                                     "scenes past their training resolution.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in COMMAND_MODULES:
+        importlib.import_module(f"{__name__}.{name}").register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, FileNotFoundError) as exc:  # bad input: one clear line, no traceback
+        print(f"gvae {args.command}: error: {exc}", file=sys.stderr)
+        return 2
