@@ -305,7 +305,8 @@ class GaussianCloud:
         c = self.numpy()
         finite = np.ones(len(c), bool)
         for name in _FIELDS:
-            a = getattr(c, name).reshape(len(c), -1)
+            arr = getattr(c, name)
+            a = arr.reshape(len(c), int(np.prod(arr.shape[1:])))  # -1 is ambiguous when N = 0
             finite &= np.isfinite(a).all(axis=1)
         with np.errstate(invalid="ignore", over="ignore"):
             qnorm = np.linalg.norm(c.quats.astype(np.float64), axis=1)
