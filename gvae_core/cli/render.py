@@ -1,0 +1,125 @@
+"""`gvae render FILE.ply --out DIR [--transforms transforms.json | --orbit K] [--height H]`:
+render a 3DGS PLY on the CPU and write one PNG per camera."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera, orbit
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "render", help="render a 3DGS PLY to PNG images (CPU)",
+        description="Render a 3DGS PLY with the project's differentiable splatting renderer and "
+        "write one PNG per camera: the cameras of a NeRF-Synthetic transforms JSON, or K cameras "
+        "orbiting the cloud (z up).")
+    p.add_argument("file", type=Path, help="the .ply file")
+    p.add_argument("--out", type=Path, required=True, help="folder for the PNGs (created if missing)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--transforms", type=Path, help="NeRF-Synthetic transforms_*.json with the cameras")
+    src.add_argument("--orbit", type=int, metavar="K", help="K cameras on a circle around the cloud (default 8)")
+    p.add_argument("--height", type=int, help="image height in pixels (default: the transforms' image "
+                   "size, or 400 for --orbit); the width keeps the aspect ratio")
+    p.add_argument("--background", default="0,0,0", help="background colour r,g,b in [0,1] (default 0,0,0)")
+    p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), help="SH bands to use (default: all)")
+    p.add_argument("--elevation", type=float, default=30.0, help="--orbit elevation in degrees (default 30)")
+    p.add_argument("--sanitize", action="store_true", help="drop Gaussians with non-finite values")
+    p.set_defaults(func=run)
+
+
+def _parse_background(text: str) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"--background must be three numbers r,g,b, got {text!r}")
+    return values  # type: ignore[return-value]
+
+
+def cameras_from_transforms(path: Path) -> tuple[list[Camera], list[str]]:
+    """Cameras and frame names of a NeRF-Synthetic transforms JSON. The image size comes from
+    'w'/'h' in the file, else from the first frame's image, else 800x800."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+        angle = float(meta["camera_angle_x"])
+        frames = meta["frames"]
+        mats = [np.asarray(f["transform_matrix"], np.float64) for f in frames]
+        names = [Path(str(f.get("file_path", f"frame_{i:03d}"))).name for i, f in enumerate(frames)]
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: not a transforms JSON with 'camera_angle_x' and 'frames' "
+                         f"(each with a 4x4 'transform_matrix'): {exc}") from None
+    if not frames or not 0.0 < angle < math.pi or any(m.shape != (4, 4) or not np.isfinite(m).all() for m in mats):
+        raise ValueError(f"{path}: needs at least one frame, 4x4 finite matrices and 0 < camera_angle_x < pi")
+    width, height = int(meta.get("w", 0) or 0), int(meta.get("h", 0) or 0)
+    if width <= 0 or height <= 0:
+        width = height = 800
+        first = str(frames[0].get("file_path", ""))
+        for cand in (path.parent / first, path.parent / (first + ".png")):
+            if first and cand.is_file():
+                from PIL import Image  # noqa: PLC0415
+
+                with Image.open(cand) as im:
+                    width, height = im.size
+                break
+    cams = [Camera.from_blender_c2w(m, angle, width, height) for m in mats]
+    return cams, names
+
+
+def orbit_cameras(means: np.ndarray, k: int, height: int, elevation_deg: float) -> list[Camera]:
+    """`k` cameras looking at the cloud's median, far enough to see 95% of it with a 50° lens."""
+    if k <= 0:
+        raise ValueError(f"--orbit needs a positive number of cameras, got {k}")
+    if len(means):
+        center = np.median(means, 0)
+        reach = float(np.percentile(np.linalg.norm(means - center, axis=1), 95))
+    else:
+        center, reach = np.zeros(3), 1.0
+    radius = max(reach, 1e-6) / math.sin(math.radians(25.0)) * 1.1
+    return orbit(k, radius, math.radians(elevation_deg), target=center, width=height, height=height,
+                 fov_x=math.radians(50.0))
+
+
+def run(args: argparse.Namespace) -> int:
+    # Idle OpenMP threads should yield rather than spin: on a shared machine spinning threads
+    # stall each other. Only effective when torch is not imported yet (the usual CLI case).
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from ..ply import read_ply  # noqa: PLC0415
+    from ..render import render  # noqa: PLC0415
+
+    background = _parse_background(args.background)
+    if args.height is not None and args.height <= 0:
+        raise ValueError(f"--height must be positive, got {args.height}")
+    cloud = read_ply(args.file, sanitize=args.sanitize)
+    if args.transforms is not None:
+        cams, names = cameras_from_transforms(args.transforms)
+        if args.height:
+            cams = [c.scaled(args.height) for c in cams]
+    else:
+        cams = orbit_cameras(np.asarray(cloud.means, np.float64), 8 if args.orbit is None else args.orbit,
+                             args.height or 400, args.elevation)
+        names = [f"orbit_{i:03d}" for i in range(len(cams))]
+    from PIL import Image  # noqa: PLC0415
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    width = max(3, len(str(len(cams) - 1)))
+    for i, (cam, name) in enumerate(zip(cams, names)):
+        start = time.perf_counter()
+        out = render(cloud, cam, background=background, sh_degree=args.sh_degree)
+        pixels = (out.image.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+        target = args.out / f"{i:0{width}d}_{Path(name).stem}.png"
+        tmp = target.with_suffix(".png.part")
+        Image.fromarray(pixels).save(tmp, format="PNG")
+        os.replace(tmp, target)
+        print(f"{target} ({cam.width}x{cam.height}, {time.perf_counter() - start:.2f} s)")
+    return 0

@@ -1,0 +1,160 @@
+"""Projection stage: raw Gaussian parameters + camera -> per-Gaussian screen-space quantities.
+
+Positions are taken relative to the camera centre in float64 before anything is rounded to the
+working precision, so scenes far from the origin render like the same scene at the origin.
+Everything else is written out per component on (N,) vectors (no tiny batched matrix
+products), in the working dtype (float32 by default; float64 for gradient checks).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..camera import Camera
+from ..cloud import rotmat_to_quat
+from .sh import sh_to_rgb
+
+#: Near plane: Gaussians with camera depth <= NEAR are culled before any division (DESIGN.md).
+NEAR = 0.01
+#: Added to the diagonal of every 2D covariance (anti-aliasing dilation of the reference 3DGS).
+DILATION = 0.3
+#: The projected centre is clamped to this many half fields of view, for the Jacobian only.
+FOV_CLAMP = 1.3
+#: Contributions with alpha below this are skipped; no Gaussian with opacity below it is drawn.
+ALPHA_MIN = 1.0 / 255.0
+#: Log-scales are clamped to this range on use (exp(20) ~ 5e8 scene units).
+LOG_SCALE_RANGE = (-30.0, 20.0)
+#: Opacity logits are clamped to this range on use (sigmoid stays finite and positive).
+OPACITY_LOGIT_RANGE = (-50.0, 50.0)
+#: Entries of the projected axes J W R S are clamped to this many pixels, so that the 2D
+#: covariance and its determinant stay finite in float32; a Gaussian a hundred million
+#: pixels wide is flat over any image anyway.
+MAX_AXIS_PX = 1e8
+#: Relative safety margin on the opacity-aware footprint so float32 rounding never clips it.
+FOOTPRINT_MARGIN = 1e-3
+
+
+@dataclass
+class Projected:
+    """Per-Gaussian screen-space quantities (N rows, culled ones included with zeros).
+
+    means2d (N,2) pixel coordinates (x = column, y = row; pixel centres at +0.5);
+    conics (N,3) (a, b, c) of the inverse 2D covariance: alpha = o * exp(-a dx²/2 - b dx dy - c dy²/2);
+    opacities (N,), colors (N,3), depths (N,) camera z: differentiable, in the working dtype;
+    radii (N,) int32 = ceil of the footprint's larger half-width, visible (N,) bool, footprint
+    (N,4) float64 = (k, Σxx, Σxy, Σyy): the footprint is the ellipse dᵀ Σ⁻¹ d <= k², where
+    alpha can reach 1/255; these three are outside the autograd graph.
+    """
+
+    means2d: torch.Tensor
+    conics: torch.Tensor
+    opacities: torch.Tensor
+    colors: torch.Tensor
+    depths: torch.Tensor
+    radii: torch.Tensor
+    visible: torch.Tensor
+    footprint: torch.Tensor
+
+
+def _safe_unit_quats(q: torch.Tensor) -> torch.Tensor:
+    """Unit quaternions; zero or non-finite ones become the identity with a zero gradient."""
+    n2 = (q * q).sum(-1, keepdim=True)
+    good = torch.isfinite(n2) & (n2 > 1e-24)
+    safe_q = torch.where(good, q, torch.ones_like(q))
+    unit = safe_q / torch.sqrt(torch.where(good, n2, torch.full_like(n2, 4.0)))
+    ident = torch.zeros_like(q)
+    ident[..., 0] = 1.0
+    return torch.where(good, unit, ident)
+
+
+def project(means, log_scales, quats, opacity_logits, sh_dc, sh_rest, camera: Camera, sh_degree: int,
+            dtype: torch.dtype = torch.float32) -> Projected:
+    """Project N Gaussians (raw parameters, torch) through `camera` following DESIGN.md."""
+    dev = means.device
+    f64 = torch.float64
+    center = torch.as_tensor(camera.center, dtype=f64, device=dev)
+    rot = torch.as_tensor(camera.rotation, dtype=f64, device=dev)
+    rel64 = means.to(f64) - center  # world offset from the camera, before any rounding
+    x, y, z = (rel64 @ rot.T).to(dtype).unbind(-1)  # camera coordinates
+    in_front = torch.isfinite(z) & (z > NEAR)
+    one = torch.ones((), dtype=dtype, device=dev)
+    zero = torch.zeros((), dtype=dtype, device=dev)
+    iz = 1.0 / torch.where(in_front, z, one)
+    u = torch.where(in_front, x, zero) * iz
+    v = torch.where(in_front, y, zero) * iz
+
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    lim_x = FOV_CLAMP * 0.5 * camera.width / fx
+    lim_y = FOV_CLAMP * 0.5 * camera.height / fy
+    # Perspective Jacobian rows (j00, 0, j02) and (0, j11, j12), centre clamped for it only.
+    j00, j11 = fx * iz, fy * iz
+    j02 = -fx * u.clamp(-lim_x, lim_x) * iz
+    j12 = -fy * v.clamp(-lim_y, lim_y) * iz
+
+    # Rotation to camera space as one quaternion: q_cam = q_camera ⊗ q_gaussian.
+    qa, qb, qc, qd = (float(t) for t in rotmat_to_quat(camera.rotation))
+    w0, x0, y0, z0 = _safe_unit_quats(quats.to(dtype)).unbind(-1)
+    w = qa * w0 - qb * x0 - qc * y0 - qd * z0
+    qx = qa * x0 + qb * w0 + qc * z0 - qd * y0
+    qy = qa * y0 - qb * z0 + qc * w0 + qd * x0
+    qz = qa * z0 + qb * y0 - qc * x0 + qd * w0
+    s0, s1, s2 = torch.exp(log_scales.to(dtype).clamp(*LOG_SCALE_RANGE)).unbind(-1)
+    # Columns of R diag(s): the Gaussian's axes in camera space, scaled by their std-devs.
+    m00, m01, m02 = (1 - 2 * (qy * qy + qz * qz)) * s0, 2 * (qx * qy - w * qz) * s1, 2 * (qx * qz + w * qy) * s2
+    m10, m11, m12 = 2 * (qx * qy + w * qz) * s0, (1 - 2 * (qx * qx + qz * qz)) * s1, 2 * (qy * qz - w * qx) * s2
+    m20, m21, m22 = 2 * (qx * qz - w * qy) * s0, 2 * (qy * qz + w * qx) * s1, (1 - 2 * (qx * qx + qy * qy)) * s2
+    lim = MAX_AXIS_PX
+    a0, a1, a2 = ((j00 * m00 + j02 * m20).clamp(-lim, lim), (j00 * m01 + j02 * m21).clamp(-lim, lim),
+                  (j00 * m02 + j02 * m22).clamp(-lim, lim))
+    b0, b1, b2 = ((j11 * m10 + j12 * m20).clamp(-lim, lim), (j11 * m11 + j12 * m21).clamp(-lim, lim),
+                  (j11 * m12 + j12 * m22).clamp(-lim, lim))
+    # Σ2D = t tᵀ + 0.3 I with rows t1 = a, t2 = b; det = |a x b|² + 0.3 (|a|² + |b|²) + 0.09 is a
+    # sum of non-negative terms: >= 0.09, no cancellation even for needles.
+    aa = a0 * a0 + a1 * a1 + a2 * a2
+    bb = b0 * b0 + b1 * b1 + b2 * b2
+    sxy = a0 * b0 + a1 * b1 + a2 * b2
+    c0, c1, c2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+    det = c0 * c0 + c1 * c1 + c2 * c2 + DILATION * (aa + bb) + DILATION ** 2
+    sxx, syy = aa + DILATION, bb + DILATION
+    inv_det = 1.0 / det
+    conics = torch.stack([syy * inv_det, -sxy * inv_det, sxx * inv_det], -1)
+
+    opac = torch.sigmoid(opacity_logits.to(dtype).clamp(*OPACITY_LOGIT_RANGE))
+    mx = fx * u + cx
+    my = fy * v + cy
+
+    with torch.no_grad():
+        # alpha >= 1/255  <=>  Mahalanobis² <= 2 ln(255 o): the opacity-aware footprint.
+        o64 = opac.detach().to(f64)
+        k = torch.sqrt((2.0 * torch.log(o64 * 255.0)).clamp(min=0.0)) * (1.0 + FOOTPRINT_MARGIN) + 1e-4
+        sxx64, syy64 = sxx.detach().to(f64), syy.detach().to(f64)
+        ex, ey = k * torch.sqrt(sxx64), k * torch.sqrt(syy64)
+        mxd, myd = mx.detach().to(f64), my.detach().to(f64)
+        visible = (in_front & (opac.detach() >= ALPHA_MIN)
+                   & (mxd + ex >= 0.5) & (mxd - ex <= camera.width - 0.5)
+                   & (myd + ey >= 0.5) & (myd - ey <= camera.height - 0.5))
+        big = float(4 * max(camera.width, camera.height))
+        radii = torch.where(visible, torch.ceil(torch.maximum(ex, ey).clamp(max=big)), torch.zeros_like(ex))
+        radii = radii.to(torch.int32)
+        footprint = torch.stack([k, sxx64, sxy.detach().to(f64), syy64], -1)
+
+    if sh_rest.shape[1] and sh_degree > 0:
+        n2 = (rel64 * rel64).sum(-1, keepdim=True)
+        ok = n2 > 1e-300
+        dirs = (torch.where(ok, rel64, torch.zeros_like(rel64))
+                / torch.sqrt(torch.where(ok, n2, torch.ones_like(n2)))).to(dtype)
+        colors = sh_to_rgb(sh_dc.to(dtype), sh_rest.to(dtype), dirs, sh_degree)
+    else:
+        colors = (sh_dc.to(dtype) * 0.28209479177387814 + 0.5).clamp(min=0.0)
+
+    vis = visible[:, None]
+    means2d = torch.where(vis, torch.stack([mx, my], -1), zero)
+    conics = torch.where(vis, conics, zero)
+    opac = torch.where(visible, opac, zero)
+    colors = torch.where(vis, colors, zero)
+    depths = torch.where(visible, z, zero)
+    return Projected(means2d, conics, opac, colors, depths, radii, visible, footprint)
+
+
