@@ -1,0 +1,716 @@
+"""Progressive (coarse-to-fine) 3DGS training on the CPU with densification and lineage tracking.
+
+Each stage trains at one image height, starting from the previous stage's Gaussians, with the
+reference 3DGS recipe scaled to the stage's iteration budget: Adam with the reference learning
+rates (positions decaying exponentially, proportional to the scene extent), loss
+0.8·L1 + 0.2·(1 − SSIM), SH degree raised over time, and adaptive density control (clone small
+Gaussians with a large view-space positional gradient, split large ones, prune transparent and
+oversized ones, reset opacities periodically). Every Gaussian carries a persistent id and the id
+of its nearest ancestor alive at the previous stage boundary; at each boundary every live
+Gaussian is snapshotted into a `Lineage`.
+
+Output directory: stage_<s>.ply (with int64 extras `gvae_id`, `gvae_parent`), lineage.npz,
+log.json (one object per stage) and run.json (configuration and resume state). A run that was
+interrupted resumes after its last finished stage; stages are seeded independently, so a resumed
+run gives the same result as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import resource
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from .camera import Camera
+from .cloud import SH_C0, SH_REST_COUNTS, GaussianCloud
+from .datasets import Views, load_nerf_synthetic
+from .lineage import Lineage, scene_normalization
+from .losses import photometric_loss, psnr
+
+#: Profiles: overrides of the `TrainConfig` defaults. `default` is the benchmark profile.
+PROFILES: dict[str, dict[str, Any]] = {
+    "tiny": dict(resolutions=(32, 48, 64), iterations=(200, 150, 150), init_count=2000,
+                 max_gaussians=10_000, sh_degree=1),
+    "default": dict(),
+    "full": dict(resolutions=(100, 200, 400, 800), iterations=(7000, 7000, 7000, 30000),
+                 init="random", init_count=100_000, max_gaussians=None),
+}
+
+
+@dataclass
+class TrainConfig:
+    """Everything a progressive run depends on (JSON-serialisable; stored in run.json).
+
+    Schedules given in `reference_iterations` units (the reference 30k-iteration run) are scaled
+    to each stage's budget (see `stage_schedule`). `init`: "random" (the reference: uniform in
+    the scene bounds, grey) or "hull" (uniform random points kept only inside the visual hull of
+    the training alpha masks, coloured from the images: the default, as CPU budgets are small).
+    `max_screen_fraction` (None) would prune Gaussians whose radius exceeds that fraction of the
+    image height; the reference code's screen-size test never fires, so it is off by default."""
+
+    resolutions: tuple[int, ...] = (100, 150, 200)
+    iterations: tuple[int, ...] = (600, 400, 400)
+    # Learning rates of the reference 3DGS (positions: times the scene extent).
+    position_lr_init: float = 1.6e-4
+    position_lr_final: float = 1.6e-6
+    feature_lr: float = 2.5e-3
+    feature_rest_lr: float = 2.5e-3 / 20.0
+    opacity_lr: float = 0.05
+    scaling_lr: float = 5e-3
+    rotation_lr: float = 1e-3
+    lambda_dssim: float = 0.2
+    # Spherical harmonics: degree raised by one every `sh_interval` reference iterations.
+    sh_degree: int = 3
+    sh_interval: int = 1000
+    # Density control (reference values).
+    reference_iterations: int = 30_000
+    densify_from: int = 500
+    densify_until: int = 15_000
+    densify_every: int = 100
+    opacity_reset_every: int = 3000
+    min_densify_every: int = 25
+    min_opacity_reset_every: int = 300
+    densify_grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    prune_opacity: float = 0.005
+    max_world_size: float = 0.1
+    max_screen_fraction: float | None = None
+    reset_opacity_value: float = 0.01
+    max_gaussians: int | None = 50_000
+    # Data, initialisation, evaluation.
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    init: str = "hull"
+    init_count: int = 10_000
+    init_opacity: float = 0.1
+    train_eval_views: int = 10
+    test_eval_views: int | None = None
+    seed: int = 0
+
+    def __post_init__(self):
+        self.resolutions = tuple(int(r) for r in np.atleast_1d(self.resolutions))
+        its = tuple(int(i) for i in np.atleast_1d(self.iterations))
+        if len(its) == 1 and len(self.resolutions) > 1:
+            its = its * len(self.resolutions)
+        self.iterations = its
+        self.background = tuple(float(b) for b in self.background)
+        if not self.resolutions or any(r <= 0 for r in self.resolutions):
+            raise ValueError(f"TrainConfig.resolutions must be positive image heights, got {self.resolutions}")
+        if len(self.iterations) != len(self.resolutions) or any(i < 0 for i in self.iterations):
+            raise ValueError(f"TrainConfig.iterations must be one count >= 0 or one per stage "
+                             f"({len(self.resolutions)}), got {self.iterations}")
+        if self.sh_degree not in SH_REST_COUNTS:
+            raise ValueError(f"TrainConfig.sh_degree must be 0..3, got {self.sh_degree}")
+        if self.init not in ("random", "hull"):
+            raise ValueError(f"TrainConfig.init must be 'random' or 'hull', got {self.init!r}")
+        if len(self.background) != 3:
+            raise ValueError(f"TrainConfig.background must be 3 values, got {self.background}")
+
+    @classmethod
+    def profile(cls, name: str = "default", **overrides) -> "TrainConfig":
+        """A named profile (`tiny`, `default`, `full`) with some fields overridden."""
+        if name not in PROFILES:
+            raise ValueError(f"unknown training profile {name!r}; choose from {sorted(PROFILES)}")
+        values = {**PROFILES[name], **{k: v for k, v in overrides.items() if v is not None}}
+        return cls(**values)
+
+    def to_dict(self) -> dict[str, Any]:
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    def sh_degree_at(self, iteration: int) -> int:
+        """Active SH degree at an iteration of the whole run: one more every `sh_interval`
+        reference iterations, scaled like the other schedules (to the whole run's budget)."""
+        every = max(1, round(self.sh_interval * sum(self.iterations) / self.reference_iterations))
+        return min(self.sh_degree, iteration // every)
+
+    def stage_schedule(self, stage: int) -> dict[str, int]:
+        """Iteration schedule of one stage: the reference schedule times iterations/30000, with
+        floors on the densification and opacity-reset intervals (a too-short interval would
+        leave no time to average gradients or to recover from a reset)."""
+        n = self.iterations[stage]
+        f = n / self.reference_iterations
+        every = max(self.min_densify_every, round(self.densify_every * f))
+        return dict(
+            iterations=n,
+            densify_every=every,
+            densify_from=max(every, round(self.densify_from * f)),
+            densify_until=round(self.densify_until * f),
+            opacity_reset_every=max(self.min_opacity_reset_every, round(self.opacity_reset_every * f)),
+        )
+
+
+@dataclass
+class TrainResult:
+    """The final cloud (numpy, with int64 extras `gvae_id`, `gvae_parent`), the lineage of every
+    stage, the per-stage log, and where things were written (None without `out_dir`)."""
+
+    cloud: GaussianCloud
+    lineage: Lineage
+    log: list[dict[str, Any]]
+    out_dir: Path | None = None
+    stage_paths: list[Path] = field(default_factory=list)
+
+
+# ------------------------------------------------------------------ data
+
+def make_view_source(data, test=None) -> Callable[[str, int], Any]:
+    """A function (split, height) -> views or None, from a NeRF-Synthetic folder, a callable
+    of that form, or in-memory views (resampled to each height; `test` views likewise)."""
+    if isinstance(data, (str, os.PathLike)):
+        root = Path(data)
+        if not root.is_dir():
+            raise FileNotFoundError(f"{root}: scene directory not found")
+        if not (root / "transforms_train.json").is_file():
+            raise ValueError(f"{root}: not a NeRF-Synthetic scene (no transforms_train.json)")
+        def source(split: str, height: int):
+            if split == "test" and not (root / "transforms_test.json").is_file():
+                return None
+            return load_nerf_synthetic(root, split, resolution=height)
+
+        return source
+    if callable(data):
+        return data
+    if not isinstance(data, Views) or not (test is None or isinstance(test, Views)):
+        raise ValueError("train_progressive: data must be a scene directory, a (split, height) -> "
+                         "views function or gvae_core.datasets.Views")
+    splits = {"train": data, "test": test}
+
+    def source(split: str, height: int):
+        v = splits.get(split)
+        return None if v is None else v.at_resolution(height)
+
+    return source
+
+
+# ------------------------------------------------------------------ geometry helpers
+
+def scene_extent(cameras: list[Camera]) -> tuple[np.ndarray, float]:
+    """The reference's camera normalisation: centre of the camera centres and 1.1 x the largest
+    distance from it (the scale of positional learning rates and of densification)."""
+    centers = np.stack([c.center for c in cameras])
+    mid = centers.mean(0)
+    radius = 1.1 * float(np.linalg.norm(centers - mid, axis=1).max())
+    if radius < 1e-9:  # one camera: use its distance to the point it looks at
+        radius = 1.1 * float(np.linalg.norm(_look_target(cameras) - centers[0])) or 1.0
+    return mid, radius
+
+
+def _look_target(cameras: list[Camera]) -> np.ndarray:
+    """Least-squares point nearest to every optical axis (where the cameras look)."""
+    a, b = np.zeros((3, 3)), np.zeros(3)
+    for c in cameras:
+        d = c.rotation[2]  # camera +z axis in world coordinates
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ c.center
+    if np.linalg.cond(a) > 1e8:  # all axes parallel: a point in front of the cameras
+        return np.mean([c.center + 3.0 * c.rotation[2] for c in cameras], 0)
+    return np.linalg.solve(a, b)
+
+
+def initial_bounds(cameras: list[Camera]) -> tuple[np.ndarray, float]:
+    """Centre and half-size of a cube every camera sees: around where the optical axes meet,
+    as large as the sphere that fits in the narrowest view (1.3 for NeRF-Synthetic, whose
+    random initialisation the reference draws from [-1.3, 1.3]^3)."""
+    target = _look_target(cameras)
+    half = min(float(np.linalg.norm(c.center - target)) * math.sin(0.5 * min(c.fov_x, c.fov_y))
+               for c in cameras)
+    return target, max(half, 1e-6)
+
+
+def hull_points(views, count: int, rng: np.random.Generator, threshold: float = 0.1,
+                max_rounds: int = 8) -> np.ndarray:
+    """Up to `count` random points of `initial_bounds` inside the visual hull of the views'
+    alpha masks (a point is carved away when a view that sees it has alpha <= threshold there),
+    with the mean colour of the pixels they project to: (M,6) xyz + RGB."""
+    center, half = initial_bounds(views.cameras)
+    found, total, rate = [], 0, 0.05
+    for _ in range(max_rounds):
+        m = int(min(max(1.3 * (count - total) / rate, 1000), 2_000_000))
+        cand = center + (rng.random((m, 3)) * 2.0 - 1.0) * half
+        rgb_sum = np.zeros((m, 3))
+        seen = np.zeros(m)
+        alive = np.arange(m)
+        for cam, img, alpha in zip(views.cameras, views.images, views.alphas):
+            uv, z = cam.project(cand[alive])
+            with np.errstate(invalid="ignore"):
+                col, row = np.floor(uv[:, 0]), np.floor(uv[:, 1])
+                inside = (z > 0) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+            r, c = row[inside].astype(np.int64), col[inside].astype(np.int64)
+            idx = alive[inside]
+            rgb_sum[idx] += img[r, c]
+            seen[idx] += 1
+            carved = np.zeros(len(alive), bool)
+            carved[np.flatnonzero(inside)[alpha[r, c] <= threshold]] = True
+            alive = alive[~carved]
+        alive = alive[seen[alive] > 0]
+        rate = max(len(alive) / m, 1e-4)
+        found.append(np.concatenate([cand[alive], rgb_sum[alive] / seen[alive, None]], 1))
+        total += len(alive)
+        if total >= count:
+            break
+    return np.concatenate(found)[:count]
+
+
+def initial_cloud(cameras: list[Camera], config: TrainConfig, rng: np.random.Generator,
+                  points=None) -> GaussianCloud:
+    """The reference initialisation: `points` ((N,3), or (N,6) with RGB in [0,1]) or
+    `init_count` uniform random points in `initial_bounds`, nearly grey; isotropic scales from
+    the mean squared distance to the 3 nearest neighbours; identity rotations; opacity 0.1."""
+    from scipy.spatial import cKDTree  # noqa: PLC0415
+
+    if points is not None and len(points) == 0:
+        points = None  # e.g. an empty visual hull: fall back to random points
+    if points is None:
+        center, half = initial_bounds(cameras)
+        xyz = center + (rng.random((config.init_count, 3)) * 2.0 - 1.0) * half
+        dc = rng.random((len(xyz), 3)) / 255.0  # the reference's near-zero random SH DC
+    else:
+        pts = np.asarray(points, np.float64)
+        if pts.ndim != 2 or pts.shape[1] not in (3, 6) or len(pts) == 0 or not np.isfinite(pts).all():
+            raise ValueError(f"initial points must be a finite (N,3) or (N,6) array, got shape {pts.shape}")
+        xyz = pts[:, :3]
+        dc = (pts[:, 3:6] - 0.5) / SH_C0 if pts.shape[1] == 6 else np.zeros((len(pts), 3))
+    n = len(xyz)
+    k = min(4, n)
+    if k > 1:
+        dist, _ = cKDTree(xyz).query(xyz, k=k)
+        d2 = np.maximum(np.mean(dist[:, 1:] ** 2, axis=1), 1e-7)
+    else:
+        d2 = np.full(n, 1e-2)
+    logit = math.log(config.init_opacity / (1.0 - config.init_opacity))
+    return GaussianCloud(
+        means=xyz.astype(np.float32),
+        scales=np.repeat(0.5 * np.log(d2)[:, None], 3, 1).astype(np.float32),
+        quats=np.tile(np.array([1.0, 0, 0, 0], np.float32), (n, 1)),
+        opacities=np.full(n, logit, np.float32),
+        sh_dc=dc.astype(np.float32),
+        sh_rest=np.zeros((n, SH_REST_COUNTS[config.sh_degree], 3), np.float32),
+    )
+
+
+# ------------------------------------------------------------------ the model
+
+_GROUPS = ("means", "sh_dc", "sh_rest", "opacities", "scales", "quats")
+
+
+class GaussianModel:
+    """Trainable Gaussians: leaf tensors per parameter, one Adam group each (state extended and
+    pruned with the Gaussians), lineage ids and stage anchors, densification statistics."""
+
+    def __init__(self, cloud: GaussianCloud, ids, parents, config: TrainConfig, extent: float,
+                 next_id: int):
+        c = cloud.to_torch(dtype=torch.float32)
+        self.params = {name: getattr(c, name).detach().clone().requires_grad_(True) for name in _GROUPS}
+        self.ids = torch.as_tensor(np.asarray(ids), dtype=torch.int64).clone()
+        self.parents = torch.as_tensor(np.asarray(parents), dtype=torch.int64).clone()
+        self.next_id = int(next_id)
+        self.config = config
+        self.extent = float(extent)
+        lrs = {"means": config.position_lr_init * extent, "sh_dc": config.feature_lr,
+               "sh_rest": config.feature_rest_lr, "opacities": config.opacity_lr,
+               "scales": config.scaling_lr, "quats": config.rotation_lr}
+        self.optimizer = torch.optim.Adam(
+            [{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in _GROUPS], lr=0.0, eps=1e-15)
+        self.reset_stats()
+
+    def __len__(self) -> int:
+        return int(self.params["means"].shape[0])
+
+    def cloud(self) -> GaussianCloud:
+        """The Gaussians as a torch cloud sharing the trainable tensors."""
+        return GaussianCloud(**self.params)
+
+    def snapshot(self) -> GaussianCloud:
+        """A detached numpy copy with int64 extras `gvae_id` and `gvae_parent`."""
+        c = GaussianCloud(**{n: p.detach() for n, p in self.params.items()}).numpy().copy()
+        return c.replace(extra={"gvae_id": self.ids.numpy().copy(), "gvae_parent": self.parents.numpy().copy()})
+
+    def reset_stats(self) -> None:
+        n = len(self)
+        self.grad_accum = torch.zeros(n)
+        self.grad_count = torch.zeros(n)
+        self.max_radii = torch.zeros(n)
+
+    def set_position_lr(self, lr: float) -> None:
+        self.optimizer.param_groups[_GROUPS.index("means")]["lr"] = lr
+
+    # ------------------------------------------------------------ statistics
+    def add_stats(self, means2d_grad: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor,
+                  width: int, height: int) -> None:
+        """Accumulate the view-space positional gradient norm in NDC units (pixel gradient times
+        half the image size, as the reference's 0.0002 threshold expects)."""
+        g = means2d_grad.detach()[:, :2] * g_scale(width, height)
+        norm = g.norm(dim=-1)
+        self.grad_accum += torch.where(visible, norm, torch.zeros_like(norm))
+        self.grad_count += visible.float()
+        self.max_radii = torch.where(visible, torch.maximum(self.max_radii, radii.float()), self.max_radii)
+
+    # ------------------------------------------------------------ structure edits
+    def _edit(self, index: torch.Tensor, new: dict[str, torch.Tensor] | None) -> None:
+        """Keep rows `index` (long) of every parameter and its Adam moments, then append `new`
+        parameter rows with zero moments."""
+        for gi, name in enumerate(_GROUPS):
+            group = self.optimizer.param_groups[gi]
+            old = group["params"][0]
+            kept = old.detach()[index]
+            extra = new[name].detach() if new is not None else kept[:0]
+            param = torch.cat([kept, extra], 0).requires_grad_(True)
+            state = self.optimizer.state.pop(old, None)
+            if state:
+                for key in ("exp_avg", "exp_avg_sq"):
+                    s = state[key][index]
+                    state[key] = torch.cat([s, torch.zeros((len(extra),) + tuple(s.shape[1:]), dtype=s.dtype)], 0)
+                self.optimizer.state[param] = state
+            group["params"][0] = param
+            self.params[name] = param
+
+    def append(self, new: dict[str, torch.Tensor], source_rows: torch.Tensor) -> None:
+        """Add Gaussians born from rows `source_rows`: fresh ids, the source's stage anchor."""
+        n_new = len(source_rows)
+        new_ids = torch.arange(self.next_id, self.next_id + n_new, dtype=torch.int64)
+        self.next_id += n_new
+        parents = self.parents[source_rows]
+        self._edit(torch.arange(len(self)), new)
+        self.ids = torch.cat([self.ids, new_ids])
+        self.parents = torch.cat([self.parents, parents])
+        z = torch.zeros(n_new)
+        self.grad_accum, self.grad_count = torch.cat([self.grad_accum, z]), torch.cat([self.grad_count, z])
+        self.max_radii = torch.cat([self.max_radii, z])
+
+    def keep(self, mask: torch.Tensor) -> None:
+        index = torch.nonzero(mask).flatten()
+        self._edit(index, None)
+        self.ids, self.parents = self.ids[index], self.parents[index]
+        self.grad_accum, self.grad_count = self.grad_accum[index], self.grad_count[index]
+        self.max_radii = self.max_radii[index]
+
+    def clone(self, mask: torch.Tensor) -> int:
+        """Copy the selected Gaussians (the reference's clone: same parameters)."""
+        rows = torch.nonzero(mask).flatten()
+        if len(rows):
+            self.append({n: p.detach()[rows] for n, p in self.params.items()}, rows)
+        return len(rows)
+
+    def split(self, mask: torch.Tensor, generator: torch.Generator, n_children: int = 2) -> int:
+        """Replace each selected Gaussian by `n_children` with positions sampled from it and
+        scales divided by 0.8·n_children (1.6 for two)."""
+        rows = torch.nonzero(mask).flatten()
+        if not len(rows):
+            return 0
+        p = {n: t.detach() for n, t in self.params.items()}
+        src = rows.repeat(n_children)
+        stds = torch.exp(p["scales"][src].clamp(-30, 30))
+        samples = torch.randn(stds.shape, generator=generator) * stds
+        rot = self.cloud().detach().select(src).rotation_matrices()
+        new = {n: t[src] for n, t in p.items()}
+        new["means"] = p["means"][src] + (rot @ samples[:, :, None])[:, :, 0]
+        new["scales"] = torch.log(stds / (0.8 * n_children))
+        n_before = len(self)
+        self.append(new, src)
+        keep = torch.ones(len(self), dtype=torch.bool)
+        keep[rows] = False
+        self.keep(keep)
+        return len(rows)
+
+    def reset_opacity(self, value: float) -> None:
+        """Opacities above `value` come down to it; their Adam moments restart."""
+        logit = math.log(value / (1.0 - value))
+        gi = _GROUPS.index("opacities")
+        old = self.params["opacities"]
+        new = torch.minimum(old.detach(), torch.tensor(logit)).requires_grad_(True)
+        state = self.optimizer.state.pop(old, None)
+        if state:
+            state["exp_avg"] = torch.zeros_like(state["exp_avg"])
+            state["exp_avg_sq"] = torch.zeros_like(state["exp_avg_sq"])
+            self.optimizer.state[new] = state
+        self.optimizer.param_groups[gi]["params"][0] = new
+        self.params["opacities"] = new
+
+    def densify_and_prune(self, generator: torch.Generator, *, prune_large: bool, image_height: int) -> dict[str, int]:
+        """One round of the reference's adaptive density control; returns what it did."""
+        cfg = self.config
+        grads = self.grad_accum / self.grad_count.clamp(min=1.0)
+        scale_max = torch.exp(self.params["scales"].detach().clamp(-30, 30)).max(1).values
+        high = grads >= cfg.densify_grad_threshold
+        large = scale_max > cfg.percent_dense * self.extent
+        clone_mask, split_mask = high & ~large, high & large
+        if cfg.max_gaussians is not None:
+            room = max(cfg.max_gaussians - len(self), 0)
+            cand = clone_mask | split_mask
+            if int(cand.sum()) > room:  # keep the highest gradients that fit
+                score = torch.where(cand, grads, torch.full_like(grads, -1.0))
+                chosen = torch.zeros_like(cand)
+                if room:
+                    chosen[torch.topk(score, room).indices] = True
+                clone_mask, split_mask = clone_mask & chosen, split_mask & chosen
+        n_clone = self.clone(clone_mask)
+        pad = torch.zeros(len(self) - len(split_mask), dtype=torch.bool)
+        n_split = self.split(torch.cat([split_mask, pad]), generator)
+        prune = torch.sigmoid(self.params["opacities"].detach()) < cfg.prune_opacity
+        if prune_large:
+            scale_max = torch.exp(self.params["scales"].detach().clamp(-30, 30)).max(1).values
+            prune |= scale_max > cfg.max_world_size * self.extent
+            if cfg.max_screen_fraction is not None:
+                prune |= self.max_radii > cfg.max_screen_fraction * image_height
+        if bool(prune.all()):  # never prune everything away
+            prune[torch.argmax(self.params["opacities"].detach())] = False
+        self.keep(~prune)
+        self.reset_stats()
+        return {"cloned": n_clone, "split": n_split, "pruned": int(prune.sum())}
+
+
+def g_scale(width: int, height: int) -> torch.Tensor:
+    """Pixel-to-NDC factor of screen-space gradients: d(ndc)/d(pixel) = 2/size, so a gradient
+    with respect to pixels times size/2 is the gradient with respect to NDC."""
+    return torch.tensor([0.5 * width, 0.5 * height])
+
+
+def position_lr(config: TrainConfig, extent: float, step: int, total: int) -> float:
+    """Exponential (log-linear) decay from position_lr_init to position_lr_final, times extent."""
+    t = min(max(step / max(total, 1), 0.0), 1.0)
+    lr0, lr1 = config.position_lr_init, config.position_lr_final
+    return extent * math.exp((1 - t) * math.log(lr0) + t * math.log(lr1))
+
+
+# ------------------------------------------------------------------ memory
+
+def _reset_peak_rss() -> bool:
+    """Reset the kernel's peak-RSS counter of this process (Linux); False where impossible."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _current_rss_mb() -> float:
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+    except (OSError, ValueError, IndexError):
+        return float("nan")
+
+
+def _peak_rss_mb() -> float:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+# ------------------------------------------------------------------ training
+
+def _render_fn():
+    from .render import render  # noqa: PLC0415 - the renderer is optional until training
+
+    return render
+
+
+def _targets(views, background) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(views.composite(background)))
+
+
+def evaluate_psnr(cloud: GaussianCloud, views, background, sh_degree: int, max_views: int | None = None) -> float:
+    """Mean PSNR over (up to `max_views` evenly spaced) views, images composited on background."""
+    if views is None or len(views) == 0:
+        return float("nan")
+    render = _render_fn()
+    n = len(views)
+    pick = range(n) if max_views is None or max_views >= n else np.linspace(0, n - 1, max_views).round().astype(int)
+    targets = views.composite(background)
+    values = []
+    with torch.no_grad():
+        for i in pick:
+            out = render(cloud, views.cameras[i], background=background, sh_degree=sh_degree)
+            values.append(min(psnr(out.image.clamp(0, 1), targets[i]), 100.0))
+    return float(np.mean(values))
+
+
+def _write_json(path: Path, obj) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=2), encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _load_resume(out_dir: Path, config: TrainConfig):
+    """(lineage, log, next_id) of the finished stages of an earlier run in `out_dir`, or None."""
+    run_path = out_dir / "run.json"
+    if not run_path.is_file():
+        return None
+    try:
+        run = json.loads(run_path.read_text(encoding="utf-8"))
+        saved_config, done, next_id = run["config"], int(run["stages_done"]), int(run["next_id"])
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{run_path}: not a training run state file ({exc})") from None
+    if saved_config != config.to_dict():
+        diff = sorted(k for k in set(saved_config) | set(config.to_dict())
+                      if saved_config.get(k) != config.to_dict().get(k))
+        raise ValueError(f"{out_dir}: holds a run with a different configuration ({', '.join(diff)}); "
+                         "use another output directory or resume=False")
+    if done == 0:
+        return None
+    lineage = Lineage.load(out_dir / "lineage.npz")
+    log = json.loads((out_dir / "log.json").read_text(encoding="utf-8"))
+    if lineage.n_stages < done or len(log) < done:
+        raise ValueError(f"{out_dir}: run.json says {done} stage(s) are done but lineage.npz has "
+                         f"{lineage.n_stages} and log.json {len(log)}")
+    trimmed = Lineage(lineage.center, lineage.scale)
+    for s in range(done):
+        snap = lineage.snapshots[s]
+        trimmed.add_stage(snap.cloud, snap.ids, snap.parents, lineage.resolutions[s])
+    return trimmed, log[:done], next_id
+
+
+def train_progressive(data, config: TrainConfig | None = None, *, out_dir=None, test=None,
+                      init_points=None, resume: bool = True, progress: bool = True,
+                      threads: int | None = None) -> TrainResult:
+    """Train 3DGS coarse-to-fine over `config.resolutions`, recording lineages.
+
+    `data`: a NeRF-Synthetic scene directory, in-memory views (cameras, images, alphas; with
+    optional `test` views), or a function (split, height) -> views. `init_points`: optional
+    (N,3)/(N,6) initial points instead of random ones. With `out_dir`, stage PLYs, lineage.npz,
+    log.json and run.json are written there after every stage and an interrupted run resumes
+    (unless `resume` is False, which starts over). `threads`: torch CPU threads while training
+    (restored afterwards); on a busy machine 1 is often much faster than oversubscribing."""
+    previous_threads = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(max(1, int(threads)))
+    try:
+        return _train(data, config or TrainConfig(), out_dir, test, init_points, resume, progress)
+    finally:
+        torch.set_num_threads(previous_threads)
+
+
+def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, progress: bool) -> TrainResult:
+    source = make_view_source(data, test)
+    render = _render_fn()
+    out = Path(out_dir) if out_dir is not None else None
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        if not resume and (out / "run.json").exists():
+            (out / "run.json").unlink()
+
+    state = _load_resume(out, config) if out is not None else None
+    lineage, log, next_id = state if state else (Lineage(), [], 0)
+    first_stage = lineage.n_stages
+    stage_paths = [out / f"stage_{s}.ply" for s in range(first_stage)] if out is not None else []
+    bg = config.background
+    model: GaussianModel | None = None
+    global_iter = sum(config.iterations[:first_stage])
+
+    for s in range(first_stage, len(config.resolutions)):
+        height = config.resolutions[s]
+        train_views = source("train", height)
+        if train_views is None or len(train_views) == 0:
+            raise ValueError("train_progressive: no training views")
+        _, extent = scene_extent(train_views.cameras)
+        rng = np.random.default_rng([config.seed, s])
+        gen = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
+        if s == 0:
+            init_rng = np.random.default_rng([config.seed, 1_000_003])
+            if init_points is None and config.init == "hull":
+                init_points = hull_points(train_views, config.init_count, init_rng)
+            cloud = initial_cloud(train_views.cameras, config, init_rng, init_points)
+            ids, parents = np.arange(len(cloud), dtype=np.int64), np.full(len(cloud), -1, np.int64)
+            next_id = len(cloud)
+        else:
+            snap = lineage.snapshots[-1]
+            cloud, ids, parents = snap.cloud, snap.ids, snap.ids  # survivors are their own anchors
+        model = GaussianModel(cloud, ids, parents, config, extent, next_id)
+        sched = config.stage_schedule(s)
+        targets = _targets(train_views, bg)
+        cams = train_views.cameras
+        n_iter = sched["iterations"]
+        counts = {"cloned": 0, "split": 0, "pruned": 0}
+        reset_ok = _reset_peak_rss()
+        rss_before = _peak_rss_mb()
+        rss_start = _current_rss_mb()
+        order: list[int] = []
+        bar = _progress_bar(n_iter, f"stage {s + 1}/{len(config.resolutions)} {height}px", progress)
+        t0 = time.perf_counter()
+        for it in range(1, n_iter + 1):
+            model.set_position_lr(position_lr(config, extent, it - 1, n_iter))
+            degree = config.sh_degree_at(global_iter)
+            if not order:
+                order = list(rng.permutation(len(cams)))
+            v = int(order.pop())
+            result = render(model.cloud(), cams[v], background=bg, sh_degree=degree)
+            means2d = result.means2d
+            if means2d.requires_grad:
+                means2d.retain_grad()
+            loss = photometric_loss(result.image, targets[v], config.lambda_dssim)
+            loss.backward()
+            with torch.no_grad():
+                grad2d = means2d.grad if means2d.grad is not None else torch.zeros_like(means2d)
+                model.add_stats(grad2d, result.visible, result.radii, cams[v].width, cams[v].height)
+                model.optimizer.step()
+                model.optimizer.zero_grad(set_to_none=True)
+                if sched["densify_from"] <= it <= sched["densify_until"]:
+                    if it % sched["densify_every"] == 0 and it < n_iter:
+                        done = model.densify_and_prune(gen, prune_large=it > sched["opacity_reset_every"],
+                                                       image_height=height)
+                        for k in counts:
+                            counts[k] += done[k]
+                    if it % sched["opacity_reset_every"] == 0 and it < sched["densify_until"]:
+                        model.reset_opacity(config.reset_opacity_value)
+            global_iter += 1
+            if bar is not None and (it % 10 == 0 or it == n_iter):
+                mse = float(((result.image.detach() - targets[v]) ** 2).mean())
+                bar.set_postfix(loss=f"{float(loss):.4f}", psnr=f"{-10 * math.log10(max(mse, 1e-10)):.2f}",
+                                n=len(model))
+                bar.update(10 if it % 10 == 0 else it % 10)
+        seconds = time.perf_counter() - t0
+        if bar is not None:
+            bar.close()
+        peak = _peak_rss_mb() if reset_ok else max(_peak_rss_mb(), rss_before)
+
+        snap_cloud = model.snapshot()
+        ids_np, parents_np = snap_cloud.extra["gvae_id"], snap_cloud.extra["gvae_parent"]
+        lineage.add_stage(snap_cloud.replace(extra={}), ids_np, parents_np, height)
+        lineage.set_normalization(*scene_normalization(snap_cloud.means))
+        next_id = model.next_id
+        degree = config.sh_degree_at(global_iter)
+        torch_cloud = snap_cloud.replace(extra={}).to_torch()
+        t1 = time.perf_counter()
+        train_psnr = evaluate_psnr(torch_cloud, train_views, bg, degree, config.train_eval_views)
+        test_psnr = evaluate_psnr(torch_cloud, source("test", height), bg, degree, config.test_eval_views)
+        entry = {"stage": s, "resolution": height, "iterations": n_iter, "seconds": round(seconds, 3),
+                 "seconds_per_iteration": round(seconds / max(n_iter, 1), 5),
+                 "n_gaussians": len(snap_cloud), "train_psnr": round(train_psnr, 4),
+                 "test_psnr": None if math.isnan(test_psnr) else round(test_psnr, 4),
+                 "peak_rss_mb": round(peak, 1), "rss_start_mb": round(rss_start, 1), "peak_rss_exact": reset_ok, "sh_degree": degree,
+                 "eval_seconds": round(time.perf_counter() - t1, 3), "next_id": next_id, **counts}
+        log.append(entry)
+        if out is not None:
+            from .ply import write_ply  # noqa: PLC0415
+
+            stage_paths.append(write_ply(snap_cloud, out / f"stage_{s}.ply"))
+            lineage.save(out / "lineage.npz")
+            _write_json(out / "log.json", log)
+            _write_json(out / "run.json", {"config": config.to_dict(), "stages_done": s + 1,
+                                           "next_id": next_id})
+
+    final = lineage.stage_cloud(lineage.n_stages - 1)
+    return TrainResult(final, lineage, log, out, stage_paths)
+
+
+def _progress_bar(total: int, desc: str, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm import tqdm  # noqa: PLC0415
+
+    return tqdm(total=total, desc=desc, leave=True, dynamic_ncols=True)
