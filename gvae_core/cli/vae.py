@@ -1,0 +1,150 @@
+"""`gvae fit-vae RUN_DIR... --out MODEL_DIR` and `gvae refine IN.ply OUT.ply --steps K [--budget B]`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "fit-vae", help="train the geometry and appearance lineage VAEs from training runs",
+        description="Train both lineage VAEs on the stage transitions of one or more progressive "
+        "training runs (each RUN_DIR holds the lineage.npz that `gvae train` writes; a path to a "
+        ".npz works too) and save them to MODEL_DIR as safetensors weights plus config.json.")
+    p.add_argument("runs", nargs="*", type=Path, metavar="RUN_DIR", help="training runs to learn from")
+    p.add_argument("--out", type=Path, required=True, metavar="MODEL_DIR", help="where to save the model")
+    p.add_argument("--holdout", nargs="*", type=Path, default=[], metavar="RUN_DIR",
+                   help="runs kept out of training, evaluated after it (written into config.json)")
+    p.add_argument("--synthetic", type=int, default=0, metavar="N",
+                   help="also train on N synthetic lineages per stage (for a start without runs)")
+    p.add_argument("--steps", type=int, default=3000, help="optimiser steps (default: %(default)s)")
+    p.add_argument("--batch", type=int, default=256, help="lineages per step (default: %(default)s)")
+    p.add_argument("--lr", type=float, default=2e-3, help="peak learning rate (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_fit)
+
+    r = subparsers.add_parser(
+        "refine", help="refine a 3DGS PLY past its training resolution",
+        description="Score the Gaussians (Hessian), pick the budget's share and run the lineage VAEs "
+        "for K sequential steps; write the refined PLY (input Gaussians first, then the added ones).")
+    r.add_argument("input", type=Path, metavar="IN.ply")
+    r.add_argument("output", type=Path, metavar="OUT.ply")
+    r.add_argument("--steps", type=int, default=1, help="sequential refinement steps, 1..4 (default: 1)")
+    r.add_argument("--budget", default="auto",
+                   help="'all', 'auto' (from the score distribution), a fraction (0.1 or 10%%) or a count "
+                   "(default: auto)")
+    r.add_argument("--model", type=Path, default=None, help="model directory (default: the bundled one)")
+    r.add_argument("--lineage", type=Path, default=None,
+                   help="lineage.npz of the run whose last stage is IN.ply (default: one-node lineages)")
+    r.add_argument("--views", type=int, default=4, help="views around the cloud for the Hessian")
+    r.add_argument("--probes", type=int, default=4, help="random probes per view for the Hessian")
+    r.add_argument("--resolution", type=int, default=96, help="Hessian view height in pixels")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--sanitize", action="store_true", help="drop non-finite Gaussians of IN.ply first")
+    r.set_defaults(func=run_refine)
+
+
+def _lineage_path(run: Path) -> Path:
+    path = run / "lineage.npz" if run.is_dir() else run
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no lineage file (expected RUN_DIR/lineage.npz from `gvae train`)")
+    return path
+
+
+def load_runs(runs: list[Path], slots: int = 4):
+    """Transitions of every run, each tagged with its run directory."""
+    from ..lineage import Lineage  # noqa: PLC0415
+    from ..vae import lineage_transitions  # noqa: PLC0415
+
+    out = []
+    for run in runs:
+        path = _lineage_path(run)
+        lin = Lineage.load(path)
+        if lin.n_stages < 2:
+            raise ValueError(f"{path}: needs at least two stages to learn transitions, has {lin.n_stages}")
+        out += lineage_transitions(lin, source=str(run), max_children=slots)
+    return out
+
+
+def run_fit(args: argparse.Namespace) -> int:
+    from ..vae import FitConfig, GaussianVAE, copy_parent_baseline, evaluate, fit, synthetic_transitions  # noqa: PLC0415
+
+    if not args.runs and args.synthetic <= 0:
+        raise ValueError("fit-vae: give at least one RUN_DIR (or --synthetic N)")
+    model = GaussianVAE.create(seed=args.seed)
+    train = load_runs(args.runs, model.slots)
+    for run in args.holdout:  # fail early on a missing held-out run; they are read after training
+        if not (run.is_file() or run.is_dir()):
+            raise FileNotFoundError(f"{run}: held-out run not found")
+    if args.synthetic > 0:
+        train += synthetic_transitions(args.synthetic, 4, seed=args.seed)
+    n_lineages = sum(len(t) for t in train)
+    print(f"training on {len(train)} transitions, {n_lineages} lineages "
+          f"({len(args.runs)} run(s){', + synthetic' if args.synthetic > 0 else ''}); "
+          f"{len(args.holdout)} held-out run(s)")
+    config = FitConfig(steps=args.steps, batch=args.batch, lr=args.lr, seed=args.seed)
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm  # noqa: PLC0415
+
+        bar = tqdm(total=config.steps, desc="fit-vae", unit="step")
+
+    def progress(step: int, total: int, record: dict) -> None:
+        if bar is not None:
+            bar.update(1)
+            if step % 50 == 0 or step == total:
+                bar.set_postfix(loss=f"{record['total']:.4g}", mse=f"{record['mse']:.3g}",
+                                pos=f"{record['position_rmse']:.3g}")
+
+    result = fit(train, config, model=model, progress=progress)
+    if bar is not None:
+        bar.close()
+    model = result.model
+    t0 = time.perf_counter()
+    metrics = {"train": evaluate(model, train)}
+    held = load_runs(args.holdout, model.slots)
+    if held:
+        metrics["holdout"] = evaluate(model, held)
+        metrics["holdout_copy_parent"] = copy_parent_baseline(held)
+    # Existence probabilities at refinement: the source most accurate on held-out runs (else training).
+    judge = metrics.get("holdout", metrics["train"])
+    existence = max((("geometry", judge["exist_accuracy"]), ("appearance", judge["exist_accuracy_appearance"]),
+                     ("combined", judge["exist_accuracy_combined"])), key=lambda kv: kv[1])[0]
+    model.meta = {
+        "existence": existence,
+        "trained_on": [str(r) for r in args.runs] + (["synthetic"] if args.synthetic > 0 else []),
+        "held_out": [str(r) for r in args.holdout], "lineages": n_lineages, "steps": config.steps,
+        "seed": args.seed, "seconds": round(result.seconds, 1), "metrics": metrics,
+    }
+    model.save(args.out)
+    sizes = model.sizes()
+    print(f"existence probabilities from: {existence}")
+    print(f"trained in {result.seconds:.1f} s (+{time.perf_counter() - t0:.1f} s evaluation); saved to {args.out}: "
+          f"geometry {sizes['geometry'] / 1e6:.2f} MB, appearance {sizes['appearance'] / 1e6:.2f} MB")
+    for split, m in metrics.items():
+        print(f"  {split}: " + json.dumps({k: round(v, 4) for k, v in m.items()}))
+    return 0
+
+
+def run_refine(args: argparse.Namespace) -> int:
+    from ..lineage import Lineage  # noqa: PLC0415
+    from ..ply import read_ply, write_ply  # noqa: PLC0415
+    from ..refine import parse_budget, refine  # noqa: PLC0415
+
+    budget = parse_budget(args.budget)
+    t0 = time.perf_counter()
+    cloud = read_ply(args.input, sanitize=args.sanitize)
+    lineage = Lineage.load(args.lineage) if args.lineage is not None else None
+    t_read = time.perf_counter() - t0
+    result = refine(cloud, steps=args.steps, budget=budget, model=args.model, lineage=lineage, seed=args.seed,
+                    hessian_options={"views": args.views, "probes": args.probes, "resolution": args.resolution})
+    t0 = time.perf_counter()
+    write_ply(result.cloud, args.output)
+    print(f"read {args.input} in {t_read:.2f} s")
+    print(result.summary())
+    print(f"wrote {args.output} ({len(result.cloud)} Gaussians) in {time.perf_counter() - t0:.2f} s")
+    return 0

@@ -1,0 +1,308 @@
+"""Refinement past the training resolution (DESIGN.md step 5).
+
+Score the input Gaussians (Hessian), pick the budget's share, and run the lineage VAEs for
+`steps` sequential steps: each step extends every lineage selected so far by one stage. For a
+lineage, the existing slot nearest its last node updates that Gaussian in place; every other
+existing slot becomes a new Gaussian (appended after the input rows). Outputs are sanitised:
+finite, unit quaternions, log-scales and opacity logits inside finite ranges.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+
+from ._callable import make_module_callable
+from .camera import Camera
+from .cloud import EXTREME_LOG_SCALE, OPACITY_LOGIT_RANGE, GaussianCloud, normalize_quats
+
+AUTO_FRACTION_RANGE = (0.01, 0.5)
+OUTPUT_SH_LIMIT = 1e3
+
+
+@dataclass
+class RefineResult:
+    """The refined cloud (input rows first, in input order, then the added ones), which rows were
+    added, each added row's parent row in the input, the step that added it, the input's Hessian
+    scores, the input rows the budget selected, and seconds per part."""
+
+    cloud: GaussianCloud
+    added: np.ndarray
+    parents: np.ndarray
+    step: np.ndarray
+    scores: np.ndarray
+    selected: np.ndarray
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def n_input(self) -> int:
+        return len(self.cloud) - len(self.added)
+
+    def summary(self) -> str:
+        per_step = np.bincount(self.step, minlength=int(self.step.max(initial=0)) + 1)[1:]
+        times = ", ".join(f"{k} {v * 1e3:.1f} ms" for k, v in self.timings.items())
+        return (f"{self.n_input} Gaussians in, {len(self.selected)} selected, {len(self.added)} added "
+                f"(per step: {', '.join(str(int(c)) for c in per_step) or '-'}), {len(self.cloud)} out; {times}")
+
+
+def parse_budget(text: str) -> str | float | int:
+    """CLI budget: 'all', 'auto', a fraction ('0.1' or '10%') or a count ('5000')."""
+    t = str(text).strip().lower()
+    if t in ("all", "auto"):
+        return t
+    try:
+        if t.endswith("%"):
+            return float(t[:-1]) / 100.0
+        if any(ch in t for ch in ".e"):
+            return float(t)
+        return int(t)
+    except ValueError:
+        raise ValueError(f"budget must be 'all', 'auto', a fraction (0.1, 10%) or a count, got {text!r}") from None
+
+
+def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
+    """Otsu's threshold: the cut that maximises the between-class variance of a 1D histogram."""
+    v = np.asarray(values, np.float64)
+    lo, hi = float(v.min()), float(v.max())
+    if not hi > lo:
+        return hi
+    hist, edges = np.histogram(v, bins=bins, range=(lo, hi))
+    p = hist / hist.sum()
+    centers = 0.5 * (edges[:-1] + edges[1:])
+    w0 = np.cumsum(p)
+    m0 = np.cumsum(p * centers)
+    total = m0[-1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        between = (total * w0 - m0) ** 2 / (w0 * (1.0 - w0))
+    between[~np.isfinite(between)] = -1.0
+    return float(edges[int(np.argmax(between)) + 1])
+
+
+def select_budget(scores: np.ndarray, budget: Any) -> np.ndarray:
+    """Rows (ascending) to refine. 'all': every row; a float in (0, 1]: that fraction of the rows
+    with the highest scores; an int: that many; 'auto': the rows above Otsu's threshold of the
+    scores (the high-score class) that are also more than one robust standard deviation
+    (1.4826 MAD) above the median score, kept between 1% and 50% of the rows."""
+    n = len(scores)
+    order = np.argsort(-np.asarray(scores, np.float64), kind="stable")
+    if isinstance(budget, str):
+        if budget == "all":
+            return np.arange(n, dtype=np.int64)
+        if budget != "auto":
+            raise ValueError(f"budget must be 'all', 'auto', a fraction or a count, got {budget!r}")
+        if n == 0:
+            return np.zeros(0, np.int64)
+        v = np.asarray(scores, np.float64)
+        median = float(np.median(v))
+        robust = median + 1.4826 * float(np.median(np.abs(v - median)))  # robust z-score of 1
+        count = int((v > max(otsu_threshold(v), robust)).sum())
+        lo, hi = (math.ceil(f * n) for f in AUTO_FRACTION_RANGE)
+        count = min(max(count, lo), hi)
+    elif isinstance(budget, (bool, np.bool_)):
+        raise ValueError(f"budget must be 'all', 'auto', a fraction or a count, got {budget!r}")
+    elif isinstance(budget, (int, np.integer)):
+        if budget < 0:
+            raise ValueError(f"budget count must be >= 0, got {budget}")
+        count = min(int(budget), n)
+    elif isinstance(budget, (float, np.floating)):
+        if not 0.0 <= budget <= 1.0:
+            raise ValueError(f"budget fraction must be in [0, 1], got {budget}")
+        count = min(int(math.ceil(budget * n - 1e-9)), n)
+    else:
+        raise ValueError(f"budget must be 'all', 'auto', a fraction or a count, got {budget!r}")
+    return np.sort(order[:count]).astype(np.int64)
+
+
+def _initial_history(cloud: GaussianCloud, lineage: Any):
+    """Node features (M,T,11), (M,T,50) for every input row, and the normalisation. The last node
+    is always the input Gaussian itself; earlier nodes come from the lineage when given."""
+    from .lineage import Lineage, appearance_features, geometry_features  # noqa: PLC0415
+
+    if lineage is None:
+        lineage = Lineage.from_cloud(cloud)
+    center, scale = lineage.center, lineage.scale
+    geo = geometry_features(cloud, center, scale)[:, None]
+    app = appearance_features(cloud)[:, None]
+    if lineage.n_stages > 1:
+        seq = lineage.sequences(lineage.n_stages - 1)
+        ids = cloud.extra.get("gvae_id")
+        if ids is not None and len(ids) == len(cloud):
+            order = np.argsort(seq.ids, kind="stable")
+            ids = np.asarray(ids).astype(np.int64)
+            at = np.clip(np.searchsorted(seq.ids[order], ids), 0, max(len(order) - 1, 0))
+            rows = np.where(seq.ids[order][at] == ids, order[at], -1) if len(order) else np.full(len(ids), -1)
+            if (rows < 0).any():
+                raise ValueError(f"refine: {int((rows < 0).sum())} Gaussian id(s) of the cloud are not alive at the "
+                                 f"lineage's last stage")
+        elif len(seq) == len(cloud):
+            rows = np.arange(len(cloud))
+        else:
+            raise ValueError(f"refine: the lineage's last stage has {len(seq)} Gaussians but the cloud has "
+                             f"{len(cloud)} (and no gvae_id property to match them)")
+        geo = np.concatenate([seq.geometry[rows, :-1], geo], 1)
+        app = np.concatenate([seq.appearance[rows, :-1], app], 1)
+    return geo, app, np.asarray(center, np.float64), float(scale)
+
+
+def _sanitize_rows(geo: np.ndarray, app: np.ndarray, world_pos: np.ndarray, center, scale, sh_degree: int):
+    """Raw, finite, bounded parameters of predicted nodes. Positions come in world units (float64)."""
+    from .lineage import cloud_from_features  # noqa: PLC0415
+
+    geo = np.nan_to_num(geo.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    app = np.nan_to_num(app.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    out = cloud_from_features(geo, app, center, scale, sh_degree)
+    pos = np.nan_to_num(world_pos, nan=0.0, posinf=0.0, neginf=0.0)
+    big = np.finfo(np.float32).max / 4
+    out.means = np.clip(pos, -big, big).astype(np.float32)
+    out.scales = np.clip(np.nan_to_num(out.scales, nan=0.0), *EXTREME_LOG_SCALE).astype(np.float32)
+    out.quats = normalize_quats(np.nan_to_num(out.quats, nan=0.0)).astype(np.float32)
+    out.opacities = np.clip(out.opacities, *OPACITY_LOGIT_RANGE).astype(np.float32)
+    out.sh_dc = np.clip(out.sh_dc, -OUTPUT_SH_LIMIT, OUTPUT_SH_LIMIT)
+    out.sh_rest = np.clip(out.sh_rest, -OUTPUT_SH_LIMIT, OUTPUT_SH_LIMIT)
+    return out
+
+
+def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
+           cameras: Sequence[Camera] | None = None, lineage: Any = None, seed: int = 0,
+           progress: Callable[[float, str], None] | None = None, hessian_options: dict | None = None,
+           scores: Any = None) -> RefineResult:
+    """Refine `cloud` by `steps` (>= 1) sequential model steps on the Gaussians the budget selects
+    (see `select_budget`). `model`: a `GaussianVAE` or a model directory (default: the bundled
+    one). `cameras`: views for the Hessian (default: views placed around the cloud). `lineage`:
+    the training lineage whose last stage is this cloud (default: one-node lineages). `scores`:
+    precomputed Hessian scores (skips scoring). Raises ValueError on non-finite input rows."""
+    from .vae import GaussianVAE, load_default_model  # noqa: PLC0415
+
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    say = progress or (lambda fraction, message: None)
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
+        raise ValueError(f"refine: steps must be an integer >= 1, got {steps!r}")
+    src = cloud.numpy()
+    report = src.validate()
+    if len(report.nonfinite_rows):
+        rows = ", ".join(str(int(r)) for r in report.nonfinite_rows[:5])
+        raise ValueError(f"refine: the cloud has non-finite values in {len(report.nonfinite_rows)} row(s) "
+                         f"[{rows}{', ...' if len(report.nonfinite_rows) > 5 else ''}]; sanitize it first")
+    n = len(src)
+
+    t0 = time.perf_counter()
+    if model is None:
+        model = load_default_model()
+    elif not isinstance(model, GaussianVAE):
+        model = GaussianVAE.load(model)
+    timings["load"] = time.perf_counter() - t0
+
+    say(0.05, "scoring Gaussians (Hessian)")
+    t0 = time.perf_counter()
+    if scores is None:
+        from .hessian import hessian_scores  # noqa: PLC0415
+
+        scores = hessian_scores(src, cameras, seed=seed, **(hessian_options or {}))
+    scores = np.nan_to_num(np.asarray(scores.detach().cpu() if torch.is_tensor(scores) else scores,
+                                      np.float32).reshape(-1), nan=0.0, posinf=0.0, neginf=0.0)
+    if len(scores) != n:
+        raise ValueError(f"refine: {len(scores)} scores for {n} Gaussians")
+    timings["hessian"] = time.perf_counter() - t0
+    selected = select_budget(scores, budget)
+
+    t0 = time.perf_counter()
+    hist_g, hist_a, center, scale = _initial_history(src, lineage)
+    hist_g, hist_a = hist_g[selected], hist_a[selected]
+    timings["features"] = time.perf_counter() - t0
+
+    gen = torch.Generator().manual_seed(int(seed))
+    rows = selected.copy()        # current-cloud row of each active lineage
+    roots = selected.copy()       # its ancestor row in the input
+    world = src.means[selected].astype(np.float64)  # exact world positions of the last nodes
+    new_parts: list[GaussianCloud] = []
+    updates: dict[int, GaussianCloud] = {}
+    update_rows: list[np.ndarray] = []
+    added_parents, added_steps = [], []
+    n_total = n
+    model_time = 0.0
+    max_nodes = max(model.geometry.config.max_nodes, model.appearance.config.max_nodes)
+    for k in range(1, steps + 1):
+        say(0.1 + 0.85 * (k - 1) / steps, f"step {k}/{steps}: {len(rows)} lineages")
+        t0 = time.perf_counter()
+        if len(rows) == 0:
+            break
+        g, a, p = model.predict(hist_g[:, -max_nodes:], hist_a[:, -max_nodes:], generator=gen)
+        g, a, p = g.numpy().astype(np.float64), a.numpy(), p.numpy()
+        model_time += time.perf_counter() - t0
+        m, c = p.shape
+        last = hist_g[:, -1].astype(np.float64)
+        size = np.exp(np.clip(last[:, 7:10], -20.0, 10.0).mean(1))
+        last_pos = np.clip(np.nan_to_num(last[:, 0:3]), -1e6, 1e6)
+        dist = np.linalg.norm(g[..., 0:3] - last_pos[:, None], axis=-1) / size[:, None]
+        # Existence is sampled (seeded): thresholding at 0.5 would never add a child whose
+        # probability is below one half, under-generating systematically.
+        exists = torch.rand(p.shape, generator=gen).numpy() < p
+        keeper = np.argmin(np.where(exists, dist, np.inf), 1)
+        has = exists.any(1)
+        # World positions: parent's exact world position plus the predicted offset.
+        child_world = world[:, None] + (g[..., 0:3] - last_pos[:, None]) * scale
+        # Updated parents (the nearest existing slot), then the extra slots as new Gaussians.
+        upd = np.flatnonzero(has)
+        ks = keeper[upd]
+        if len(upd):
+            ucloud = _sanitize_rows(g[upd, ks], a[upd, ks], child_world[upd, ks], center, scale, src.sh_degree)
+            updates[k] = ucloud
+            update_rows.append(rows[upd])
+        extra = exists.copy()
+        extra[upd, ks] = False
+        li, si = np.nonzero(extra)
+        new_rows = n_total + np.arange(len(li))
+        if len(li):
+            new_parts.append(_sanitize_rows(g[li, si], a[li, si], child_world[li, si], center, scale, src.sh_degree))
+            added_parents.append(roots[li])
+            added_steps.append(np.full(len(li), k, np.int64))
+            n_total += len(li)
+        # Next step's lineages: updated parents and their new siblings, one node longer.
+        g_node = g.astype(np.float32).copy()
+        g_node[..., 10] = 1.0
+        a_node = a.copy()
+        a_node[..., 49] = 1.0
+        cont = np.concatenate([upd, li])
+        slot = np.concatenate([ks, si])
+        prev_g, prev_a = hist_g[cont].copy(), hist_a[cont].copy()
+        prev_g[len(upd):, :, 10] = 0.0
+        prev_a[len(upd):, :, 49] = 0.0
+        hist_g = np.concatenate([prev_g, g_node[cont, slot][:, None]], 1)
+        hist_a = np.concatenate([prev_a, a_node[cont, slot][:, None]], 1)
+        world = child_world[cont, slot]
+        rows = np.concatenate([rows[upd], new_rows])
+        roots = np.concatenate([roots[upd], roots[li]])
+
+    say(0.97, "assembling the refined cloud")
+    t0 = time.perf_counter()
+    out = _assemble(src, new_parts, updates, update_rows)
+    timings["model"] = model_time
+    timings["assemble"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+    added = np.arange(n, len(out), dtype=np.int64)
+    result = RefineResult(
+        cloud=out, added=added,
+        parents=np.concatenate(added_parents) if added_parents else np.zeros(0, np.int64),
+        step=np.concatenate(added_steps) if added_steps else np.zeros(0, np.int64),
+        scores=scores, selected=selected, timings=timings)
+    say(1.0, result.summary())
+    return result
+
+
+def _assemble(src: GaussianCloud, new_parts: list[GaussianCloud], updates: dict[int, GaussianCloud],
+              update_rows: list[np.ndarray]) -> GaussianCloud:
+    """Input rows (with in-place updates applied in step order) followed by the added rows."""
+    out = GaussianCloud.concat([src] + new_parts).copy() if new_parts else src.copy()
+    for (k, upd), rows in zip(sorted(updates.items()), update_rows):
+        for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
+            getattr(out, name)[rows] = getattr(upd, name)
+    return out
+
+
+make_module_callable(__name__, "refine")

@@ -1,0 +1,228 @@
+"""Refinement: budgets, sequential steps, result consistency, degenerate inputs, the CLI."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from gvae_core import GaussianCloud
+from gvae_core.cli import main as gvae
+from gvae_core.lineage import Lineage
+from gvae_core.refine import RefineResult, otsu_threshold, parse_budget, refine, select_budget
+from gvae_core.vae import GaussianVAE
+
+
+def _cloud(n=64, seed=0, degree=1) -> GaussianCloud:
+    rng = np.random.default_rng(seed)
+    k = {0: 0, 1: 3, 3: 15}[degree]
+    return GaussianCloud(means=rng.uniform(-1, 1, (n, 3)).astype(np.float32),
+                         scales=(math.log(0.05) + rng.normal(0, 0.3, (n, 3))).astype(np.float32),
+                         quats=rng.normal(size=(n, 4)).astype(np.float32),
+                         opacities=rng.normal(0, 1, n).astype(np.float32),
+                         sh_dc=rng.normal(size=(n, 3)).astype(np.float32),
+                         sh_rest=rng.normal(0, 0.1, (n, k, 3)).astype(np.float32),
+                         extra={"nx": np.zeros(n, np.float32)})
+
+
+def _model(exist_logit=None, seed=0) -> GaussianVAE:
+    """A random model; with `exist_logit` every slot's existence logit is forced to that value."""
+    model = GaussianVAE.create(seed=seed)
+    if exist_logit is not None:
+        last = model.geometry.decoder[-1]
+        width = model.geometry.state_dim + 1
+        with torch.no_grad():
+            last.weight[width - 1::width] = 0.0
+            last.bias[width - 1::width] = exist_logit
+    return model
+
+
+def _scores(n, seed=0):
+    return np.random.default_rng(seed).uniform(0, 10, n).astype(np.float32)
+
+
+def _check_result(cloud: GaussianCloud, r: RefineResult, steps: int):
+    n = len(cloud)
+    assert isinstance(r, RefineResult)
+    report = r.cloud.validate()
+    assert len(report.nonfinite_rows) == 0
+    # a zero quaternion can only be an input row the model left alone
+    assert set(report.zero_quat_rows.tolist()) <= set(cloud.numpy().validate().zero_quat_rows.tolist())
+    for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
+        assert np.isfinite(getattr(r.cloud, name)).all()
+    np.testing.assert_allclose(np.linalg.norm(r.cloud.quats[n:], axis=1), 1.0, atol=1e-5)
+    assert r.cloud.sh_degree == cloud.sh_degree
+    np.testing.assert_array_equal(r.added, np.arange(n, len(r.cloud)))
+    assert len(r.parents) == len(r.added) == len(r.step)
+    assert r.added.dtype == r.parents.dtype == r.step.dtype == np.int64
+    assert np.isin(r.parents, r.selected).all()
+    assert ((r.step >= 1) & (r.step <= steps)).all() and (np.diff(r.step) >= 0).all()
+    assert r.scores.shape == (n,) and np.isfinite(r.scores).all()
+    assert {"hessian", "model", "total"} <= set(r.timings) and all(v >= 0 for v in r.timings.values())
+    # Rows that were not selected are untouched; input order is kept.
+    untouched = np.setdiff1d(np.arange(n), r.selected)
+    src = cloud.numpy()
+    for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
+        np.testing.assert_array_equal(getattr(r.cloud, name)[untouched], getattr(src, name)[untouched])
+    assert set(r.cloud.extra) == set(cloud.extra)
+
+
+def test_budget_selection():
+    scores = np.array([5.0, 1.0, 9.0, 3.0, 7.0, 0.0, 2.0, 8.0])
+    np.testing.assert_array_equal(select_budget(scores, "all"), np.arange(8))
+    np.testing.assert_array_equal(select_budget(scores, 3), [2, 4, 7])
+    np.testing.assert_array_equal(select_budget(scores, 0.25), [2, 7])
+    assert len(select_budget(scores, 100)) == 8 and len(select_budget(scores, 0)) == 0
+    assert len(select_budget(scores, 0.01)) == 1
+    for bad in (-1, 1.5, "most", True, None):
+        with pytest.raises(ValueError):
+            select_budget(scores, bad)
+    # auto: a clear high-score mode is found, within 1%..50% of the rows
+    rng = np.random.default_rng(0)
+    bimodal = np.r_[rng.normal(1, 0.2, 900), rng.normal(6, 0.3, 100)]
+    auto = select_budget(bimodal, "auto")
+    assert set(auto.tolist()) == set(range(900, 1000))
+    assert 10 <= len(select_budget(rng.uniform(size=1000), "auto")) <= 500
+    unimodal = rng.normal(10, 4, 10000)  # no separate mode: the upper tail beyond one robust sigma
+    assert 1000 < len(select_budget(unimodal, "auto")) < 2500
+    assert len(select_budget(np.zeros(50), "auto")) == 1
+    assert 1.0 < otsu_threshold(bimodal) < 6.0
+    assert parse_budget("10%") == 0.1 and parse_budget("0.2") == 0.2 and parse_budget("500") == 500
+    assert parse_budget("ALL") == "all"
+    with pytest.raises(ValueError, match="budget"):
+        parse_budget("lots")
+
+
+@pytest.mark.parametrize("budget", ["all", 0.25, 7, "auto", 0])
+def test_result_fields_consistent(budget):
+    cloud = _cloud()
+    r = refine(cloud, steps=2, budget=budget, model=_model(), scores=_scores(len(cloud)))
+    _check_result(cloud, r, 2)
+    expected = {"all": 64, 0.25: 16, 7: 7, 0: 0}.get(budget)
+    if expected is not None:
+        assert len(r.selected) == expected
+    assert np.isin(r.selected, np.argsort(-r.scores)[: max(len(r.selected), 1)]).all() or budget == "all"
+
+
+def test_steps_are_sequential():
+    cloud = _cloud(n=40)
+    model = _model(exist_logit=30.0)  # every slot exists: each lineage becomes `slots` Gaussians
+    c = model.slots
+    for steps in (1, 2, 3):
+        r = refine(cloud, steps=steps, budget=5, model=model, scores=_scores(40))
+        counts = np.bincount(r.step, minlength=steps + 1)[1:]
+        expected = [5 * c ** (k - 1) * (c - 1) for k in range(1, steps + 1)]
+        assert counts.tolist() == expected
+        _check_result(cloud, r, steps)
+        assert len(r.cloud) == 40 + sum(expected)
+        # Every selected input Gaussian is the root of c**steps - 1 added ones.
+        assert (np.bincount(r.parents, minlength=40)[r.selected] == c ** steps - 1).all()
+    none = refine(cloud, steps=2, budget="all", model=_model(exist_logit=-30.0), scores=_scores(40))
+    assert len(none.added) == 0 and len(none.cloud) == 40
+
+
+def test_degenerate_inputs_give_finite_outputs():
+    cloud = _cloud(n=12, degree=3)
+    cloud.quats[0] = 0.0
+    cloud.scales[1] = -30.0
+    cloud.scales[2] = 30.0
+    cloud.opacities[3] = 50.0
+    cloud.opacities[4] = -50.0
+    cloud.means[5] = [1e7, -1e7, 3e6]
+    cloud.sh_dc[6] = 1e6
+    cloud.means[7:] = 0.0
+    cloud.scales[7:] = 0.0
+    cloud.quats[7:] = 0.0
+    for model in (_model(exist_logit=30.0), _model(seed=1)):
+        r = refine(cloud, steps=3, budget="all", model=model, scores=np.zeros(12, np.float32))
+        _check_result(cloud, r, 3)
+        assert np.all(r.cloud.scales[12:] >= -20) and np.all(r.cloud.scales[12:] <= 12)
+    # far-away Gaussians stay near where they were (positions are not squashed)
+    r = refine(cloud, steps=1, budget="all", model=_model(exist_logit=30.0), scores=np.zeros(12, np.float32))
+    far = r.cloud.means[r.added[r.parents == 5]]
+    assert np.allclose(far, cloud.means[5], rtol=1e-3)
+    # one Gaussian, all-zero, and an empty cloud
+    one = GaussianCloud(means=np.zeros((1, 3), np.float32), scales=np.zeros((1, 3), np.float32),
+                        quats=np.zeros((1, 4), np.float32), opacities=np.zeros(1, np.float32),
+                        sh_dc=np.zeros((1, 3), np.float32))
+    _check_result(one, refine(one, steps=2, budget="all", model=_model(exist_logit=30.0), scores=[0.0]), 2)
+    empty = refine(GaussianCloud.empty(), steps=1, budget="auto", model=_model(), scores=np.zeros(0))
+    assert len(empty.cloud) == 0 and len(empty.added) == 0
+
+
+def test_with_hessian_scores_and_torch_input():
+    cloud = _cloud(n=30)
+    calls = []
+    r = refine(cloud.to_torch(), steps=1, budget=0.2, model=_model(exist_logit=30.0),
+               hessian_options={"views": 1, "probes": 1, "resolution": 24},
+               progress=lambda fraction, message: calls.append((fraction, message)))
+    _check_result(cloud, r, 1)
+    fractions = [f for f, _ in calls]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0 and all(isinstance(m, str) for _, m in calls)
+    assert (r.scores >= 0).all() and r.scores.max() > 0
+    np.testing.assert_array_equal(np.sort(np.argsort(-r.scores, kind="stable")[:6]), r.selected)
+
+
+def test_bad_inputs():
+    cloud = _cloud(n=10)
+    cloud.means[3, 1] = np.nan
+    with pytest.raises(ValueError, match=r"non-finite .*\[3\]"):
+        refine(cloud, model=_model(), scores=np.zeros(10))
+    with pytest.raises(ValueError, match="steps"):
+        refine(_cloud(), steps=0, model=_model(), scores=np.zeros(64))
+    with pytest.raises(ValueError, match="scores"):
+        refine(_cloud(), model=_model(), scores=np.zeros(3))
+
+
+def test_lineage_history_is_used():
+    rng = np.random.default_rng(0)
+    stage0, stage1 = _cloud(n=10, seed=1), _cloud(n=16, seed=2)
+    lin = Lineage(np.zeros(3), 1.0)
+    lin.add_stage(stage0, np.arange(10), np.full(10, -1), 50)
+    lin.add_stage(stage1, np.arange(16), np.r_[np.arange(10), rng.integers(0, 10, 6)], 75)
+    model = _model(exist_logit=30.0)
+    with_history = refine(stage1, budget="all", model=model, lineage=lin, scores=np.zeros(16))
+    without = refine(stage1, budget="all", model=model, scores=np.zeros(16))
+    _check_result(stage1, with_history, 1)
+    assert not np.allclose(with_history.cloud.sh_dc[16:], without.cloud.sh_dc[16:])
+    with pytest.raises(ValueError, match="16"):
+        refine(stage0, model=model, lineage=lin, scores=np.zeros(10))
+    # rows are matched to the lineage by the cloud's gvae_id when it has one
+    perm = np.random.default_rng(1).permutation(16)
+    shuffled = stage1.select(perm)
+    shuffled.extra["gvae_id"] = perm.astype(np.int64)
+    _check_result(shuffled, refine(shuffled, budget="all", model=model, lineage=lin, scores=np.zeros(16)), 1)
+    shuffled.extra["gvae_id"] = perm.astype(np.int64) + 100
+    with pytest.raises(ValueError, match="not alive"):
+        refine(shuffled, budget="all", model=model, lineage=lin, scores=np.zeros(16))
+
+
+def test_cli_refine_and_fit(tmp_path, capsys):
+    from gvae_core.ply import read_ply, write_ply
+
+    model_dir = tmp_path / "model"
+    _model(exist_logit=30.0).save(model_dir)
+    write_ply(_cloud(n=50), tmp_path / "in.ply")
+    code = gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "out.ply"), "--steps", "2", "--budget", "4",
+                 "--model", str(model_dir), "--views", "1", "--probes", "1", "--resolution", "16"])
+    assert code == 0
+    out = read_ply(tmp_path / "out.ply")
+    c = 4  # slots
+    assert len(out) == 50 + 4 * (c - 1) + 4 * c * (c - 1)
+    text = capsys.readouterr().out
+    assert "4 selected" in text and "hessian" in text
+    assert gvae(["refine", str(tmp_path / "missing.ply"), str(tmp_path / "x.ply"), "--model", str(model_dir)]) == 2
+    assert gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "x.ply"), "--budget", "many"]) == 2
+    assert not (tmp_path / "x.ply").exists()
+
+    lin = Lineage(np.zeros(3), 1.0)
+    lin.add_stage(_cloud(n=12, seed=3), np.arange(12), np.full(12, -1), 50)
+    lin.add_stage(_cloud(n=20, seed=4), np.arange(20), np.r_[np.arange(12), np.arange(8)], 75)
+    (tmp_path / "run").mkdir()
+    lin.save(tmp_path / "run" / "lineage.npz")
+    code = gvae(["fit-vae", str(tmp_path / "run"), "--holdout", str(tmp_path / "run"), "--out",
+                 str(tmp_path / "fitted"), "--steps", "3", "--batch", "8", "--quiet"])
+    assert code == 0
+    fitted = GaussianVAE.load(tmp_path / "fitted")
+    assert fitted.meta["steps"] == 3 and "holdout" in fitted.meta["metrics"]
+    assert gvae(["fit-vae", str(tmp_path / "nothing"), "--out", str(tmp_path / "f2"), "--quiet"]) == 2
