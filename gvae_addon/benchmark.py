@@ -1,0 +1,133 @@
+"""Blender side of `make bench` (gvae_core/benchmarks/blender.py runs this in a subprocess with the
+bpy module: `python -m gvae_addon.benchmark N REPEATS`). Registers the add-on from the source
+tree, times its operators on an N-Gaussian SH-3 PLY and prints one JSON line."""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+import gvae_addon
+from gvae_addon import convert
+from gvae_core.benchmarks.ply import random_cloud
+from gvae_core.ply import write_ply
+
+
+def _clear():
+    for obj in list(bpy.data.objects):
+        bpy.data.objects.remove(obj)
+    for me in list(bpy.data.meshes):
+        bpy.data.meshes.remove(me)
+
+
+def _instances(obj) -> int:
+    dg = bpy.context.evaluated_depsgraph_get()
+    dg.update()
+    geometry = obj.evaluated_get(dg).evaluated_geometry()  # keep alive while its parts are read
+    inst = geometry.instances_pointcloud()
+    return len(inst.points) if inst is not None else 0
+
+
+def _attribute_error(obj, cloud) -> float:
+    """Max abs difference between the object's attributes and the written cloud (own reader,
+    not the add-on's: foreach_get of each named attribute)."""
+    me = obj.data
+    n = len(me.vertices)
+    pos = np.empty(3 * n, np.float32)
+    me.attributes["position"].data.foreach_get("vector", pos)
+    err = float(np.abs(pos.reshape(n, 3) - cloud.means).max())
+    k = cloud.sh_rest.shape[1]
+    expected = {"opacity": cloud.opacities}
+    for i in range(3):
+        expected[f"f_dc_{i}"] = cloud.sh_dc[:, i]
+        expected[f"scale_{i}"] = cloud.scales[:, i]
+        for j in range(k):
+            expected[f"f_rest_{i * k + j}"] = cloud.sh_rest[:, j, i]
+    for i in range(4):
+        expected[f"rot_{i}"] = cloud.quats[:, i]
+    buf = np.empty(n, np.float32)
+    for name, want in expected.items():
+        me.attributes[name].data.foreach_get("value", buf)
+        err = max(err, float(np.abs(buf - want).max()))
+    return err
+
+
+def main() -> int:
+    n, repeats = int(sys.argv[1]), int(sys.argv[2])
+    gvae_addon.register()
+    bpy.context.preferences.edit.undo_steps = 0  # as in a batch run; the UI's undo is separate
+    out = {"n": n, "repeats": repeats}
+    cloud = random_cloud(n)
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "bench.ply"
+        write_ply(cloud, src)
+        raw = src.read_bytes()
+        t_imp, t_inst, counts = [], [], []
+        for _ in range(repeats):
+            _clear()
+            t0 = time.perf_counter()
+            bpy.ops.import_scene.gaussian_splat(filepath=str(src))
+            t1 = time.perf_counter()
+            counts.append(_instances(bpy.context.active_object))
+            t2 = time.perf_counter()
+            t_imp.append(t1 - t0)
+            t_inst.append(t2 - t0)
+        obj = bpy.context.active_object
+        t_eval = []
+        for _ in range(repeats):  # the operator's own call already evaluated the instances once
+            obj.update_tag()
+            t0 = time.perf_counter()
+            bpy.context.evaluated_depsgraph_get().update()
+            t_eval.append(time.perf_counter() - t0)
+        out["reevaluate_s"] = statistics.median(t_eval)
+        out["import_s"] = statistics.median(t_imp)
+        out["import_instances_s"] = statistics.median(t_inst)
+        out["instances"] = min(counts)
+        out["attribute_error"] = _attribute_error(obj, cloud)
+
+        t_exp, same = [], True
+        for r in range(repeats):
+            dst = Path(tmp) / f"out{r}.ply"
+            t0 = time.perf_counter()
+            bpy.ops.export_scene.gaussian_splat(filepath=str(dst))
+            t_exp.append(time.perf_counter() - t0)
+            same &= dst.read_bytes() == raw
+            dst.unlink()
+        out["export_s"] = statistics.median(t_exp)
+        out["export_identical"] = bool(same)
+
+        # Context: the add-on's own parts, and Blender's C++ PLY importer (no splat set-up).
+        from gvae_core.ply import read_ply  # noqa: PLC0415
+
+        t_read, t_mesh = [], []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            c = read_ply(src)
+            t1 = time.perf_counter()
+            me = convert.mesh_from_cloud(c, "bench")
+            t_mesh.append(time.perf_counter() - t1)
+            t_read.append(t1 - t0)
+            bpy.data.meshes.remove(me)
+        out["read_ply_s"] = statistics.median(t_read)
+        out["mesh_from_cloud_s"] = statistics.median(t_mesh)
+        t_native = []
+        for _ in range(repeats):
+            _clear()
+            t0 = time.perf_counter()
+            bpy.ops.wm.ply_import(filepath=str(src))
+            t_native.append(time.perf_counter() - t0)
+        out["native_ply_import_s"] = statistics.median(t_native)
+        out["native_vertices"] = len(bpy.context.active_object.data.vertices)
+    print("RESULT " + json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

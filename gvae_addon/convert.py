@@ -1,0 +1,224 @@
+"""Blender mesh <-> `GaussianCloud`: the only place that moves Gaussian data in and out of Blender.
+
+A splat object is a mesh whose vertices are the Gaussian centres. Every other PLY property is a
+point attribute under its PLY name (`f_dc_0`, `f_rest_12`, `opacity`, `scale_0`, `rot_0`, ...),
+stored losslessly so that export writes back exactly what was imported:
+- the parameters and float32/float16 extras as FLOAT;
+- int8 extras as INT8, bool as BOOLEAN, uint8/int16/uint16/int32 as INT (same values);
+- uint32 as INT and float64/int64/uint64 as INT32_2D holding the raw bits.
+The mesh's custom property `gvae_ply` (JSON) records the SH degree and the extra properties with
+their dtypes, in file order. All transfers are vectorised (`foreach_get`/`foreach_set`).
+"""
+
+from __future__ import annotations
+
+import json
+
+import bpy
+import numpy as np
+
+from gvae_core.cloud import SH_REST_COUNTS, GaussianCloud
+
+LAYOUT_KEY = "gvae_ply"
+STEP_ATTR = "gvae_step"
+#: Names the add-on keeps for itself: never stored as a PLY extra property.
+_RESERVED = {"position", STEP_ATTR}
+
+# dtype char code -> (Blender attribute type, storage kind): "value" keeps values, "bits" raw bytes.
+_EXTRA_STORAGE = {
+    "f4": ("FLOAT", "value"), "f2": ("FLOAT", "value"),
+    "i1": ("INT8", "value"), "b1": ("BOOLEAN", "value"),
+    "u1": ("INT", "value"), "i2": ("INT", "value"), "u2": ("INT", "value"), "i4": ("INT", "value"),
+    "u4": ("INT", "bits"),
+    "f8": ("INT32_2D", "bits"), "i8": ("INT32_2D", "bits"), "u8": ("INT32_2D", "bits"),
+}
+_BUFFER_DTYPE = {"FLOAT": np.float32, "INT": np.int32, "INT8": np.int8, "BOOLEAN": bool,
+                 "INT32_2D": np.int32}
+
+
+def param_columns(sh_degree: int) -> list[str]:
+    """PLY names of the per-Gaussian parameters held as FLOAT attributes (all but x, y, z)."""
+    k = SH_REST_COUNTS[sh_degree]
+    return (["f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(3 * k)]
+            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+
+
+def _transposed(a: np.ndarray, axes: tuple[int, ...], along: int = 0,
+                out: np.ndarray | None = None) -> np.ndarray:
+    """`np.ascontiguousarray(a.transpose(axes))` (into `out` when given), copied in blocks of
+    about 256 KiB along the long input axis `along` so that each block stays in the CPU cache:
+    3-4x less CPU time than numpy's strided copy for the (N, C) <-> (C, N) moves of big clouds."""
+    shape = tuple(a.shape[i] for i in axes)
+    if out is None:
+        out = np.empty(shape, a.dtype)
+    elif out.shape != shape:
+        raise ValueError(f"_transposed: out has shape {out.shape}, expected {shape}")
+    per_slice = a.itemsize * (a.size // max(1, a.shape[along]))
+    step = max(64, (256 << 10) // max(1, per_slice))
+    src = [slice(None)] * a.ndim
+    dst = [slice(None)] * a.ndim
+    for start in range(0, a.shape[along], step):
+        src[along] = dst[axes.index(along)] = slice(start, start + step)
+        out[tuple(dst)] = a[tuple(src)].transpose(axes)
+    return out
+
+
+def _param_table(cloud: GaussianCloud) -> np.ndarray:
+    """(C, N) float32 table whose rows are the `param_columns` of `cloud`."""
+    n, k = len(cloud), SH_REST_COUNTS[cloud.sh_degree]
+    f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
+    table = np.empty((len(param_columns(cloud.sh_degree)), n), np.float32)
+    _transposed(f32(cloud.sh_dc), (1, 0), out=table[0:3])
+    if k:  # PLY f_rest is channel-major: row c*K + k holds sh_rest[:, k, c]
+        _transposed(f32(cloud.sh_rest), (2, 1, 0), out=table[3:3 + 3 * k].reshape(3, k, n))
+    table[3 + 3 * k] = f32(cloud.opacities)
+    _transposed(f32(cloud.scales), (1, 0), out=table[4 + 3 * k:7 + 3 * k])
+    _transposed(f32(cloud.quats), (1, 0), out=table[7 + 3 * k:])
+    return table
+
+
+def _check_extra_name(name: str) -> None:
+    if name in _RESERVED or name.startswith("."):
+        raise ValueError(f"PLY property {name!r} cannot be stored as a Blender attribute "
+                         "(the name is reserved)")
+
+
+def _new_attribute(me, name: str, kind: str):
+    """A new point attribute that really has `name` (Blender refuses some built-in names and
+    renames on collisions or overlong names: that would silently lose the PLY name)."""
+    attr = me.attributes.new(name, kind, "POINT")
+    if attr is None or attr.name != name:
+        raise ValueError(f"PLY property {name!r} cannot be stored as a Blender attribute under that "
+                         "name (reserved by Blender, duplicate, or longer than 63 bytes)")
+    return attr
+
+
+def _extra_to_buffer(a: np.ndarray) -> tuple[str, np.ndarray]:
+    """An extra column as (Blender attribute type, flat buffer for foreach_set)."""
+    code = a.dtype.str[1:]
+    if code not in _EXTRA_STORAGE:
+        raise ValueError(f"extra property of dtype {a.dtype} has no Blender attribute type")
+    kind, storage = _EXTRA_STORAGE[code]
+    native = a.astype(a.dtype.newbyteorder("="), copy=False)
+    if storage == "bits":
+        buf = np.ascontiguousarray(native).view(np.int32)
+    else:
+        buf = native.astype(_BUFFER_DTYPE[kind])
+    return kind, np.ascontiguousarray(buf).ravel()
+
+
+def _extra_from_buffer(buf: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    storage = _EXTRA_STORAGE[dtype.str[1:]][1]
+    native = dtype.newbyteorder("=")
+    if storage == "bits":
+        return buf.view(native).astype(dtype, copy=False)
+    return buf.astype(dtype)
+
+
+def _set(attr, prop: str, buf: np.ndarray) -> None:
+    attr.data.foreach_set(prop, buf)
+
+
+def mesh_from_cloud(cloud: GaussianCloud, name: str, steps: np.ndarray | None = None) -> bpy.types.Mesh:
+    """A new mesh holding `cloud` (vertices = centres, one attribute per PLY property).
+
+    `steps` (N,) ints, when given, becomes the `gvae_step` attribute. On any failure the
+    half-built mesh is removed, so the blend file is left as it was."""
+    cloud = cloud.numpy()
+    n = len(cloud)
+    extras = list(cloud.extra.items())
+    for key, value in extras:
+        _check_extra_name(key)
+        if value.shape != (n,):
+            raise ValueError(f"extra property {key!r} has shape {value.shape}; one value per "
+                             "Gaussian is expected")
+    buffers = [(key, *_extra_to_buffer(value)) for key, value in extras]
+    me = bpy.data.meshes.new(name)
+    try:
+        me.vertices.add(n)
+        _set(me.attributes["position"], "vector",
+             np.ascontiguousarray(cloud.means, np.float32).ravel())
+        for col, values in zip(param_columns(cloud.sh_degree), _param_table(cloud)):
+            _set(_new_attribute(me, col, "FLOAT"), "value", values)
+        for key, kind, buf in buffers:
+            _set(_new_attribute(me, key, kind), "value", buf)
+        if steps is not None:
+            _set(_new_attribute(me, STEP_ATTR, "INT"), "value",
+                 np.ascontiguousarray(steps, np.int32).ravel())
+        me[LAYOUT_KEY] = json.dumps({"sh_degree": cloud.sh_degree,
+                                     "extra": [[key, value.dtype.str] for key, value in extras]})
+        me.update()
+    except BaseException:
+        bpy.data.meshes.remove(me)
+        raise
+    return me
+
+
+def layout(me: bpy.types.Mesh) -> dict:
+    """The stored PLY layout of a splat mesh; for a mesh without one (made by hand or by another
+    add-on) it is inferred from the attributes: SH degree from the `f_rest_*` count, no extras."""
+    raw = me.get(LAYOUT_KEY)
+    if raw is not None:
+        return json.loads(raw)
+    rest = sum(1 for a in me.attributes if a.name.startswith("f_rest_") and a.name[7:].isdigit())
+    degree = {3 * k: d for d, k in SH_REST_COUNTS.items()}.get(rest)
+    if degree is None:
+        raise ValueError(f"mesh {me.name!r} has {rest} f_rest_* attributes; expected 0, 9, 24 or 45")
+    return {"sh_degree": degree, "extra": []}
+
+
+def is_splat(obj) -> bool:
+    """A mesh object that carries Gaussian attributes (made by the importer or compatible)."""
+    if obj is None or obj.type != "MESH":
+        return False
+    me = obj.data
+    return LAYOUT_KEY in me or all(c in me.attributes for c in ("f_dc_0", "opacity", "scale_0", "rot_0"))
+
+
+def _get(me, name: str, kind: str, width: int, n: int, out: np.ndarray | None = None) -> np.ndarray:
+    attr = me.attributes.get(name)
+    if attr is None:
+        raise ValueError(f"mesh {me.name!r} has no attribute {name!r}: not a complete Gaussian splat")
+    if attr.domain != "POINT" or attr.data_type != kind:
+        raise ValueError(f"attribute {name!r} of mesh {me.name!r} is {attr.data_type} on "
+                         f"{attr.domain}; expected {kind} on POINT")
+    buf = np.empty(n * width, _BUFFER_DTYPE.get(kind, np.float32)) if out is None else out
+    attr.data.foreach_get("vector" if name == "position" else "value", buf)
+    return buf
+
+
+def cloud_from_mesh(me: bpy.types.Mesh) -> tuple[GaussianCloud, np.ndarray | None]:
+    """The Gaussians of a splat mesh, and its `gvae_step` values (or None when it has none)."""
+    info = layout(me)
+    n = len(me.vertices)
+    degree = int(info["sh_degree"])
+    k = SH_REST_COUNTS[degree]
+    means = _get(me, "position", "FLOAT_VECTOR", 3, n).reshape(n, 3)
+    names = param_columns(degree)
+    table = np.empty((len(names), n), np.float32)
+    for row, name in zip(table, names):
+        _get(me, name, "FLOAT", 1, n, out=row)
+    rows = _transposed(table, (1, 0), along=1)  # (N, C): row-major again, as the PLY writer wants it
+    extra = {}
+    for key, dt in info["extra"]:
+        dtype = np.dtype(dt)
+        kind = _EXTRA_STORAGE[dtype.str[1:]][0]
+        width = 2 if kind == "INT32_2D" else 1
+        extra[key] = _extra_from_buffer(_get(me, key, kind, width, n), dtype)
+    o = 3 + 3 * k
+    cloud = GaussianCloud(means=means, sh_dc=rows[:, 0:3],
+                          sh_rest=rows[:, 3:o].reshape(n, 3, k).transpose(0, 2, 1),
+                          opacities=rows[:, o], scales=rows[:, o + 1:o + 4], quats=rows[:, o + 4:o + 8],
+                          extra=extra)
+    steps = _get(me, STEP_ATTR, "INT", 1, n) if STEP_ATTR in me.attributes else None
+    return cloud, steps
+
+
+def cloud_from_object(obj) -> tuple[GaussianCloud, np.ndarray | None]:
+    """`cloud_from_mesh` of an object's own (unevaluated) mesh, edit-mode changes included."""
+    if not is_splat(obj):
+        raise ValueError(f"object {getattr(obj, 'name', None)!r} is not a Gaussian splat object "
+                         "(import one with File > Import > Gaussian Splat)")
+    if obj.mode == "EDIT":
+        obj.update_from_editmode()
+    return cloud_from_mesh(obj.data)

@@ -1,0 +1,267 @@
+"""File > Import / Export > Gaussian Splat (.ply): PLY files <-> splat objects."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+import warnings
+
+import bpy
+import numpy as np
+from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, StringProperty
+from bpy.types import Operator, OperatorFileListElement
+from bpy_extras.io_utils import ExportHelper, ImportHelper
+
+from gvae_core.cloud import GaussianCloud
+
+from . import convert, nodes
+
+#: Object rotation (Euler XYZ) per axis option: the data stay as in the file.
+AXES = {
+    "NONE": (0.0, 0.0, 0.0),
+    # y down, z forward (3DGS / COLMAP / OpenCV) -> Blender z up, y forward: +y -> -z, +z -> +y.
+    "Y_DOWN": (-math.pi / 2, 0.0, 0.0),
+}
+
+
+def _read(path: str, sanitize: bool):
+    """read_ply, with its warnings (dropped rows) returned as messages."""
+    from gvae_core.ply import read_ply  # noqa: PLC0415 - keep add-on start-up light
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cloud = read_ply(path, sanitize=sanitize)
+    return cloud, [str(w.message) for w in caught]
+
+
+def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
+                scale_factor: float = nodes.DEFAULT_SCALE_FACTOR, fraction: float = 1.0,
+                points_only: bool = False, min_opacity: float = 0.0):
+    """A new splat object holding `cloud`, linked to the active collection (removed again if
+    anything fails). An integer `gvae_step` property (written by Export with "Write Refine Step")
+    becomes the object's `gvae_step` attribute again."""
+    steps = cloud.extra.get(convert.STEP_ATTR)
+    if steps is not None and np.issubdtype(steps.dtype, np.integer):
+        cloud = cloud.replace(extra={k: v for k, v in cloud.extra.items() if k != convert.STEP_ATTR})
+    else:
+        steps = None
+    me = convert.mesh_from_cloud(cloud, name, steps=steps)
+    obj = None
+    try:
+        obj = bpy.data.objects.new(name, me)
+        obj.rotation_euler = AXES[axes]
+        nodes.add_splat_modifier(obj, scale_factor=scale_factor, fraction=fraction,
+                                 points_only=points_only, min_opacity=min_opacity)
+        context.collection.objects.link(obj)
+    except BaseException:
+        if obj is not None:
+            bpy.data.objects.remove(obj)
+        bpy.data.meshes.remove(me)
+        raise
+    return obj
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of w,x,y,z quaternions (broadcasting)."""
+    aw, av = a[..., :1], a[..., 1:]
+    bw, bv = b[..., :1], b[..., 1:]
+    w = aw * bw - np.sum(av * bv, axis=-1, keepdims=True)
+    v = aw * bv + bw * av + np.cross(av, bv)
+    return np.concatenate([w, v], axis=-1)
+
+
+def apply_matrix(cloud: GaussianCloud, matrix) -> tuple[GaussianCloud, list[str]]:
+    """`cloud` moved by a 4x4 object matrix with uniform positive scale (rotation, uniform scale,
+    translation): positions, quaternions and log-scales change; SH rest coefficients do not
+    (reported in the returned messages when they would need rotating)."""
+    m = np.array(matrix, np.float64).reshape(4, 4)
+    lin = m[:3, :3]
+    sv = np.linalg.svd(lin, compute_uv=False)
+    if sv.min() <= 1e-12 or sv.max() / sv.min() - 1.0 > 1e-4:
+        raise ValueError(f"the object's scale is not uniform (singular values {np.round(sv, 6).tolist()}); "
+                         "apply or clear the scale, or export without Apply Transform")
+    if np.linalg.det(lin) < 0:
+        raise ValueError("the object's transform mirrors (negative scale); Gaussians cannot be mirrored "
+                         "by a rotation: clear the negative scale or export without Apply Transform")
+    s = float(np.cbrt(np.linalg.det(lin)))
+    rot = lin / s
+    from gvae_core.cloud import rotmat_to_quat  # noqa: PLC0415
+
+    q_obj = rotmat_to_quat(rot)
+    means = np.asarray(cloud.means, np.float64) @ lin.T + m[:3, 3]
+    quats = _quat_mul(q_obj[None], np.asarray(cloud.quats, np.float64))
+    out = cloud.replace(means=means.astype(np.float32), quats=quats.astype(np.float32),
+                        scales=(np.asarray(cloud.scales, np.float64) + math.log(s)).astype(np.float32))
+    messages = []
+    if cloud.sh_degree > 0 and not np.allclose(rot, np.eye(3), atol=1e-7):
+        messages.append("SH rest coefficients (view-dependent colour) were not rotated with the object")
+    return out, messages
+
+
+def export_splat(obj, path: str, *, apply_transform: bool = False, write_step: bool = False):
+    """Write a splat object as a 3DGS PLY (atomic). Returns (count, messages)."""
+    from gvae_core.ply import write_ply  # noqa: PLC0415
+
+    cloud, steps = convert.cloud_from_object(obj)
+    messages = []
+    if apply_transform:
+        cloud, messages = apply_matrix(cloud, obj.matrix_world)
+    if write_step and steps is not None:
+        cloud = cloud.replace(extra={**cloud.extra, convert.STEP_ATTR: steps})
+    write_ply(cloud, path)
+    return len(cloud), messages
+
+
+class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
+    """Import 3D Gaussian Splatting PLY files as splat objects (one per file)"""
+
+    bl_idname = "import_scene.gaussian_splat"
+    bl_label = "Import Gaussian Splat"
+    bl_options = {"REGISTER", "UNDO", "PRESET"}
+
+    filename_ext = ".ply"
+    filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
+    files: CollectionProperty(type=OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
+    directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
+
+    axis_conversion: EnumProperty(
+        name="Axes", default="NONE",
+        items=(("NONE", "As Stored (Z Up)", "Keep the file's axes (scenes made in Blender, NeRF-Synthetic)"),
+               ("Y_DOWN", "Y Down, Z Forward", "3DGS/COLMAP/OpenCV scenes: rotate the object so that "
+                "-Y becomes up (an object rotation; the data are not changed)")))
+    scale_factor: FloatProperty(name="Scale Factor", default=nodes.DEFAULT_SCALE_FACTOR, min=0.0,
+                                soft_max=5.0, description="Ellipsoid semi-axes in standard deviations")
+    display_fraction: FloatProperty(name="Display Fraction", default=1.0, min=0.0, max=1.0,
+                                    subtype="FACTOR", description="Fraction of the splats shown")
+    points_only: BoolProperty(name="Points Only", default=False,
+                              description="Show points instead of ellipsoids (fast for large scenes)")
+    min_opacity: FloatProperty(name="Min Opacity", default=0.0, min=0.0, max=1.0, subtype="FACTOR",
+                               description="Hide splats below this opacity")
+    drop_invalid: BoolProperty(name="Drop Invalid Gaussians", default=False,
+                               description="Drop Gaussians with NaN or infinite values instead of "
+                               "refusing the file")
+
+    def _paths(self) -> list[str]:
+        names = [f.name for f in self.files if f.name]
+        if names and self.directory:
+            return [os.path.join(self.directory, name) for name in names]
+        return [self.filepath]
+
+    def execute(self, context):
+        start = time.perf_counter()
+        made = []
+        try:
+            # Read every file first: a bad file leaves the blend file untouched.
+            loaded = []
+            for path in self._paths():
+                cloud, messages = _read(path, self.drop_invalid)
+                loaded.append((path, cloud))
+                for msg in messages:
+                    self.report({"WARNING"}, msg)
+            for path, cloud in loaded:
+                name = os.path.splitext(os.path.basename(path))[0] or "splat"
+                try:
+                    made.append(build_splat(
+                        context, cloud, name, axes=self.axis_conversion,
+                        scale_factor=self.scale_factor, fraction=self.display_fraction,
+                        points_only=self.points_only, min_opacity=self.min_opacity))
+                except ValueError as exc:
+                    raise ValueError(f"{path}: {exc}") from exc
+        except Exception as exc:  # noqa: BLE001 - any failure: report it, undo what was added
+            for obj in made:
+                me = obj.data
+                bpy.data.objects.remove(obj)
+                bpy.data.meshes.remove(me)
+            self.report({"ERROR"}, f"Gaussian splat import failed: {exc}")
+            return {"CANCELLED"}
+        for other in context.view_layer.objects:
+            other.select_set(False)
+        for obj in made:
+            obj.select_set(True)
+        context.view_layer.objects.active = made[-1]
+        total = sum(len(o.data.vertices) for o in made)
+        self.report({"INFO"}, f"Imported {total} Gaussians into {len(made)} object(s) in "
+                    f"{time.perf_counter() - start:.2f} s")
+        return {"FINISHED"}
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        for prop in ("axis_conversion", "scale_factor", "display_fraction", "points_only",
+                     "min_opacity", "drop_invalid"):
+            layout.prop(self, prop)
+
+
+class EXPORT_SCENE_OT_gaussian_splat(Operator, ExportHelper):
+    """Export the active splat object as a 3D Gaussian Splatting PLY file"""
+
+    bl_idname = "export_scene.gaussian_splat"
+    bl_label = "Export Gaussian Splat"
+    bl_options = {"REGISTER", "PRESET"}
+
+    filename_ext = ".ply"
+    filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
+    apply_transform: BoolProperty(
+        name="Apply Transform", default=False,
+        description="Write positions, rotations and scales in world space (uniform scale only; "
+        "view-dependent SH colour is not rotated)")
+    write_step: BoolProperty(name="Write Refine Step", default=False,
+                             description="Also write the gvae_step attribute as an int property")
+
+    @classmethod
+    def poll(cls, context):
+        return convert.is_splat(context.active_object)
+
+    def execute(self, context):
+        obj = context.active_object
+        start = time.perf_counter()
+        try:
+            count, messages = export_splat(obj, self.filepath, apply_transform=self.apply_transform,
+                                           write_step=self.write_step)
+        except Exception as exc:  # noqa: BLE001
+            self.report({"ERROR"}, f"Gaussian splat export failed: {exc}")
+            return {"CANCELLED"}
+        for msg in messages:
+            self.report({"WARNING"}, msg)
+        self.report({"INFO"}, f"Exported {count} Gaussians to {self.filepath} in "
+                    f"{time.perf_counter() - start:.2f} s")
+        return {"FINISHED"}
+
+
+class GVAE_FH_gaussian_splat(bpy.types.FileHandler):
+    """Drag and drop of .ply files into the viewport."""
+
+    bl_idname = "GVAE_FH_gaussian_splat"
+    bl_label = "Gaussian Splat"
+    bl_import_operator = "import_scene.gaussian_splat"
+    bl_file_extensions = ".ply"
+
+    @classmethod
+    def poll_drop(cls, context):
+        return context.area is not None and context.area.type == "VIEW_3D"
+
+
+def menu_import(self, context):
+    self.layout.operator(IMPORT_SCENE_OT_gaussian_splat.bl_idname, text="Gaussian Splat (.ply)")
+
+
+def menu_export(self, context):
+    self.layout.operator(EXPORT_SCENE_OT_gaussian_splat.bl_idname, text="Gaussian Splat (.ply)")
+
+
+classes = (IMPORT_SCENE_OT_gaussian_splat, EXPORT_SCENE_OT_gaussian_splat, GVAE_FH_gaussian_splat)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.TOPBAR_MT_file_import.append(menu_import)
+    bpy.types.TOPBAR_MT_file_export.append(menu_export)
+
+
+def unregister():
+    bpy.types.TOPBAR_MT_file_export.remove(menu_export)
+    bpy.types.TOPBAR_MT_file_import.remove(menu_import)
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,160 @@
+"""Refine: run `gvae_core.refine` on the active splat object and write the result back into it."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+import bpy
+import numpy as np
+from bpy.props import IntProperty, StringProperty
+from bpy.types import Operator
+
+from gvae_core.cloud import GaussianCloud
+
+from . import convert, runtime
+
+
+def parse_budget(text: str):
+    """The refine budget: "auto" (the Hessian scores decide), "all", a fraction in (0, 1] of the
+    Gaussians ("0.25" or "25%"), or a count ("5000")."""
+    t = str(text).strip().lower()
+    if t in ("", "auto", "all"):
+        return t or "auto"
+    try:
+        if t.endswith("%"):
+            value = float(t[:-1]) / 100.0
+        elif any(ch in t for ch in ".e"):
+            value = float(t)
+        else:
+            count = int(t)
+            if count < 1:
+                raise ValueError
+            return count
+    except ValueError:
+        raise ValueError(f"budget must be 'auto', 'all', a fraction in (0, 1] or a count >= 1, "
+                         f"got {text!r}") from None
+    if not 0.0 < value <= 1.0:
+        raise ValueError(f"budget fraction must be in (0, 1], got {text!r}")
+    return value
+
+
+def _extras_for(source: GaussianCloud, n_out: int, parents: np.ndarray, added: np.ndarray) -> dict:
+    """The input's extra properties (which refine does not interpret) for every output row: the
+    input rows keep theirs, an added Gaussian inherits its parent's."""
+    extra = {}
+    for key, value in source.extra.items():
+        col = np.zeros(n_out, value.dtype)
+        col[:len(source)] = value
+        col[added] = value[parents]
+        extra[key] = col
+    return extra
+
+
+def refine_object(obj, *, steps: int = 1, budget="auto", model=None, seed: int = 0,
+                  progress=None) -> dict:
+    """Refine a splat object in place: its mesh is replaced by one holding the refined cloud with a
+    `gvae_step` attribute (0 for the original Gaussians, the refine step for added ones, counted on
+    from an earlier refine). Nothing in the blend file changes unless the whole run succeeds.
+    Returns counts and timings for the report."""
+    refine = runtime.core_refine()
+    cloud, old_steps = convert.cloud_from_object(obj)
+    n_in = len(cloud)
+    if n_in == 0:
+        raise ValueError(f"object {obj.name!r} has no Gaussians to refine")
+    result = refine(cloud, steps=steps, budget=budget, model=model, seed=seed, progress=progress)
+    out = result.cloud.numpy() if result.cloud.is_torch else result.cloud
+    added = np.asarray(result.added, np.int64).reshape(-1)
+    parents = np.asarray(result.parents, np.int64).reshape(-1)
+    step = np.asarray(result.step, np.int64).reshape(-1)
+    n_out = len(out)
+    if not (len(added) == len(parents) == len(step)) or n_out < n_in \
+            or (len(added) and (added.min() < n_in or added.max() >= n_out)) \
+            or (len(parents) and (parents.min() < 0 or parents.max() >= n_in)):
+        raise RuntimeError(f"refine returned an inconsistent result ({n_in} in, {n_out} out, "
+                           f"{len(added)} added)")
+    out = out.replace(extra=_extras_for(cloud, n_out, parents, added))
+    marks = np.zeros(n_out, np.int32)
+    base = 0
+    if old_steps is not None:
+        marks[:n_in] = old_steps
+        base = int(old_steps.max(initial=0))
+    marks[added] = base + step
+
+    old = obj.data
+    new = convert.mesh_from_cloud(out, old.name, steps=marks)
+    for mat in old.materials:
+        new.materials.append(mat)
+    obj.data = new
+    if old.users == 0:
+        bpy.data.meshes.remove(old)
+    timings = dict(getattr(result, "timings", {}) or {})
+    return {"before": n_in, "after": n_out, "added": len(added), "timings": timings}
+
+
+class GVAE_OT_refine(Operator):
+    """Add detail to the active splat object with GaussianVAE (needs PyTorch)"""
+
+    bl_idname = "gvae.refine"
+    bl_label = "Refine"
+    bl_options = {"REGISTER", "UNDO"}
+
+    steps: IntProperty(name="Steps", default=1, min=1, max=4,
+                       description="Resolution steps to extrapolate past the trained one")
+    budget: StringProperty(name="Budget", default="auto",
+                           description="'auto' (the Hessian score decides), 'all', a fraction of the "
+                           "Gaussians such as 0.25, or a count")
+    model: StringProperty(name="Model", default="", subtype="DIR_PATH",
+                          description="Model folder (config.json + weights); empty for the bundled model")
+    seed: IntProperty(name="Seed", default=0, min=0, description="Random seed (repeatable runs)")
+
+    @classmethod
+    def poll(cls, context):
+        return convert.is_splat(context.active_object)
+
+    def execute(self, context):
+        obj = context.active_object
+        wm = context.window_manager
+        background = bpy.app.background
+
+        def progress(fraction: float, message: str = "") -> None:
+            wm.progress_update(max(0.0, min(1.0, float(fraction))))
+            if background:
+                print(f"gvae.refine: {100 * fraction:5.1f}% {message}", file=sys.stderr)
+
+        start = time.perf_counter()
+        wm.progress_begin(0.0, 1.0)
+        try:
+            budget = parse_budget(self.budget)
+            model = None
+            if self.model:
+                model = bpy.path.abspath(self.model)
+                if os.path.isfile(model):  # a file picked inside the model folder
+                    model = os.path.dirname(model)
+            info = refine_object(obj, steps=self.steps, budget=budget, model=model, seed=self.seed,
+                                 progress=progress)
+        except Exception as exc:  # noqa: BLE001 - report anything; the object is unchanged
+            self.report({"ERROR"}, f"Refine failed: {exc}")
+            return {"CANCELLED"}
+        finally:
+            wm.progress_end()
+        parts = ", ".join(f"{k} {v:.2f} s" for k, v in info["timings"].items()
+                          if isinstance(v, (int, float)) and k != "total")
+        self.report({"INFO"}, f"Refine: {info['before']} -> {info['after']} Gaussians "
+                    f"(+{info['added']}) in {time.perf_counter() - start:.2f} s"
+                    + (f" ({parts})" if parts else ""))
+        return {"FINISHED"}
+
+
+classes = (GVAE_OT_refine,)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+
+
+def unregister():
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,107 @@
+"""Where the add-on's optional runtime (PyTorch, `gvae_core.refine`) comes from.
+
+Import and export need only numpy; Refine needs torch. Blender's Python can get torch two ways:
+an offline build of the extension that bundles the wheels, or the preferences button that
+pip-installs the pinned CPU build into the extension's own user directory. That directory is put
+on `sys.path` (appended, so it never shadows Blender's own modules) when the add-on registers.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import os
+import sys
+
+import bpy
+
+#: What Refine needs beyond Blender's own Python, pinned as in pyproject.toml: torch, and
+#: safetensors for the model weights. The preferences button installs both.
+TORCH_REQUIREMENT = "torch==2.13.0"
+REFINE_REQUIREMENTS = (TORCH_REQUIREMENT, "safetensors==0.8.0")
+
+#: Root package of the installed extension (e.g. "bl_ext.user_default.gaussian_vae"), or
+#: "gvae_addon" when the add-on is registered straight from a source checkout.
+ADDON_ID = __package__.rpartition(".")[0] or __package__
+
+
+def torch_dir(create: bool = False) -> str:
+    """The directory the preferences button installs torch into."""
+    try:
+        return bpy.utils.extension_path_user(ADDON_ID, path="site-packages", create=create)
+    except ValueError:  # not running as an extension (source checkout): a config sub-directory
+        path = os.path.join(bpy.utils.user_resource("CONFIG"), "gvae_addon", "site-packages")
+        if create:
+            os.makedirs(path, exist_ok=True)
+        return path
+
+
+def add_torch_dir() -> None:
+    """Make a previously installed torch importable."""
+    path = torch_dir()
+    if os.path.isdir(path) and path not in sys.path:
+        sys.path.append(path)
+        importlib.invalidate_caches()
+
+
+def remove_torch_dir() -> None:
+    path = torch_dir()
+    if path in sys.path:
+        sys.path.remove(path)
+
+
+def _has_module(name: str) -> bool:
+    if name in sys.modules:
+        return sys.modules[name] is not None
+    try:
+        return importlib.util.find_spec(name) is not None
+    except (ImportError, ValueError):
+        return False
+
+
+def torch_available() -> bool:
+    """Whether `import torch` can work (checked without importing it: draw code calls this)."""
+    return _has_module("torch")
+
+
+def runtime_installed() -> bool:
+    """torch and safetensors are importable (what the install button provides)."""
+    return torch_available() and _has_module("safetensors")
+
+
+def refine_status() -> tuple[bool, str]:
+    """(available, message) for Refine, without importing torch."""
+    if not _has_module("gvae_core.refine"):
+        return False, "Refine is not in this build: gvae_core.refine is missing"
+    if not torch_available():
+        return False, "Refine needs PyTorch: install it in the add-on preferences"
+    if not _has_module("safetensors"):
+        return False, "Refine needs safetensors: use Install PyTorch in the add-on preferences"
+    return True, "Refine is ready"
+
+
+def core_refine():
+    """`gvae_core.refine.refine`, imported on first use (this imports torch). Raises RuntimeError
+    with a user-facing message when it cannot be imported."""
+    ok, message = refine_status()
+    if not ok:
+        raise RuntimeError(message)
+    try:
+        module = importlib.import_module("gvae_core.refine")
+    except ImportError as exc:
+        raise RuntimeError(f"Refine could not be loaded: {exc}") from exc
+    return module.refine
+
+
+def pip_install_command(target: str, requirements: tuple[str, ...] = REFINE_REQUIREMENTS,
+                        extra_args: tuple[str, ...] | None = None) -> list[str]:
+    """The pip command line that installs `requirements` into `target` with Blender's Python.
+
+    On Linux and Windows the CPU wheels come from the PyTorch index (PyPI's Linux wheels pull in
+    CUDA); macOS wheels on PyPI are CPU builds already."""
+    if extra_args is None:
+        extra_args = (() if sys.platform == "darwin"
+                      else ("--index-url", "https://download.pytorch.org/whl/cpu",
+                            "--extra-index-url", "https://pypi.org/simple"))
+    return [sys.executable, "-m", "pip", "install", "--upgrade", "--disable-pip-version-check",
+            "--no-warn-script-location", "--target", target, *extra_args, *requirements]

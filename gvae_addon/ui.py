@@ -1,0 +1,118 @@
+"""Sidebar (N-panel) tab "GaussianVAE" in the 3D viewport: display options, Refine, import/export."""
+
+from __future__ import annotations
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+from bpy.types import Panel, PropertyGroup
+
+from . import convert, nodes, runtime
+
+
+class GVAE_Settings(PropertyGroup):
+    """Refine settings kept with the scene (the panel passes them to `gvae.refine`)."""
+
+    steps: IntProperty(name="Steps", default=1, min=1, max=4,
+                       description="Resolution steps to extrapolate past the trained one")
+    budget_auto: BoolProperty(name="Auto Budget", default=True,
+                              description="Let the Hessian score decide how many Gaussians to refine")
+    budget_fraction: FloatProperty(name="Budget", default=0.25, min=0.001, max=1.0, subtype="FACTOR",
+                                   description="Fraction of Gaussians refined")
+    model_source: EnumProperty(name="Model", default="BUNDLED",
+                               items=(("BUNDLED", "Bundled", "The model shipped with the extension"),
+                                      ("FILE", "Folder", "A model folder (config.json + weights)")))
+    model_path: StringProperty(name="Model Folder", subtype="DIR_PATH", default="")
+    seed: IntProperty(name="Seed", default=0, min=0)
+
+
+class GVAE_PT_main(Panel):
+    bl_label = "GaussianVAE"
+    bl_idname = "GVAE_PT_main"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "GaussianVAE"
+
+    def draw(self, context):
+        layout = self.layout
+        row = layout.row(align=True)
+        row.operator("import_scene.gaussian_splat", text="Import", icon="IMPORT")
+        row.operator("export_scene.gaussian_splat", text="Export", icon="EXPORT")
+        obj = context.active_object
+        if not convert.is_splat(obj):
+            layout.label(text="Select a splat object", icon="INFO")
+            return
+        layout.label(text=f"{obj.name}: {len(obj.data.vertices):,} Gaussians", icon="POINTCLOUD_DATA")
+
+
+class GVAE_PT_display(Panel):
+    bl_label = "Display"
+    bl_parent_id = "GVAE_PT_main"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "GaussianVAE"
+
+    @classmethod
+    def poll(cls, context):
+        return convert.is_splat(context.active_object)
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        mod = nodes.splat_modifier(context.active_object)
+        if mod is None:
+            layout.label(text="No splat modifier (re-import to add one)", icon="ERROR")
+            return
+        for name, *_ in nodes.INPUTS:
+            layout.prop(mod, f'["{nodes.modifier_input_id(mod, name)}"]', text=name)
+
+
+class GVAE_PT_refine(Panel):
+    bl_label = "Refine"
+    bl_parent_id = "GVAE_PT_main"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "GaussianVAE"
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.gvae
+        ok, message = runtime.refine_status()
+        if not ok:
+            box = layout.box()
+            box.label(text=message, icon="ERROR")
+            if not runtime.runtime_installed():
+                box.operator("gvae.install_torch", text="Install PyTorch (CPU)", icon="IMPORT")
+        col = layout.column()
+        col.use_property_split = True
+        col.prop(settings, "steps")
+        col.prop(settings, "budget_auto")
+        sub = col.column()
+        sub.enabled = not settings.budget_auto
+        sub.prop(settings, "budget_fraction")
+        col.prop(settings, "model_source")
+        if settings.model_source == "FILE":
+            col.prop(settings, "model_path")
+        col.prop(settings, "seed")
+        row = layout.row()
+        row.enabled = ok and convert.is_splat(context.active_object)
+        row.scale_y = 1.4
+        op = row.operator("gvae.refine", icon="SHADERFX")
+        op.steps = settings.steps
+        op.budget = "auto" if settings.budget_auto else f"{settings.budget_fraction:.6g}"
+        op.model = settings.model_path if settings.model_source == "FILE" else ""
+        op.seed = settings.seed
+
+
+classes = (GVAE_Settings, GVAE_PT_main, GVAE_PT_display, GVAE_PT_refine)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.gvae = PointerProperty(type=GVAE_Settings)
+
+
+def unregister():
+    del bpy.types.Scene.gvae
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)
