@@ -4,7 +4,10 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test demo bench extension clean
+# Spinning OpenMP waits slow torch badly when the cores are shared (see BENCHMARKS.md).
+export OMP_WAIT_POLICY ?= PASSIVE
+
+.PHONY: install test demo bench extension clean train-model
 
 install: $(STAMP)
 
@@ -23,6 +26,16 @@ demo: install
 
 bench: install
 	$(PY) -m gvae_core.benchmarks
+
+# Blender extension zip into dist/ (built and validated with Blender's blender_ext.py).
+# TORCH_WHEELS=DIR also bundles a folder of torch + dependency wheels for one platform (offline).
+extension: install
+	$(PY) tools/build_extension.py $(if $(TORCH_WHEELS),--torch-wheels $(TORCH_WHEELS))
+
+# Reproduce the bundled lineage VAEs in models/: benchmark scenes -> progressive 3DGS runs (runs/model/)
+# -> `gvae fit-vae` with two scenes held out; prints how long each part took.
+train-model: install
+	$(PY) tools/train_model.py --out models --runs runs/model
 
 clean:
 	rm -rf $(VENV) dist build *.egg-info .pytest_cache

@@ -23,6 +23,17 @@ _LAZY = {
     "Views": "gvae_core.datasets",
     "render": "gvae_core.render",
     "RenderOutput": "gvae_core.render",
+    "RenderSettings": "gvae_core.render",
+    "GaussianVAE": "gvae_core.vae",
+    "hessian_scores": "gvae_core.hessian",
+    "refine": "gvae_core.refine",
+    "RefineResult": "gvae_core.refine",
+    "train_progressive": "gvae_core.train",
+    "TrainConfig": "gvae_core.train",
+    "TrainResult": "gvae_core.train",
+    "Lineage": "gvae_core.lineage",
+    "make_scene": "gvae_core.scenes",
+    "list_scenes": "gvae_core.scenes",
 }
 
 

@@ -7,4 +7,9 @@ are never asserted on (speed goals live here, not in tests).
 
 BENCHMARKS = (
     "ply",
+    "render",
+    "blender",
+    "refine",
+    "scenes",
+    "train",
 )

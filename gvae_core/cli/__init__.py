@@ -12,6 +12,11 @@ import sys
 
 COMMAND_MODULES = (
     "info",
+    "render",
+    "demo",
+    "vae",
+    "train",
+    "scenes",
 )
 
 
