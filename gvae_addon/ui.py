@@ -15,9 +15,9 @@ class GVAE_Settings(PropertyGroup):
     steps: IntProperty(name="Steps", default=1, min=1, max=4,
                        description="Resolution steps to extrapolate past the trained one")
     budget_auto: BoolProperty(name="Auto Budget", default=True,
-                              description="Let the Hessian score decide how many Gaussians to refine")
+                              description="Let the Hessian score decide which Gaussians to densify")
     budget_fraction: FloatProperty(name="Budget", default=0.25, min=0.001, max=1.0, subtype="FACTOR",
-                                   description="Fraction of Gaussians refined")
+                                   description="Fraction of Gaussians densified (the highest Hessian scores)")
     model_source: EnumProperty(name="Model", default="BUNDLED",
                                items=(("BUNDLED", "Bundled", "The model shipped with the extension"),
                                       ("FILE", "Folder", "A model folder (config.json + weights)")))

@@ -39,7 +39,7 @@ def scene_normalization(points) -> tuple[np.ndarray, float]:
     p = p[np.isfinite(p).all(1)]
     if len(p) == 0:
         return np.zeros(3), 1.0
-    lo, hi = np.percentile(p, 1, axis=0), np.percentile(p, 99, axis=0)
+    lo, hi = np.percentile(p, [1, 99], axis=0)
     scale = float(np.max(hi - lo)) / 2.0
     return (lo + hi) / 2.0, (scale if scale > 1e-8 else 1.0)
 
@@ -213,6 +213,19 @@ class Lineage:
         lin = cls(center, scale)
         lin.add_stage(cloud.replace(extra={}), ids, np.full(len(cloud), -1, np.int64), resolution)
         return lin
+
+    def prefix(self, n_stages: int) -> "Lineage":
+        """The first `n_stages` stages, normalised from the last of them (as the trainer does
+        after each stage): what a run stopped there would have recorded, with nothing from later
+        stages (the lineage to refine when later stages are kept for evaluation)."""
+        if not 1 <= n_stages <= self.n_stages:
+            raise ValueError(f"prefix: n_stages must be in 1..{self.n_stages}, got {n_stages}")
+        out = Lineage()
+        for s in range(n_stages):
+            snap = self.snapshots[s]
+            out.add_stage(snap.cloud, snap.ids, snap.parents, self.resolutions[s])
+        out.set_normalization(*scene_normalization(self.snapshots[n_stages - 1].cloud.means))
+        return out
 
     # ------------------------------------------------------------ access
     def snapshot(self, stage: int) -> Snapshot:

@@ -1,10 +1,14 @@
 """Refinement past the training resolution (DESIGN.md step 5).
 
 Score the input Gaussians (Hessian), pick the budget's share, and run the lineage VAEs for
-`steps` sequential steps: each step extends every lineage selected so far by one stage. For a
-lineage, the existing slot nearest its last node updates that Gaussian in place; every other
-existing slot becomes a new Gaussian (appended after the input rows). Outputs are sanitised:
-finite, unit quaternions, log-scales and opacity logits inside finite ranges.
+`steps` sequential steps: each step extends every lineage selected so far by one stage. The
+budget says where to densify: the selected Gaussians all densify at the first step; the models
+say how (how many children, where, how large, what colour) and, at later steps, whether each
+descendant densifies again, as they learned from progressive training. With the budget "all"
+every Gaussian is given to the models, which decide at every step. For a lineage,
+the existing slot nearest its last node updates that Gaussian in place; every other existing
+slot becomes a new Gaussian (appended after the input rows). Outputs are sanitised: finite,
+unit quaternions, log-scales and opacity logits inside finite ranges.
 """
 
 from __future__ import annotations
@@ -12,7 +16,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -23,6 +27,7 @@ from .cloud import EXTREME_LOG_SCALE, OPACITY_LOGIT_RANGE, GaussianCloud, normal
 
 AUTO_FRACTION_RANGE = (0.01, 0.5)
 OUTPUT_SH_LIMIT = 1e3
+_FIELDS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 
 
 @dataclass
@@ -89,7 +94,6 @@ def select_budget(scores: np.ndarray, budget: Any) -> np.ndarray:
     scores (the high-score class) that are also more than one robust standard deviation
     (1.4826 MAD) above the median score, kept between 1% and 50% of the rows."""
     n = len(scores)
-    order = np.argsort(-np.asarray(scores, np.float64), kind="stable")
     if isinstance(budget, str):
         if budget == "all":
             return np.arange(n, dtype=np.int64)
@@ -115,19 +119,37 @@ def select_budget(scores: np.ndarray, budget: Any) -> np.ndarray:
         count = min(int(math.ceil(budget * n - 1e-9)), n)
     else:
         raise ValueError(f"budget must be 'all', 'auto', a fraction or a count, got {budget!r}")
-    return np.sort(order[:count]).astype(np.int64)
+    return _top_rows(np.asarray(scores, np.float64), count)
 
 
-def _initial_history(cloud: GaussianCloud, lineage: Any):
-    """Node features (M,T,11), (M,T,50) for every input row, and the normalisation. The last node
-    is always the input Gaussian itself; earlier nodes come from the lineage when given."""
-    from .lineage import Lineage, appearance_features, geometry_features  # noqa: PLC0415
+def _top_rows(scores: np.ndarray, count: int) -> np.ndarray:
+    """The `count` rows with the highest scores, ties going to the lower row, ascending: the first
+    `count` of a stable descending sort, in O(N) (`np.partition` instead of a sort)."""
+    n = len(scores)
+    if count <= 0:
+        return np.zeros(0, np.int64)
+    if count >= n:
+        return np.arange(n, dtype=np.int64)
+    cut = np.partition(scores, n - count)[n - count]   # the count-th largest value
+    above = np.flatnonzero(scores > cut)
+    ties = np.flatnonzero(scores == cut)[: count - len(above)]
+    return np.sort(np.concatenate([above, ties])).astype(np.int64)
 
+
+def _initial_history(cloud: GaussianCloud, lineage: Any, selected: np.ndarray):
+    """Node features (M,T,11), (M,T,50) of the selected rows, and the normalisation. The last node
+    is always the input Gaussian itself; earlier nodes come from the lineage when given. Without a
+    lineage the selected rows become one-node lineages (`Lineage.from_cloud`) in the frame of the
+    whole cloud (`scene_normalization`)."""
+    from .lineage import Lineage, appearance_features, geometry_features, scene_normalization  # noqa: PLC0415
+
+    sub = cloud.select(selected)
     if lineage is None:
-        lineage = Lineage.from_cloud(cloud)
+        center, scale = scene_normalization(cloud.means)
+        lineage = Lineage.from_cloud(sub.replace(extra={}), center, scale)
     center, scale = lineage.center, lineage.scale
-    geo = geometry_features(cloud, center, scale)[:, None]
-    app = appearance_features(cloud)[:, None]
+    geo = geometry_features(sub, center, scale)[:, None]
+    app = appearance_features(sub)[:, None]
     if lineage.n_stages > 1:
         seq = lineage.sequences(lineage.n_stages - 1)
         ids = cloud.extra.get("gvae_id")
@@ -144,9 +166,20 @@ def _initial_history(cloud: GaussianCloud, lineage: Any):
         else:
             raise ValueError(f"refine: the lineage's last stage has {len(seq)} Gaussians but the cloud has "
                              f"{len(cloud)} (and no gvae_id property to match them)")
+        rows = rows[selected]
         geo = np.concatenate([seq.geometry[rows, :-1], geo], 1)
         app = np.concatenate([seq.appearance[rows, :-1], app], 1)
     return geo, app, np.asarray(center, np.float64), float(scale)
+
+
+def _nonfinite_rows(cloud: GaussianCloud) -> np.ndarray:
+    arrays = [getattr(cloud, name) for name in _FIELDS]
+    if all(np.isfinite(a).all() for a in arrays):  # the usual case, without per-row bookkeeping
+        return np.zeros(0, np.int64)
+    bad = np.zeros(len(cloud), bool)
+    for a in arrays:
+        bad |= ~np.isfinite(a.reshape(len(cloud), -1)).all(1)
+    return np.flatnonzero(bad)
 
 
 def _sanitize_rows(geo: np.ndarray, app: np.ndarray, world_pos: np.ndarray, center, scale, sh_degree: int):
@@ -176,6 +209,20 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model:
     one). `cameras`: views for the Hessian (default: views placed around the cloud). `lineage`:
     the training lineage whose last stage is this cloud (default: one-node lineages). `scores`:
     precomputed Hessian scores (skips scoring). Raises ValueError on non-finite input rows."""
+    result = None
+    for result in refine_steps(cloud, steps=steps, budget=budget, model=model, cameras=cameras, lineage=lineage,
+                               seed=seed, progress=progress, hessian_options=hessian_options, scores=scores,
+                               every_step=False):
+        pass
+    return result
+
+
+def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
+                 cameras: Sequence[Camera] | None = None, lineage: Any = None, seed: int = 0,
+                 progress: Callable[[float, str], None] | None = None, hessian_options: dict | None = None,
+                 scores: Any = None, every_step: bool = True) -> Iterator[RefineResult]:
+    """`refine`, yielding the result after every step (+1, +2, ...; each one the same as `refine`
+    with that many steps and the same seed), or only after the last with `every_step=False`."""
     from .vae import GaussianVAE, load_default_model  # noqa: PLC0415
 
     t_start = time.perf_counter()
@@ -184,11 +231,11 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model:
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
         raise ValueError(f"refine: steps must be an integer >= 1, got {steps!r}")
     src = cloud.numpy()
-    report = src.validate()
-    if len(report.nonfinite_rows):
-        rows = ", ".join(str(int(r)) for r in report.nonfinite_rows[:5])
-        raise ValueError(f"refine: the cloud has non-finite values in {len(report.nonfinite_rows)} row(s) "
-                         f"[{rows}{', ...' if len(report.nonfinite_rows) > 5 else ''}]; sanitize it first")
+    bad = _nonfinite_rows(src)
+    if len(bad):
+        rows = ", ".join(str(int(r)) for r in bad[:5])
+        raise ValueError(f"refine: the cloud has non-finite values in {len(bad)} row(s) "
+                         f"[{rows}{', ...' if len(bad) > 5 else ''}]; sanitize it first")
     n = len(src)
 
     t0 = time.perf_counter()
@@ -200,6 +247,8 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model:
 
     say(0.05, "scoring Gaussians (Hessian)")
     t0 = time.perf_counter()
+    if scores is None and budget == "all":
+        scores = np.zeros(n, np.float32)  # every Gaussian is refined: nothing to rank
     if scores is None:
         from .hessian import hessian_scores  # noqa: PLC0415
 
@@ -212,31 +261,54 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model:
     selected = select_budget(scores, budget)
 
     t0 = time.perf_counter()
-    hist_g, hist_a, center, scale = _initial_history(src, lineage)
-    hist_g, hist_a = hist_g[selected], hist_a[selected]
+    hist_g, hist_a, center, scale = _initial_history(src, lineage, selected)
     timings["features"] = time.perf_counter() - t0
 
     gen = torch.Generator().manual_seed(int(seed))
-    rows = selected.copy()        # current-cloud row of each active lineage
-    roots = selected.copy()       # its ancestor row in the input
-    world = src.means[selected].astype(np.float64)  # exact world positions of the last nodes
-    new_parts: list[GaussianCloud] = []
-    updates: dict[int, GaussianCloud] = {}
-    update_rows: list[np.ndarray] = []
-    added_parents, added_steps = [], []
-    n_total = n
-    model_time = 0.0
-    max_nodes = max(model.geometry.config.max_nodes, model.appearance.config.max_nodes)
+    grow = _Growth(src, selected, hist_g, hist_a, center, scale)
     for k in range(1, steps + 1):
-        say(0.1 + 0.85 * (k - 1) / steps, f"step {k}/{steps}: {len(rows)} lineages")
+        say(0.1 + 0.85 * (k - 1) / steps, f"step {k}/{steps}: {len(grow.rows)} lineages")
+        if len(grow.rows):
+            # The budget chose these Gaussians to densify at the first step; later steps (and
+            # every step with "all") let the model decide, lineage by lineage.
+            grow.step(k, model, None if budget == "all" or k > 1 else np.ones(len(grow.rows), bool), gen)
+        if every_step or k == steps:
+            final = k == steps
+            if final:
+                say(0.97, "assembling the refined cloud")
+            result = grow.result(scores, {**timings}, t_start)
+            if final:
+                say(1.0, result.summary())
+            suspended = time.perf_counter()
+            yield result
+            t_start += time.perf_counter() - suspended  # the caller's time is not ours
+
+
+class _Growth:
+    """The lineages being extended, step after step, and what they have added so far."""
+
+    def __init__(self, src: GaussianCloud, selected: np.ndarray, hist_g: np.ndarray, hist_a: np.ndarray,
+                 center: np.ndarray, scale: float):
+        self.src, self.selected, self.center, self.scale = src, selected, center, scale
+        self.hist_g, self.hist_a = hist_g, hist_a
+        self.rows = selected.copy()     # current-cloud row of each active lineage
+        self.roots = selected.copy()    # its ancestor row in the input
+        self.world = src.means[selected].astype(np.float64)  # exact world positions of the last nodes
+        self.new_parts: list[GaussianCloud] = []
+        self.updates: list[tuple[np.ndarray, GaussianCloud]] = []  # (rows, new values), in step order
+        self.added_parents: list[np.ndarray] = []
+        self.added_steps: list[np.ndarray] = []
+        self.n_total = len(src)
+        self.model_time = 0.0
+
+    def step(self, k: int, model, densify, gen: torch.Generator) -> None:
+        """Extend every active lineage by one predicted stage."""
         t0 = time.perf_counter()
-        if len(rows) == 0:
-            break
-        g, a, p = model.predict(hist_g[:, -max_nodes:], hist_a[:, -max_nodes:], generator=gen)
+        max_nodes = max(model.geometry.config.max_nodes, model.appearance.config.max_nodes)
+        g, a, p, _ = model.predict(self.hist_g[:, -max_nodes:], self.hist_a[:, -max_nodes:], densify, generator=gen)
         g, a, p = g.numpy().astype(np.float64), a.numpy(), p.numpy()
-        model_time += time.perf_counter() - t0
-        m, c = p.shape
-        last = hist_g[:, -1].astype(np.float64)
+        self.model_time += time.perf_counter() - t0
+        last = self.hist_g[:, -1].astype(np.float64)
         size = np.exp(np.clip(last[:, 7:10], -20.0, 10.0).mean(1))
         last_pos = np.clip(np.nan_to_num(last[:, 0:3]), -1e6, 1e6)
         dist = np.linalg.norm(g[..., 0:3] - last_pos[:, None], axis=-1) / size[:, None]
@@ -244,65 +316,95 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model:
         # probability is below one half, under-generating systematically.
         exists = torch.rand(p.shape, generator=gen).numpy() < p
         keeper = np.argmin(np.where(exists, dist, np.inf), 1)
-        has = exists.any(1)
-        # World positions: parent's exact world position plus the predicted offset.
-        child_world = world[:, None] + (g[..., 0:3] - last_pos[:, None]) * scale
+        # World positions: the parent's exact world position plus the predicted offset.
+        child_world = self.world[:, None] + (g[..., 0:3] - last_pos[:, None]) * self.scale
         # Updated parents (the nearest existing slot), then the extra slots as new Gaussians.
-        upd = np.flatnonzero(has)
+        upd = np.flatnonzero(exists.any(1))
         ks = keeper[upd]
+        sh_degree = self.src.sh_degree
         if len(upd):
-            ucloud = _sanitize_rows(g[upd, ks], a[upd, ks], child_world[upd, ks], center, scale, src.sh_degree)
-            updates[k] = ucloud
-            update_rows.append(rows[upd])
+            self.updates.append((self.rows[upd], _sanitize_rows(g[upd, ks], a[upd, ks], child_world[upd, ks],
+                                                                self.center, self.scale, sh_degree)))
         extra = exists.copy()
         extra[upd, ks] = False
         li, si = np.nonzero(extra)
-        new_rows = n_total + np.arange(len(li))
+        new_rows = self.n_total + np.arange(len(li))
         if len(li):
-            new_parts.append(_sanitize_rows(g[li, si], a[li, si], child_world[li, si], center, scale, src.sh_degree))
-            added_parents.append(roots[li])
-            added_steps.append(np.full(len(li), k, np.int64))
-            n_total += len(li)
+            self.new_parts.append(_sanitize_rows(g[li, si], a[li, si], child_world[li, si], self.center, self.scale,
+                                                 sh_degree))
+            self.added_parents.append(self.roots[li])
+            self.added_steps.append(np.full(len(li), k, np.int64))
+            self.n_total += len(li)
         # Next step's lineages: updated parents and their new siblings, one node longer.
-        g_node = g.astype(np.float32).copy()
+        g_node = g.astype(np.float32)
         g_node[..., 10] = 1.0
-        a_node = a.copy()
-        a_node[..., 49] = 1.0
+        a[..., 49] = 1.0
         cont = np.concatenate([upd, li])
         slot = np.concatenate([ks, si])
-        prev_g, prev_a = hist_g[cont].copy(), hist_a[cont].copy()
+        prev_g, prev_a = self.hist_g[cont], self.hist_a[cont]  # fancy indexing copies
         prev_g[len(upd):, :, 10] = 0.0
         prev_a[len(upd):, :, 49] = 0.0
-        hist_g = np.concatenate([prev_g, g_node[cont, slot][:, None]], 1)
-        hist_a = np.concatenate([prev_a, a_node[cont, slot][:, None]], 1)
-        world = child_world[cont, slot]
-        rows = np.concatenate([rows[upd], new_rows])
-        roots = np.concatenate([roots[upd], roots[li]])
+        self.hist_g = np.concatenate([prev_g, g_node[cont, slot][:, None]], 1)
+        self.hist_a = np.concatenate([prev_a, a[cont, slot][:, None]], 1)
+        self.world = child_world[cont, slot]
+        self.rows = np.concatenate([self.rows[upd], new_rows])
+        self.roots = np.concatenate([self.roots[upd], self.roots[li]])
 
-    say(0.97, "assembling the refined cloud")
-    t0 = time.perf_counter()
-    out = _assemble(src, new_parts, updates, update_rows)
-    timings["model"] = model_time
-    timings["assemble"] = time.perf_counter() - t0
-    timings["total"] = time.perf_counter() - t_start
-    added = np.arange(n, len(out), dtype=np.int64)
-    result = RefineResult(
-        cloud=out, added=added,
-        parents=np.concatenate(added_parents) if added_parents else np.zeros(0, np.int64),
-        step=np.concatenate(added_steps) if added_steps else np.zeros(0, np.int64),
-        scores=scores, selected=selected, timings=timings)
-    say(1.0, result.summary())
-    return result
-
-
-def _assemble(src: GaussianCloud, new_parts: list[GaussianCloud], updates: dict[int, GaussianCloud],
-              update_rows: list[np.ndarray]) -> GaussianCloud:
-    """Input rows (with in-place updates applied in step order) followed by the added rows."""
-    out = GaussianCloud.concat([src] + new_parts).copy() if new_parts else src.copy()
-    for (k, upd), rows in zip(sorted(updates.items()), update_rows):
-        for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
-            getattr(out, name)[rows] = getattr(upd, name)
-    return out
+    def result(self, scores: np.ndarray, timings: dict, t_start: float) -> RefineResult:
+        """The input rows (with in-place updates applied in step order) followed by the added ones."""
+        t0 = time.perf_counter()
+        out = GaussianCloud.concat([self.src] + self.new_parts) if self.new_parts else self.src.copy()  # copies
+        for rows, values in self.updates:
+            for name in _FIELDS:
+                getattr(out, name)[rows] = getattr(values, name)
+        timings.update(model=self.model_time, assemble=time.perf_counter() - t0)
+        timings["total"] = time.perf_counter() - t_start
+        return RefineResult(
+            cloud=out, added=np.arange(len(self.src), len(out), dtype=np.int64),
+            parents=np.concatenate(self.added_parents) if self.added_parents else np.zeros(0, np.int64),
+            step=np.concatenate(self.added_steps) if self.added_steps else np.zeros(0, np.int64),
+            scores=scores, selected=self.selected, timings=timings)
 
 
-make_module_callable(__name__, "refine")
+def plain_split(cloud: GaussianCloud, rows, *, steps: int = 1, seed: int = 0,
+                every_step: bool = True) -> Iterator[RefineResult]:
+    """Control without a model: the reference 3DGS split applied to `rows` and then, step after
+    step, to all their descendants. Each Gaussian becomes two whose centres are drawn from it and
+    whose scales are divided by 1.6 (other parameters copied); the first child takes the
+    parent's row. Yields a `RefineResult` after every step (or only the last)."""
+    t_start = time.perf_counter()
+    src = cloud.numpy()
+    n = len(src)
+    selected = np.unique(np.asarray(rows, np.int64))
+    rng = np.random.default_rng(seed)
+    out = src.copy()
+    active = selected.copy()
+    roots = selected.copy()
+    parents, step_of = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for k in range(1, steps + 1):
+        sub = out.select(active)
+        sigma = np.exp(np.clip(sub.scales.astype(np.float64), *EXTREME_LOG_SCALE))
+        rot = sub.rotation_matrices()
+        draws = [np.einsum("nij,nj->ni", rot, rng.standard_normal(sigma.shape) * sigma) for _ in range(2)]
+        children = sub.copy()
+        children.scales = (sub.scales - math.log(1.6)).astype(np.float32)
+        children.quats = normalize_quats(sub.quats).astype(np.float32)
+        second = children.copy()
+        children.means = (sub.means + draws[0]).astype(np.float32)
+        second.means = (sub.means + draws[1]).astype(np.float32)
+        for name in ("means", "scales", "quats"):
+            getattr(out, name)[active] = getattr(children, name)
+        new_rows = len(out) + np.arange(len(active))
+        out = GaussianCloud.concat([out, second.replace(extra={})])
+        parents.append(roots.copy())
+        step_of.append(np.full(len(active), k, np.int64))
+        active = np.concatenate([active, new_rows])
+        roots = np.concatenate([roots, roots])
+        if every_step or k == steps:
+            result = RefineResult(cloud=out.copy(), added=np.arange(n, len(out), dtype=np.int64),
+                                  parents=np.concatenate(parents), step=np.concatenate(step_of),
+                                  scores=np.zeros(n, np.float32), selected=selected,
+                                  timings={"hessian": 0.0, "model": 0.0, "total": time.perf_counter() - t_start})
+            suspended = time.perf_counter()
+            yield result
+            t_start += time.perf_counter() - suspended

@@ -1,17 +1,24 @@
 """Lineage transformer VAEs (DESIGN.md step 3): geometry (11 features per node) and appearance (50).
 
 Each model encodes a lineage (its nodes, oldest first) with self-attention across stages into a
-latent z, and decodes z, conditioned on the last node, into a fixed number of child slots for the
-next stage: a state per slot (a change relative to the last node) and an existence logit.
+latent z, and decodes z, conditioned on the last node and on whether the Gaussian densifies at
+this step, into a fixed number of child slots for the next stage: a state per slot (a change
+relative to the last node) and an existence logit. The geometry model also predicts the
+probability that the Gaussian densifies (spawns new Gaussians) at the next stage: refinement
+samples it where the model decides alone ("Ours") and sets it where the Hessian budget has
+chosen the Gaussians to densify ("Ours-∇²").
 The prior p_psi(z) is a RealNVP-style normalising flow (affine coupling layers with an exact
 inverse); the KL term is Monte-Carlo: log q(z|x) - log p_psi(z) at the sampled z.
 
 Parametrisation (so that one model serves every scene and every scale):
-- geometry inputs are relative to the last node: positions as offsets in units of its mean size,
-  log-scales as differences, plus its absolute log-scale in the scene-normalised frame;
+- geometry inputs are in the last node's local frame (rotation-invariant): positions as offsets
+  in units of its per-axis standard deviations, rotations relative to its rotation, log-scales as
+  differences, plus its absolute log-scale in the scene-normalised frame;
 - a child's centre is the last node's centre plus an offset in its local frame, in units of its
-  per-axis standard deviations (how 3DGS itself places split children), bounded by tanh;
-- log-scale, quaternion and appearance changes are bounded; quaternions are renormalised.
+  per-axis standard deviations (how 3DGS itself places split children), bounded by tanh; its
+  rotation is the last node's composed with a predicted relative rotation (so the geometry model
+  is rotation-equivariant);
+- log-scale and appearance changes are bounded; quaternions are renormalised.
 Losses are computed in the same parent-relative frame (see `transition_loss`).
 """
 
@@ -38,6 +45,7 @@ _INPUTS = {"geometry": 14, "appearance": 50}
 
 # Bounds on what the decoder may change in one step (tanh-limited), and on inputs.
 MAX_OFFSET_SIGMAS = 4.0       # child centre offset, in parent standard deviations per axis
+OFFSET_SPREAD_RANGE = (0.02, 3.0)  # spread of a child's offset around its slot's mean, same units
 MAX_LOG_SCALE_CHANGE = 3.0
 MAX_SH_CHANGE = 2.0
 MAX_DC_CHANGE = 5.0
@@ -53,6 +61,18 @@ def _canonical_quats(q: torch.Tensor) -> torch.Tensor:
     """Unit quaternions with w >= 0 (q and -q are the same rotation)."""
     q = normalize_quats(q)
     return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
+
+
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product a*b of (...,4) w,x,y,z quaternions (rotation b, then a)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
+def quat_conjugate(q: torch.Tensor) -> torch.Tensor:
+    return q * q.new_tensor([1.0, -1.0, -1.0, -1.0])
 
 
 def clean_nodes(nodes: torch.Tensor) -> torch.Tensor:
@@ -85,13 +105,18 @@ class ParentFrame:
         shape = (-1,) + (1,) * (pos.dim() - 2) + (3,)
         return (pos - self.pos.view(shape)) / self.size.view(shape[:-1] + (1,))
 
+    def local(self, pos: torch.Tensor) -> torch.Tensor:
+        """Positions (M,T,3) in the parent's local frame, in units of its per-axis sigmas."""
+        d = torch.einsum("mji,mtj->mti", self.rot, pos - self.pos[:, None])
+        return d / self.sigma[:, None]
+
 
 def encoder_inputs(kind: str, nodes: torch.Tensor) -> torch.Tensor:
     """Model inputs (M,T,F_in) from clean node features (M,T,F), relative to the last node."""
     if kind == "geometry":
         frame = ParentFrame.of(nodes[:, -1])
-        rel = torch.asinh(frame.relative(nodes[..., 0:3]))
-        q = _canonical_quats(nodes[..., 3:7])
+        rel = torch.asinh(frame.local(nodes[..., 0:3]))
+        q = _canonical_quats(quat_multiply(quat_conjugate(frame.quat)[:, None], _canonical_quats(nodes[..., 3:7])))
         ls = nodes[..., 7:10].clamp(*FEATURE_LOG_SCALE_RANGE)
         rel_ls = (ls - frame.log_scale[:, None]).clamp(-10.0, 10.0)
         abs_ls = ls.clamp(-15.0, 5.0) / 5.0
@@ -187,7 +212,8 @@ class VAEConfig:
     decoder_hidden: int = 128
     flow_layers: int = 4
     flow_hidden: int = 64
-    max_nodes: int = 8         # lineages longer than this keep their last max_nodes nodes
+    max_nodes: int = 8         # lineages longer than this keep their last max_nodes nodes (the
+                               # longest history seen in training: older ones have no trained age)
 
     def __post_init__(self):
         if self.kind not in FEATURES:
@@ -197,16 +223,21 @@ class VAEConfig:
 @dataclass
 class SlotPrediction:
     """Decoded next stage: per lineage C slots of node features (the `exist` column holds the
-    existence probability) and the existence logits."""
+    existence probability), the existence logits, and the logit of densifying."""
 
     children: torch.Tensor     # (M,C,F) absolute node features in the normalised frame
     exist_logit: torch.Tensor  # (M,C)
     offsets: torch.Tensor | None = None  # geometry: child centres relative to the parent (M,C,3)
+    densify_logit: torch.Tensor | None = None  # (M,) the Gaussian spawns new ones at the next stage
+    local_mean: torch.Tensor | None = None     # geometry: mean child offset, parent frame, sigma units (M,C,3)
+    local_spread: torch.Tensor | None = None   # geometry: its per-axis spread (M,C,3)
 
 
 class EncoderBlock(nn.Module):
     """Pre-norm transformer block: self-attention across a lineage's nodes, then an MLP.
-    A one-node lineage attends only to itself, so attention reduces to the value projection."""
+    A one-node lineage attends only to itself, so attention reduces to the value projection.
+    Lineages are a few nodes long: attention is written out with broadcast products, which on
+    the CPU is about twice as fast as the fused kernel for such short sequences."""
 
     def __init__(self, d_model: int, heads: int, hidden: int):
         super().__init__()
@@ -225,8 +256,10 @@ class EncoderBlock(nn.Module):
         if t == 1:
             a = v
         else:
-            split = lambda x: x.view(m, t, self.heads, d // self.heads).transpose(1, 2)  # noqa: E731
-            a = F.scaled_dot_product_attention(split(q), split(k), split(v)).transpose(1, 2).reshape(m, t, d)
+            dh = d // self.heads
+            q, k, v = (x.view(m, t, self.heads, dh) for x in (q, k, v))
+            w = torch.softmax((q[:, :, None] * k[:, None]).sum(-1) * dh ** -0.5, 2)  # (m,t,s,heads)
+            a = (w[..., None] * v[:, None]).sum(2).reshape(m, t, d)
         h = h + self.out(a)
         return h + self.mlp(self.norm2(h))
 
@@ -240,16 +273,19 @@ class LineageVAE(nn.Module):
         c = config
         n_in = _INPUTS[c.kind]
         self.state_dim = FEATURES[c.kind] - 1
+        self.spread_dim = 3 if c.kind == "geometry" else 0  # per-axis spread of a child's offset
         self.embed = nn.Linear(n_in, c.d_model)
         self.age = nn.Embedding(c.max_nodes, c.d_model)  # index = nodes before the last one
         self.encoder = nn.Sequential(*(EncoderBlock(c.d_model, c.heads, 2 * c.d_model) for _ in range(c.layers)))
         self.norm = nn.LayerNorm(c.d_model)
         self.to_latent = nn.Linear(2 * c.d_model, 2 * c.latent)
+        self.to_densify = nn.Linear(2 * c.d_model, 1)
         self.cond = nn.Linear(n_in, c.d_model)
+        self.densify_embed = nn.Embedding(2, c.d_model)
         self.decoder = nn.Sequential(
             nn.Linear(c.latent + c.d_model, c.decoder_hidden), nn.GELU(),
             nn.Linear(c.decoder_hidden, c.decoder_hidden), nn.GELU(),
-            nn.Linear(c.decoder_hidden, c.slots * (self.state_dim + 1)))
+            nn.Linear(c.decoder_hidden, c.slots * (self.state_dim + 1 + self.spread_dim)))
         self.prior = FlowPrior(c.latent, c.flow_layers, c.flow_hidden)
 
     # -- encoder
@@ -259,34 +295,48 @@ class LineageVAE(nn.Module):
             nodes = nodes[:, -self.config.max_nodes:]
         return nodes
 
-    def encode(self, nodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(M,T,F) clean nodes -> posterior mean and log-variance (M,latent)."""
+    def encode(self, nodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(M,T,F) clean nodes -> posterior mean and log-variance (M,latent), and the logit of the
+        probability that the Gaussian densifies at the next stage (M,)."""
         x = encoder_inputs(self.config.kind, nodes)
         t = nodes.shape[1]
         age = torch.arange(t - 1, -1, -1, device=nodes.device).clamp(max=self.config.max_nodes - 1)
         h = self.embed(x) + self.age(age)[None]
         h = self.norm(self.encoder(h))
-        stats = self.to_latent(torch.cat([h[:, -1], h.mean(1)], -1))
-        mu, logvar = stats.chunk(2, -1)
-        return mu, logvar.clamp(-8.0, 4.0)
+        summary = torch.cat([h[:, -1], h.mean(1)], -1)
+        mu, logvar = self.to_latent(summary).chunk(2, -1)
+        return mu, logvar.clamp(-8.0, 4.0), self.to_densify(summary)[:, 0]
 
     # -- decoder
-    def decode(self, z: torch.Tensor, nodes: torch.Tensor) -> SlotPrediction:
-        """Latent (M,latent) and the lineage's clean nodes -> C child slots of the next stage."""
+    def decode(self, z: torch.Tensor, nodes: torch.Tensor, densify: torch.Tensor,
+               generator: torch.Generator | None = None, sample_offsets: bool = False) -> SlotPrediction:
+        """Latent (M,latent), the lineage's clean nodes and whether it densifies (M,) -> C child
+        slots of the next stage. Geometry slots predict a distribution of the child's centre
+        (a mean offset and a per-axis spread in the parent's frame); `sample_offsets` draws
+        the centres from it (refinement), else they are the means (training, evaluation)."""
         c = self.config
         x_last = encoder_inputs(c.kind, nodes)[:, -1]
-        out = self.decoder(torch.cat([z, self.cond(x_last)], -1)).view(len(z), c.slots, self.state_dim + 1)
-        raw, logit = out[..., :-1], out[..., -1]
+        cond = torch.cat([z, self.cond(x_last) + self.densify_embed(densify.long())], -1)
+        out = self.decoder(cond).view(len(z), c.slots, self.state_dim + 1 + self.spread_dim)
+        raw, logit = out[..., :self.state_dim], out[..., self.state_dim]
         last = nodes[:, -1]
         if c.kind == "geometry":
             frame = ParentFrame.of(last)
             d = MAX_OFFSET_SIGMAS * torch.tanh(raw[..., 0:3] / MAX_OFFSET_SIGMAS)
-            world = torch.einsum("mij,mcj->mci", frame.rot, d * frame.sigma[:, None])
+            lo, hi = (math.log(v) for v in OFFSET_SPREAD_RANGE)
+            spread = torch.exp(lo + (hi - lo) * torch.sigmoid(out[..., self.state_dim + 1:]))
+            local = d
+            if sample_offsets:
+                eps = torch.randn(d.shape, generator=generator, device=d.device, dtype=d.dtype)
+                local = (d + spread * eps).clamp(-MAX_OFFSET_SIGMAS, MAX_OFFSET_SIGMAS)
+            world = torch.einsum("mij,mcj->mci", frame.rot, local * frame.sigma[:, None])
             pos = frame.pos[:, None] + world
-            quat = _canonical_quats(frame.quat[:, None] + raw[..., 3:7])
+            delta = normalize_quats(raw[..., 3:7] + raw.new_tensor([1.0, 0.0, 0.0, 0.0]))
+            quat = _canonical_quats(quat_multiply(frame.quat[:, None], delta))
             ls = frame.log_scale[:, None] + MAX_LOG_SCALE_CHANGE * torch.tanh(raw[..., 7:10] / MAX_LOG_SCALE_CHANGE)
             children = torch.cat([pos, quat, ls, torch.sigmoid(logit)[..., None]], -1)
-            return SlotPrediction(children, logit, world / frame.size[:, None, None])
+            return SlotPrediction(children, logit, world / frame.size[:, None, None], local_mean=d,
+                                  local_spread=spread)
         sh = last[:, None, 0:45] + MAX_SH_CHANGE * torch.tanh(raw[..., 0:45] / MAX_SH_CHANGE)
         dc = last[:, None, 45:48] + MAX_DC_CHANGE * torch.tanh(raw[..., 45:48] / MAX_DC_CHANGE)
         op = (last[:, None, 48:49].clamp(*FEATURE_OPACITY_RANGE)
@@ -294,16 +344,22 @@ class LineageVAE(nn.Module):
         children = torch.cat([sh, dc, op, torch.sigmoid(logit)[..., None]], -1)
         return SlotPrediction(children, logit)
 
-    def forward(self, nodes: torch.Tensor, *, sample: bool = True, generator: torch.Generator | None = None):
-        """Encode, draw z ~ q(z|x) (or take its mean), decode. Returns (prediction, mu, logvar, z)."""
+    def forward(self, nodes: torch.Tensor, densify: torch.Tensor | None = None, *, sample: bool = True,
+                generator: torch.Generator | None = None):
+        """Encode, draw z ~ q(z|x) (or take its mean), decode given `densify` (M,) flags (default:
+        the model's own prediction, probability > 1/2). Returns (prediction, mu, logvar, z); the
+        prediction carries the densification logit."""
         nodes = self._prepare(nodes)
-        mu, logvar = self.encode(nodes)
+        mu, logvar, densify_logit = self.encode(nodes)
         if sample:
             eps = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
             z = mu + (0.5 * logvar).exp() * eps
         else:
             z = mu
-        return self.decode(z, nodes), mu, logvar, z
+        flags = densify_logit > 0 if densify is None else torch.as_tensor(densify, device=mu.device)
+        pred = self.decode(z, nodes, flags.reshape(-1))
+        pred.densify_logit = densify_logit
+        return pred, mu, logvar, z
 
     def kl(self, mu: torch.Tensor, logvar: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """Monte-Carlo KL(q(z|x) || p_psi(z)) per lineage: log q(z|x) - log p_psi(z)."""
@@ -321,7 +377,8 @@ def model_bytes(model: nn.Module) -> int:
 
 @dataclass
 class TransitionData:
-    """One stage transition as plain arrays (the fields of `gvae_core.lineage.Transition`)."""
+    """One stage transition as plain arrays (the fields of `gvae_core.lineage.Transition`), plus
+    whether each Gaussian densified (spawned a Gaussian that is not itself)."""
 
     history_geometry: np.ndarray    # (M,T,11)
     history_appearance: np.ndarray  # (M,T,50)
@@ -330,6 +387,7 @@ class TransitionData:
     child_mask: np.ndarray          # (M,C) bool
     stage: int = 1
     source: str = ""
+    densified: np.ndarray | None = None  # (M,) bool; default: two or more children
 
     def __post_init__(self):
         m, t = self.history_geometry.shape[:2]
@@ -339,13 +397,17 @@ class TransitionData:
             got = getattr(self, name).shape
             if len(got) != len(shape) or any(s is not None and s != g for s, g in zip(shape, got)):
                 raise ValueError(f"TransitionData.{name} has shape {got}, expected {shape} (None = any)")
+        if self.densified is None:
+            self.densified = self.child_mask.sum(1) >= 2
+        self.densified = np.asarray(self.densified, bool).reshape(m)
 
     @classmethod
     def from_transition(cls, tr: Any, stage: int = 1, source: str = "") -> "TransitionData":
         """From a `gvae_core.lineage.Transition` (duck-typed)."""
+        new_child = (np.asarray(tr.child_ids) != np.asarray(tr.history.ids)[:, None]) & np.asarray(tr.child_mask, bool)
         return cls(np.asarray(tr.history.geometry, np.float32), np.asarray(tr.history.appearance, np.float32),
                    np.asarray(tr.child_geometry, np.float32), np.asarray(tr.child_appearance, np.float32),
-                   np.asarray(tr.child_mask, bool), stage, source)
+                   np.asarray(tr.child_mask, bool), stage, source, new_child.any(1))
 
     def __len__(self) -> int:
         return len(self.history_geometry)
@@ -353,7 +415,7 @@ class TransitionData:
     def subset(self, index: np.ndarray) -> "TransitionData":
         return TransitionData(self.history_geometry[index], self.history_appearance[index],
                               self.child_geometry[index], self.child_appearance[index], self.child_mask[index],
-                              self.stage, self.source)
+                              self.stage, self.source, self.densified[index])
 
 
 def synthetic_transitions(n: int = 512, stages: int = 3, *, seed: int = 0,
@@ -397,7 +459,7 @@ def synthetic_transitions(n: int = 512, stages: int = 3, *, seed: int = 0,
             ca[:, c, 48] += np.where(split, -0.3, 0.1)
         mask[:, 0] = True
         mask[:, 1] = split | clone
-        out.append(TransitionData(hist_g, hist_a, cg, ca, mask, stage, "synthetic"))
+        out.append(TransitionData(hist_g, hist_a, cg, ca, mask, stage, "synthetic", split | clone))
         # Next stage's lineages: every child, its history the parent's (exist = 0 for new ones).
         parent = np.concatenate([np.arange(m), np.flatnonzero(mask[:, 1])])
         slot = np.concatenate([np.zeros(m, int), np.ones(int(mask[:, 1].sum()), int)])
@@ -455,7 +517,8 @@ def match_slots_reference(cost: np.ndarray, mask: np.ndarray) -> np.ndarray:
 @dataclass
 class LossWeights:
     """Loss weights: the paper's 1e-6 KL, 1.0 MSE (colour, opacity) and 0.01 Chamfer; the terms
-    the paper leaves implicit (existence, matched log-scale/rotation) share the geometry weight."""
+    the paper leaves implicit (existence, matched log-scale/rotation, densification, the
+    likelihood of child centres under the slots' offset distributions) share the geometry weight."""
 
     kl: float = 1e-6
     mse: float = 1.0
@@ -463,6 +526,8 @@ class LossWeights:
     exist: float = 0.01
     geometry_state: float = 0.01
     appearance_exist: float = 0.01
+    densify: float = 0.01
+    offset_nll: float = 0.01
 
 
 def _pad_children(arr: np.ndarray | torch.Tensor, slots: int) -> torch.Tensor:
@@ -490,7 +555,9 @@ def transition_loss(geometry: LineageVAE, appearance: LineageVAE, batch: Transit
     maskf = mask.float()
     n_child = maskf.sum().clamp(min=1.0)
 
-    pg, mu_g, lv_g, z_g = geometry(hg, sample=sample, generator=generator)
+    densified = torch.as_tensor(batch.densified)
+    pg, mu_g, lv_g, z_g = geometry(hg, densified, sample=sample, generator=generator)
+    densify = F.binary_cross_entropy_with_logits(pg.densify_logit, densified.float())
     frame = ParentFrame.of(geometry._prepare(hg)[:, -1])
     true_rel = frame.relative(cg[..., 0:3])                                  # (M,C,3)
     pred_rel = pg.offsets                                                    # (M,S,3)
@@ -505,8 +572,10 @@ def transition_loss(geometry: LineageVAE, appearance: LineageVAE, batch: Transit
     target_exist[rows.expand_as(assign)[mask], assign[mask]] = 1.0
     exist_g = F.binary_cross_entropy_with_logits(pg.exist_logit, target_exist)
 
-    # Existence-weighted Chamfer on child centres (parent frame), both directions.
-    prob = torch.sigmoid(pg.exist_logit)
+    # Existence-weighted Chamfer on child centres (parent frame), both directions. The weights
+    # are detached: existence is learned from the matching alone (BCE), else a slot placed badly
+    # would be taught not to exist rather than to move.
+    prob = torch.sigmoid(pg.exist_logit).detach()
     big = torch.finfo(d2.dtype).max / 4
     to_pred = torch.where(mask[:, None], d2, big).min(2).values              # (M,S) slot -> nearest child
     to_true = d2.min(1).values                                              # (M,C) child -> nearest slot
@@ -519,9 +588,16 @@ def transition_loss(geometry: LineageVAE, appearance: LineageVAE, batch: Transit
     mg = torch.gather(pg.children, 1, slot_of[..., None].expand(-1, -1, 11))
     qdot = (mg[..., 3:7] * _canonical_quats(cg[..., 3:7])).sum(-1).abs().clamp(max=1.0)
     state = ((((mg[..., 7:10] - true_ls) ** 2).sum(-1) + 4.0 * (1.0 - qdot)) * maskf).sum() / n_child
+    # Likelihood of each matched child's centre under its slot's offset distribution (parent
+    # frame, sigma units; residuals clamped at 10 spreads so that a few far jumps do not rule).
+    true_local = frame.local(cg[..., 0:3]).clamp(-1e3, 1e3)
+    mean_local = torch.gather(pg.local_mean, 1, slot_of[..., None].expand(-1, -1, 3))
+    spread = torch.gather(pg.local_spread, 1, slot_of[..., None].expand(-1, -1, 3))
+    z2 = (((true_local - mean_local) / spread) ** 2).clamp(max=100.0)
+    offset_nll = ((0.5 * z2 + spread.log()).sum(-1) * maskf).sum() / n_child
     kl_g = geometry.kl(mu_g, lv_g, z_g).mean()
 
-    pa, mu_a, lv_a, z_a = appearance(ha, sample=sample, generator=generator)
+    pa, mu_a, lv_a, z_a = appearance(ha, densified, sample=sample, generator=generator)
     ma = torch.gather(pa.children, 1, slot_of[..., None].expand(-1, -1, 50))
     colour = ((SH_C0 * (ma[..., 45:48] - ca[..., 45:48])) ** 2).sum(-1)
     sh = ((ma[..., 0:45] - ca[..., 0:45].clamp(-5, 5)) ** 2).sum(-1)
@@ -532,7 +608,8 @@ def transition_loss(geometry: LineageVAE, appearance: LineageVAE, batch: Transit
 
     w = weights
     total = (w.kl * beta * (kl_g + kl_a) + w.mse * mse + w.chamfer * chamfer + w.exist * exist_g
-             + w.geometry_state * state + w.appearance_exist * exist_a)
+             + w.geometry_state * state + w.appearance_exist * exist_a + w.densify * densify
+             + w.offset_nll * offset_nll)
     with torch.no_grad():
         pred_exist = pg.exist_logit > 0
         exist_acc = (pred_exist == target_exist.bool()).float().mean()
@@ -541,7 +618,9 @@ def transition_loss(geometry: LineageVAE, appearance: LineageVAE, batch: Transit
         exist_acc_both = ((p_both > 0.5) == target_exist.bool()).float().mean()
         matched_pos = ((torch.gather(pred_rel, 1, slot_of[..., None].expand(-1, -1, 3)) - true_rel) ** 2).sum(-1)
         pos_err = ((matched_pos * maskf).sum() / n_child).sqrt()
+        densify_acc = ((pg.densify_logit > 0) == densified).float().mean()
     return {"total": total, "kl_geometry": kl_g, "kl_appearance": kl_a, "mse": mse, "chamfer": chamfer,
+            "densify": densify, "densify_accuracy": densify_acc, "offset_nll": offset_nll,
             "exist": exist_g, "state": state, "exist_accuracy": exist_acc, "position_rmse": pos_err,
             "count_error": (pred_exist.float().sum(1) - maskf.sum(1)).abs().mean(),
             "expected_count_bias": (torch.sigmoid(pg.exist_logit).sum(1) - maskf.sum(1)).mean(),
@@ -563,8 +642,8 @@ class GaussianVAE:
     def create(cls, geometry: VAEConfig | None = None, appearance: VAEConfig | None = None,
                seed: int = 0) -> "GaussianVAE":
         torch.manual_seed(seed)
-        g = LineageVAE(geometry or VAEConfig(kind="geometry", d_model=32, decoder_hidden=96))
-        a = LineageVAE(appearance or VAEConfig(kind="appearance", d_model=32, decoder_hidden=96))
+        g = LineageVAE(geometry or VAEConfig(kind="geometry", d_model=32, decoder_hidden=96, max_nodes=4))
+        a = LineageVAE(appearance or VAEConfig(kind="appearance", d_model=32, decoder_hidden=96, max_nodes=4))
         if g.config.slots != a.config.slots:
             raise ValueError("geometry and appearance models need the same number of slots")
         return cls(g.eval(), a.eval())
@@ -574,25 +653,38 @@ class GaussianVAE:
         return self.geometry.config.slots
 
     @torch.no_grad()
-    def predict(self, history_geometry, history_appearance, *, sample: bool = True,
+    def predict(self, history_geometry, history_appearance, densify=None, *, sample: bool = True,
                 generator: torch.Generator | None = None, batch: int = 65536):
-        """Next-stage slots for M lineages: child geometry (M,C,11), appearance (M,C,50) and
-        existence probability (M,C): the geometry model's, the appearance model's or their mean,
-        as `meta["existence"]` says (`fit-vae` picks the most accurate on held-out runs).
-        Batched, no gradients."""
+        """Next-stage slots for M lineages: child geometry (M,C,11), appearance (M,C,50), existence
+        probability (M,C) (the geometry model's, the appearance model's or their mean, as
+        `meta["existence"]` says; `fit-vae` picks the most accurate on held-out runs) and the
+        densification flags (M,) the slots were decoded with: `densify` when given, else drawn
+        from the geometry model's probability. Batched, no gradients."""
         hg = torch.as_tensor(history_geometry, dtype=torch.float32)
         ha = torch.as_tensor(history_appearance, dtype=torch.float32)
-        outs_g, outs_a = [], []
+        given = None
+        if densify is not None:
+            given = torch.as_tensor(np.asarray(densify, bool)).reshape(-1)
+            if len(given) != len(hg):
+                raise ValueError(f"predict: {len(given)} densify flags for {len(hg)} lineages")
+        outs_g, outs_a, used = [], [], []
         for i in range(0, max(len(hg), 1), batch):
-            pg = self.geometry(hg[i:i + batch], sample=sample, generator=generator)[0]
-            pa = self.appearance(ha[i:i + batch], sample=sample, generator=generator)[0]
-            outs_g.append(pg.children)
-            outs_a.append(pa.children)
+            nodes = self.geometry._prepare(hg[i:i + batch])
+            mu, logvar, logit = self.geometry.encode(nodes)
+            if given is None:
+                f = torch.rand(logit.shape, generator=generator) < torch.sigmoid(logit)
+            else:
+                f = given[i:i + batch]
+            z = mu + (0.5 * logvar).exp() * torch.randn(mu.shape, generator=generator) if sample else mu
+            outs_g.append(self.geometry.decode(z, nodes, f, generator, sample_offsets=sample).children)
+            outs_a.append(self.appearance(ha[i:i + batch], f, sample=sample, generator=generator)[0].children)
+            used.append(f)
+        flags = torch.cat(used) if len(hg) else torch.zeros(0, dtype=torch.bool)
         g = torch.cat(outs_g) if len(hg) else torch.zeros((0, self.slots, 11))
         a = torch.cat(outs_a) if len(hg) else torch.zeros((0, self.slots, 50))
         source = self.meta.get("existence", "geometry")
         p = {"geometry": g[..., 10], "appearance": a[..., 49]}.get(source, 0.5 * (g[..., 10] + a[..., 49]))
-        return g, a, p.clone()
+        return g, a, p.clone(), flags
 
     # -- persistence (safetensors + JSON: nothing is unpickled on load)
     def save(self, directory: str | Path) -> Path:
@@ -693,8 +785,9 @@ def fit(transitions: Sequence[TransitionData], config: FitConfig = FitConfig(), 
     model = model or GaussianVAE.create(seed=config.seed)
     params = list(model.geometry.parameters()) + list(model.appearance.parameters())
     opt = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=config.lr, total_steps=max(config.steps, 1),
-                                                pct_start=0.1)
+    # One-cycle schedule; too short a run for its warm-up phase keeps the learning rate constant.
+    sched = (torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=config.lr, total_steps=config.steps, pct_start=0.1)
+             if config.steps >= 20 else None)
     rng = np.random.default_rng(config.seed)
     gen = torch.Generator().manual_seed(config.seed)
     sizes = np.array([len(t) for t in transitions], float)
@@ -713,9 +806,11 @@ def fit(transitions: Sequence[TransitionData], config: FitConfig = FitConfig(), 
                                  weights=config.weights, generator=gen)
         opt.zero_grad(set_to_none=True)
         losses["total"].backward()
-        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        for part in (model.geometry, model.appearance):  # apart: one model's large gradients must
+            torch.nn.utils.clip_grad_norm_(part.parameters(), 1.0)  # not shrink the other's steps
         opt.step()
-        sched.step()
+        if sched is not None:
+            sched.step()
         record = {k: float(v.detach()) for k, v in losses.items()}
         record["beta"] = beta
         history.append(record)

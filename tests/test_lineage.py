@@ -225,3 +225,22 @@ def test_save_load_round_trip_and_bad_files(tmp_path):
     truncated.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2])
     with pytest.raises(ValueError, match="trunc.npz"):
         Lineage.load(truncated)
+
+
+def test_prefix_keeps_the_first_stages_and_renormalises():
+    rng = np.random.default_rng(5)
+    lin, _ = simulate(rng)
+    pre = lin.prefix(2)
+    assert pre.n_stages == 2 and pre.resolutions == lin.resolutions[:2]
+    for s in range(2):
+        np.testing.assert_array_equal(pre.snapshot(s).ids, lin.snapshot(s).ids)
+        np.testing.assert_array_equal(pre.snapshot(s).cloud.means, lin.snapshot(s).cloud.means)
+    center, scale = scene_normalization(lin.snapshot(1).cloud.means)  # nothing from later stages
+    np.testing.assert_allclose(pre.center, center)
+    assert pre.scale == pytest.approx(scale)
+    a, b = pre.sequences(1), lin.sequences(1)
+    np.testing.assert_array_equal(a.ids, b.ids)
+    np.testing.assert_array_equal(a.geometry[..., GEO_QUAT], b.geometry[..., GEO_QUAT])  # frame-independent
+    for bad in (0, lin.n_stages + 1):
+        with pytest.raises(ValueError, match="n_stages"):
+            lin.prefix(bad)

@@ -30,10 +30,11 @@ def _model(exist_logit=None, seed=0) -> GaussianVAE:
     model = GaussianVAE.create(seed=seed)
     if exist_logit is not None:
         last = model.geometry.decoder[-1]
-        width = model.geometry.state_dim + 1
+        g = model.geometry
+        width = g.state_dim + 1 + g.spread_dim   # per slot: state, existence logit, offset spread
         with torch.no_grad():
-            last.weight[width - 1::width] = 0.0
-            last.bias[width - 1::width] = exist_logit
+            last.weight[g.state_dim::width] = 0.0
+            last.bias[g.state_dim::width] = exist_logit
     return model
 
 
@@ -226,3 +227,68 @@ def test_cli_refine_and_fit(tmp_path, capsys):
     fitted = GaussianVAE.load(tmp_path / "fitted")
     assert fitted.meta["steps"] == 3 and "holdout" in fitted.meta["metrics"]
     assert gvae(["fit-vae", str(tmp_path / "nothing"), "--out", str(tmp_path / "f2"), "--quiet"]) == 2
+
+
+def test_top_rows_matches_a_stable_sort():
+    from gvae_core.refine import _top_rows
+
+    rng = np.random.default_rng(3)
+    for n in (1, 7, 100, 1000):
+        scores = rng.integers(0, 5, n).astype(np.float64)  # many ties
+        order = np.argsort(-scores, kind="stable")
+        for count in (0, 1, n // 3, n - 1, n, n + 5):
+            np.testing.assert_array_equal(_top_rows(scores, count), np.sort(order[:count]))
+
+
+def test_refine_steps_yields_each_step_like_refine():
+    import time as _time
+
+    from gvae_core.refine import refine_steps
+
+    cloud = _cloud(n=30)
+    model = _model()
+    results = []
+    for r in refine_steps(cloud, steps=3, budget=6, model=model, scores=_scores(30), seed=4):
+        results.append(r)
+        _time.sleep(0.5)  # the caller's time is not counted as refine time
+    assert len(results) == 3
+    for k, r in enumerate(results, 1):
+        alone = refine(cloud, steps=k, budget=6, model=model, scores=_scores(30), seed=4)
+        for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
+            np.testing.assert_array_equal(getattr(r.cloud, name), getattr(alone.cloud, name))
+        np.testing.assert_array_equal(r.parents, alone.parents)
+    assert results[-1].timings["total"] < results[0].timings["total"] + 0.9
+
+
+def test_plain_split_control():
+    from gvae_core.refine import plain_split
+
+    cloud = _cloud(n=20)
+    rows = np.array([2, 5, 7])
+    out = list(plain_split(cloud, rows, steps=3, seed=1))
+    assert [len(r.added) for r in out] == [3, 9, 21]   # every descendant splits in two each step
+    for r in out:
+        _check_result(cloud, r, 3)
+    first = out[0].cloud
+    np.testing.assert_allclose(first.scales[rows], cloud.scales[rows] - math.log(1.6), atol=1e-6)
+    np.testing.assert_allclose(first.scales[20:], cloud.scales[rows] - math.log(1.6), atol=1e-6)
+    np.testing.assert_array_equal(first.sh_dc[20:], cloud.sh_dc[rows])
+    assert not np.allclose(first.means[rows], cloud.means[rows])
+
+
+def test_budget_forces_densification_at_the_first_step_only():
+    model = _model()
+    calls = []
+    predict = model.predict
+
+    def spy(hg, ha, densify=None, **kw):
+        calls.append(None if densify is None else np.asarray(densify).copy())
+        return predict(hg, ha, densify, **kw)
+
+    model.predict = spy
+    refine(_cloud(n=30), steps=3, budget=5, model=model, scores=_scores(30))
+    assert len(calls[0]) == 5 and calls[0].all()         # the budget's choice densifies
+    assert len(calls) == 3 and all(c is None for c in calls[1:])  # then the model decides
+    calls.clear()
+    refine(_cloud(n=30), steps=2, budget="all", model=model)
+    assert len(calls) == 2 and all(c is None for c in calls)

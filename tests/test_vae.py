@@ -9,7 +9,7 @@ import torch
 
 from gvae_core import GaussianCloud
 from gvae_core.lineage import Lineage
-from gvae_core.vae import (FitConfig, FlowPrior, GaussianVAE, LineageVAE, TransitionData, VAEConfig,
+from gvae_core.vae import (FitConfig, FlowPrior, GaussianVAE, LineageVAE, ParentFrame, TransitionData, VAEConfig,
                            cyclic_beta, default_model_dir, evaluate, fit, lineage_transitions, match_slots,
                            match_slots_reference, synthetic_transitions)
 
@@ -100,8 +100,9 @@ def test_kl_and_predictions_finite_on_degenerate_lineages():
     model = GaussianVAE.create(seed=0)
     g, a = _degenerate_lineages()
     for t in (1, 3):  # one-node lineages and three-node ones
-        cg, ca, p = model.predict(g[:, -t:], a[:, -t:])
+        cg, ca, p, flags = model.predict(g[:, -t:], a[:, -t:])
         assert torch.isfinite(cg).all() and torch.isfinite(ca).all() and torch.isfinite(p).all()
+        assert flags.dtype == torch.bool and flags.shape == (len(g),)
         assert torch.allclose(cg[..., 3:7].norm(dim=-1), torch.ones(()), atol=1e-5)
         assert ((p >= 0) & (p <= 1)).all()
         for vae, nodes in ((model.geometry, g), (model.appearance, a)):
@@ -126,7 +127,8 @@ def test_save_load_round_trip(tmp_path):
     model.save(tmp_path / "m")
     loaded = GaussianVAE.load(tmp_path / "m")
     g, a = _degenerate_lineages()
-    torch.testing.assert_close(model.predict(g, a, sample=False)[0], loaded.predict(g, a, sample=False)[0])
+    flags = np.arange(len(g)) % 2 == 0
+    torch.testing.assert_close(model.predict(g, a, flags, sample=False)[0], loaded.predict(g, a, flags, sample=False)[0])
     assert loaded.meta == {"note": "test"}
     assert json.loads((tmp_path / "m" / "config.json").read_text())["geometry"]["kind"] == "geometry"
 
@@ -171,19 +173,22 @@ def test_bundled_model_loads_and_is_small():
     assert torch.isfinite(model.predict(g, a)[0]).all()
 
 
-def test_one_node_attention_shortcut_matches_full_attention():
+def test_attention_matches_the_fused_reference_kernel():
+    """The block's written-out attention (and its one-node shortcut) against torch's fused
+    scaled_dot_product_attention."""
     from gvae_core.vae import EncoderBlock
 
     torch.manual_seed(0)
     block = EncoderBlock(16, 4, 32)
-    h = torch.randn(7, 1, 16)
-    m, t, d = h.shape
-    q, k, v = block.qkv(block.norm1(h)).chunk(3, -1)
-    split = lambda x: x.view(m, t, 4, 4).transpose(1, 2)  # noqa: E731
-    full = torch.nn.functional.scaled_dot_product_attention(split(q), split(k), split(v)).transpose(1, 2).reshape(m, t, d)
-    x = h + block.out(full)
-    torch.testing.assert_close(block(h), x + block.mlp(block.norm2(x)))
-    # and a lineage's last-node encoding does not depend on batch neighbours
+    for t in (1, 2, 5):
+        h = torch.randn(7, t, 16)
+        m, _, d = h.shape
+        q, k, v = block.qkv(block.norm1(h)).chunk(3, -1)
+        split = lambda x: x.view(m, t, 4, 4).transpose(1, 2)  # noqa: E731
+        full = torch.nn.functional.scaled_dot_product_attention(split(q), split(k), split(v))
+        x = h + block.out(full.transpose(1, 2).reshape(m, t, d))
+        torch.testing.assert_close(block(h), x + block.mlp(block.norm2(x)))
+    # and a lineage's encoding does not depend on batch neighbours
     h3 = torch.randn(5, 3, 16)
     torch.testing.assert_close(block(h3)[:2], block(h3[:2]))
 
@@ -205,9 +210,84 @@ def test_copy_parent_baseline_is_zero_for_identical_children():
 def test_existence_source_follows_meta():
     model = GaussianVAE.create(seed=2)
     g, a = _degenerate_lineages()
-    cg, ca, p = model.predict(g, a, sample=False)
+    flags = np.ones(len(g), bool)
+    cg, ca, p, _ = model.predict(g, a, flags, sample=False)
     torch.testing.assert_close(p, cg[..., 10])
     model.meta["existence"] = "appearance"
-    torch.testing.assert_close(model.predict(g, a, sample=False)[2], ca[..., 49])
+    torch.testing.assert_close(model.predict(g, a, flags, sample=False)[2], ca[..., 49])
     model.meta["existence"] = "combined"
-    torch.testing.assert_close(model.predict(g, a, sample=False)[2], 0.5 * (cg[..., 10] + ca[..., 49]))
+    torch.testing.assert_close(model.predict(g, a, flags, sample=False)[2], 0.5 * (cg[..., 10] + ca[..., 49]))
+
+
+def test_densify_flag_conditions_the_slots():
+    data = synthetic_transitions(64, 3, seed=4)
+    model = fit(data, FitConfig(steps=60, batch=64, lr=3e-3, seed=0)).model
+    g, a = data[1].history_geometry, data[1].history_appearance
+    gen = torch.Generator().manual_seed(0)
+    _, _, p_no, f_no = model.predict(g, a, np.zeros(len(g), bool), sample=False)
+    _, _, p_yes, f_yes = model.predict(g, a, np.ones(len(g), bool), sample=False)
+    assert not f_no.any() and f_yes.all()
+    # densifying Gaussians are predicted to have more children than the others
+    assert float(p_yes.sum(1).mean()) > float(p_no.sum(1).mean()) + 0.3
+    # without flags the model draws them from its own probability (seeded)
+    f1 = model.predict(g, a, generator=torch.Generator().manual_seed(1))[3]
+    f2 = model.predict(g, a, generator=torch.Generator().manual_seed(1))[3]
+    assert torch.equal(f1, f2) and 0 < int(f1.sum()) < len(g)
+    with pytest.raises(ValueError, match="flags"):
+        model.predict(g, a, np.ones(3, bool))
+    del gen
+
+
+def test_geometry_model_is_rotation_equivariant():
+    from gvae_core.cloud import quat_to_rotmat, rotmat_to_quat
+    from gvae_core.vae import quat_multiply
+
+    model = GaussianVAE.create(seed=5)
+    data = synthetic_transitions(16, 3, seed=2)[1]
+    g = torch.from_numpy(data.history_geometry.copy())
+    q_rot = torch.tensor(rotmat_to_quat(quat_to_rotmat(np.array([0.3, -0.5, 0.7, 0.2]) / np.linalg.norm(
+        [0.3, -0.5, 0.7, 0.2]))), dtype=torch.float32).reshape(4)
+    rot = torch.from_numpy(quat_to_rotmat(q_rot.double().numpy())).float()
+    turned = g.clone()
+    turned[..., 0:3] = g[..., 0:3] @ rot.T
+    turned[..., 3:7] = quat_multiply(q_rot.expand_as(g[..., 3:7]), g[..., 3:7])
+    flags = torch.ones(len(g), dtype=torch.bool)
+    a = model.geometry(g, flags, sample=False)[0].children
+    b = model.geometry(turned, flags, sample=False)[0].children
+    torch.testing.assert_close(b[..., 0:3], a[..., 0:3] @ rot.T, atol=2e-5, rtol=1e-4)
+    expect = quat_multiply(q_rot.expand_as(a[..., 3:7]), a[..., 3:7])
+    dot = (expect * b[..., 3:7]).sum(-1).abs()   # q and -q are the same rotation
+    torch.testing.assert_close(dot, torch.ones_like(dot), atol=1e-5, rtol=0)
+    torch.testing.assert_close(b[..., 7:], a[..., 7:], atol=1e-5, rtol=1e-4)
+
+
+def test_densified_label_from_lineage_transitions():
+    rng = np.random.default_rng(0)
+    mk = lambda n: GaussianCloud(means=rng.normal(size=(n, 3)).astype(np.float32),  # noqa: E731
+                                 scales=np.full((n, 3), -3.0, np.float32), quats=np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
+                                 opacities=np.zeros(n, np.float32), sh_dc=np.zeros((n, 3), np.float32))
+    lin = Lineage(np.zeros(3), 1.0)
+    lin.add_stage(mk(4), np.arange(4), np.full(4, -1), 50)
+    # 0 survives alone, 1 survives and clones (id 4), 2 is split (ids 5, 6), 3 is pruned
+    lin.add_stage(mk(5), np.array([0, 1, 4, 5, 6]), np.array([0, 1, 1, 2, 2]), 75)
+    t = lineage_transitions(lin)[0]
+    assert t.densified.tolist() == [False, True, True, False]
+    assert t.child_mask.sum(1).tolist() == [1, 2, 2, 0]
+
+
+def test_sampled_child_offsets_follow_the_predicted_spread():
+    model = GaussianVAE.create(seed=6)
+    data = synthetic_transitions(8, 2, seed=3)[0]
+    g = torch.from_numpy(np.repeat(data.history_geometry[:1], 4000, 0))
+    nodes = model.geometry._prepare(g)
+    mu, _, _ = model.geometry.encode(nodes)
+    flags = torch.ones(len(g), dtype=torch.bool)
+    mean = model.geometry.decode(mu, nodes, flags)
+    drawn = model.geometry.decode(mu, nodes, flags, torch.Generator().manual_seed(0), sample_offsets=True)
+    frame_local = torch.einsum("mji,mcj->mci", ParentFrame.of(nodes[:, -1]).rot,
+                               drawn.children[..., 0:3] - nodes[:, -1, None, 0:3]) / ParentFrame.of(nodes[:, -1]).sigma[:, None]
+    torch.testing.assert_close(frame_local.mean(0), mean.local_mean[0], atol=0.05, rtol=0)
+    torch.testing.assert_close(frame_local.std(0), mean.local_spread[0], atol=0.05, rtol=0.05)
+    # without sampling the centres are the means, whatever the generator
+    again = model.geometry.decode(mu, nodes, flags, torch.Generator().manual_seed(1))
+    torch.testing.assert_close(again.children, mean.children)

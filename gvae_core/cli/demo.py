@@ -55,7 +55,6 @@ def run_trained(folder: Path, args: argparse.Namespace) -> int:
     panels = [render(c, cam, background=(1.0, 1.0, 1.0)).image.detach().clamp(0, 1).numpy()
               for c in (cloud, result.cloud)]
     Image.fromarray((np.concatenate(panels, 1) * 255 + 0.5).astype(np.uint8)).save(out / "before_after.png")
-    print(result.summary())
     print(f"wrote {out / 'refined.ply'} and {out / 'before_after.png'} (left: input, right: +{args.steps})")
     return 0
 

@@ -116,8 +116,9 @@ def run_fit(args: argparse.Namespace) -> int:
                      ("combined", judge["exist_accuracy_combined"])), key=lambda kv: kv[1])[0]
     model.meta = {
         "existence": existence,
-        "trained_on": [str(r) for r in args.runs] + (["synthetic"] if args.synthetic > 0 else []),
-        "held_out": [str(r) for r in args.holdout], "lineages": n_lineages, "steps": config.steps,
+        "trained_on": [_display(r) for r in args.runs] + (["synthetic"] if args.synthetic > 0 else []),
+        "held_out": [_display(r) for r in args.holdout], "lineages": n_lineages, "steps": config.steps,
+        "train_scenes": [_scene_name(r) for r in args.runs], "held_out_scenes": [_scene_name(r) for r in args.holdout],
         "seed": args.seed, "seconds": round(result.seconds, 1), "metrics": metrics,
     }
     model.save(args.out)
@@ -128,6 +129,21 @@ def run_fit(args: argparse.Namespace) -> int:
     for split, m in metrics.items():
         print(f"  {split}: " + json.dumps({k: round(v, 4) for k, v in m.items()}))
     return 0
+
+
+def _display(run: Path) -> str:
+    """A run path for the model's record: relative to the scene/run cache when inside it."""
+    from ..scenes import cache_dir  # noqa: PLC0415
+
+    try:
+        return "$GVAE_CACHE_DIR/" + str(Path(run).resolve().relative_to(cache_dir().resolve()))
+    except ValueError:
+        return str(run)
+
+
+def _scene_name(run: Path) -> str:
+    """A run's scene: the run folder's name (the experiment caches runs as .../<protocol>/<scene>)."""
+    return (run.parent if run.suffix == ".npz" else run).name
 
 
 def run_refine(args: argparse.Namespace) -> int:
