@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 # Spinning OpenMP waits slow torch badly when the cores are shared (see BENCHMARKS.md).
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: install test demo bench extension clean train-model
+.PHONY: install test demo bench report extension clean train-model
 
 install: $(STAMP)
 
@@ -27,15 +27,22 @@ demo: install
 bench: install
 	$(PY) -m gvae_core.benchmarks
 
+# The paper's experiment on the benchmark scenes -> reports/ (README.md, results.json, plots).
+# PROFILE=full: all six scenes at the benchmark resolution (hours), into reports/full/.
+PROFILE ?= quick
+report: install
+	$(PY) -m gvae_core report --profile $(PROFILE) --out reports$(if $(filter-out quick,$(PROFILE)),/$(PROFILE))
+
 # Blender extension zip into dist/ (built and validated with Blender's blender_ext.py).
 # TORCH_WHEELS=DIR also bundles a folder of torch + dependency wheels for one platform (offline).
 extension: install
 	$(PY) tools/build_extension.py $(if $(TORCH_WHEELS),--torch-wheels $(TORCH_WHEELS))
 
-# Reproduce the bundled lineage VAEs in models/: benchmark scenes -> progressive 3DGS runs (runs/model/)
-# -> `gvae fit-vae` with two scenes held out; prints how long each part took.
+# Reproduce the bundled lineage VAEs in models/: benchmark scenes -> progressive 3DGS runs through 2x the
+# training resolution (cached, shared with `make report PROFILE=full`) -> `gvae fit-vae` with two scenes
+# held out; prints how long each part took.
 train-model: install
-	$(PY) tools/train_model.py --out models --runs runs/model
+	$(PY) tools/train_model.py --out models
 
 clean:
 	rm -rf $(VENV) dist build *.egg-info .pytest_cache

@@ -10,6 +10,7 @@ BENCHMARKS = (
     "render",
     "blender",
     "refine",
+    "quality",
     "scenes",
     "train",
 )

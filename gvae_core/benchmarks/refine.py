@@ -23,14 +23,17 @@ def _load_model():
 
 
 def _heldout_transitions(model):
-    """The held-out runs named in the model's metadata, when they are on disk; else synthetic ones."""
+    """Transitions of the model's held-out scenes from the cached `full` experiment runs (what
+    `make train-model` evaluated), when they are on disk; else synthetic ones."""
+    from ..cli.vae import load_runs  # noqa: PLC0415
+    from ..experiment import PROTOCOLS, runs_dir  # noqa: PLC0415
     from ..vae import synthetic_transitions  # noqa: PLC0415
 
-    runs = [r for r in model.meta.get("held_out", []) if os.path.exists(r)]
+    p = PROTOCOLS["full"]
+    folder = runs_dir() / f"{p.name}-{p.run_key()}"
+    runs = [folder / s for s in model.meta.get("held_out_scenes", []) if (folder / s / "lineage.npz").is_file()]
     if runs:
-        from ..cli.vae import load_runs  # noqa: PLC0415
-
-        return load_runs([__import__("pathlib").Path(r) for r in runs], model.slots), ", ".join(runs)
+        return load_runs(runs, model.slots), ", ".join(f"{r.name} (full runs)" for r in runs)
     return synthetic_transitions(512, 4, seed=123), "synthetic lineages (seed 123)"
 
 
@@ -44,13 +47,31 @@ def run(args) -> None:
     model, source = _load_model()
     sizes = model.sizes()
     print(f"model: {source}; torch threads {torch.get_num_threads()}, load {os.getloadavg()[0]:.2f}")
-    print("\n| model | parameters | size (MB, float32) | config |")
-    print("|---|---:|---:|---|")
-    for name, vae in (("geometry", model.geometry), ("appearance", model.appearance)):
+    # The paper's model table: size, training time, inference time (here: 10k three-node lineages,
+    # one densifying step, median of 5; the paper's figures are per scene on a GPU).
+    from ..vae import synthetic_transitions  # noqa: PLC0415
+
+    lineages = synthetic_transitions(10_000, 3, seed=7)[1]
+    flags = torch.ones(len(lineages), dtype=torch.bool)
+    trained = model.meta.get("seconds")
+    print("\n| model | parameters | size (MB, float32) | training (both models together) | inference, 10k lineages "
+          "| config |")
+    print("|---|---:|---:|---|---:|---|")
+    for name, vae, nodes in (("geometry", model.geometry, lineages.history_geometry),
+                             ("appearance", model.appearance, lineages.history_appearance)):
         c = vae.config
         params = sum(p.numel() for p in vae.parameters())
-        print(f"| {name} | {params} | {sizes[name] / 1e6:.2f} | d_model {c.d_model}, {c.layers} layers, "
-              f"{c.heads} heads, latent {c.latent}, {c.slots} slots, flow {c.flow_layers} couplings |")
+        x = torch.from_numpy(nodes)
+        times = []
+        with torch.no_grad():
+            for _ in range(5):
+                t0 = time.perf_counter()
+                vae(x, flags, sample=False)
+                times.append(time.perf_counter() - t0)
+        print(f"| {name} | {params} | {sizes[name] / 1e6:.2f} | "
+              f"{f'{trained / 60:.1f} min' if trained else '?'} ({model.meta.get('steps', '?')} steps) | "
+              f"{statistics.median(times) * 1e3:.1f} ms | d_model {c.d_model}, {c.layers} layers, {c.heads} heads, "
+              f"latent {c.latent}, {c.slots} slots, flow {c.flow_layers} couplings |")
 
     t0 = time.perf_counter()
     data, where = _heldout_transitions(model)

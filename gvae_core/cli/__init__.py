@@ -17,6 +17,7 @@ COMMAND_MODULES = (
     "vae",
     "train",
     "scenes",
+    "report",
 )
 
 

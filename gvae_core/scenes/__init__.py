@@ -43,6 +43,7 @@ class Profile:
 
 PROFILES: dict[str, Profile] = {p.name: p for p in [
     Profile("tiny", 64, 8, 4, 16, 20_000),
+    Profile("small", 200, 24, 8, 16, 50_000),
     Profile("default", 400, 60, 20, 16, 100_000),
     Profile("full", 800, 100, 200, 16, 400_000),
 ]}
