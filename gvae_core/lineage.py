@@ -36,7 +36,8 @@ def scene_normalization(points) -> tuple[np.ndarray, float]:
     1st..99th percentile box and half of its longest side. Used by the trainer (on the last
     stage) and by `Lineage.from_cloud`, so that trained lineages and refined clouds agree."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
-    p = p[np.isfinite(p).all(1)]
+    if not np.isfinite(p).all():
+        p = p[np.isfinite(p).all(1)]
     if len(p) == 0:
         return np.zeros(3), 1.0
     lo, hi = np.percentile(p, [1, 99], axis=0)

@@ -23,7 +23,7 @@ import torch
 
 from ._callable import make_module_callable
 from .camera import Camera
-from .cloud import EXTREME_LOG_SCALE, OPACITY_LOGIT_RANGE, GaussianCloud, normalize_quats
+from .cloud import EXTREME_LOG_SCALE, OPACITY_LOGIT_RANGE, SH_REST_COUNTS, GaussianCloud, normalize_quats
 
 AUTO_FRACTION_RANGE = (0.01, 0.5)
 OUTPUT_SH_LIMIT = 1e3
@@ -137,20 +137,17 @@ def _top_rows(scores: np.ndarray, count: int) -> np.ndarray:
 
 
 def _initial_history(cloud: GaussianCloud, lineage: Any, selected: np.ndarray):
-    """Node features (M,T,11), (M,T,50) of the selected rows, and the normalisation. The last node
-    is always the input Gaussian itself; earlier nodes come from the lineage when given. Without a
-    lineage the selected rows become one-node lineages (`Lineage.from_cloud`) in the frame of the
-    whole cloud (`scene_normalization`)."""
-    from .lineage import Lineage, appearance_features, geometry_features, scene_normalization  # noqa: PLC0415
+    """Node features (M,T,11), (M,T,50) of the selected rows, and the normalisation's scale. The
+    last node is always the input Gaussian itself; earlier nodes come from the lineage when given.
+    Without a lineage the selected rows are one-node lineages (as `Lineage.from_cloud` makes them)
+    in the frame of the whole cloud (`scene_normalization`)."""
+    from .lineage import appearance_features, geometry_features, scene_normalization  # noqa: PLC0415
 
     sub = cloud.select(selected)
-    if lineage is None:
-        center, scale = scene_normalization(cloud.means)
-        lineage = Lineage.from_cloud(sub.replace(extra={}), center, scale)
-    center, scale = lineage.center, lineage.scale
+    center, scale = scene_normalization(cloud.means) if lineage is None else (lineage.center, lineage.scale)
     geo = geometry_features(sub, center, scale)[:, None]
     app = appearance_features(sub)[:, None]
-    if lineage.n_stages > 1:
+    if lineage is not None and lineage.n_stages > 1:
         seq = lineage.sequences(lineage.n_stages - 1)
         ids = cloud.extra.get("gvae_id")
         if ids is not None and len(ids) == len(cloud):
@@ -169,7 +166,7 @@ def _initial_history(cloud: GaussianCloud, lineage: Any, selected: np.ndarray):
         rows = rows[selected]
         geo = np.concatenate([seq.geometry[rows, :-1], geo], 1)
         app = np.concatenate([seq.appearance[rows, :-1], app], 1)
-    return geo, app, np.asarray(center, np.float64), float(scale)
+    return geo, app, float(scale)
 
 
 def _nonfinite_rows(cloud: GaussianCloud) -> np.ndarray:
@@ -182,22 +179,25 @@ def _nonfinite_rows(cloud: GaussianCloud) -> np.ndarray:
     return np.flatnonzero(bad)
 
 
-def _sanitize_rows(geo: np.ndarray, app: np.ndarray, world_pos: np.ndarray, center, scale, sh_degree: int):
-    """Raw, finite, bounded parameters of predicted nodes. Positions come in world units (float64)."""
-    from .lineage import cloud_from_features  # noqa: PLC0415
+def _finite(x: np.ndarray) -> np.ndarray:
+    return x if np.isfinite(x).all() else np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
 
-    geo = np.nan_to_num(geo.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    app = np.nan_to_num(app.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    out = cloud_from_features(geo, app, center, scale, sh_degree)
-    pos = np.nan_to_num(world_pos, nan=0.0, posinf=0.0, neginf=0.0)
+
+def _sanitize_rows(geo: np.ndarray, app: np.ndarray, world_pos: np.ndarray, scale: float, sh_degree: int):
+    """Raw, finite, bounded parameters of predicted nodes (the inverse of the lineage features,
+    `cloud_from_features`, with positions given in world units, float64)."""
+    from .lineage import APP_OPACITY, APP_SH_DC, APP_SH_REST, GEO_LOG_SCALE, GEO_QUAT  # noqa: PLC0415
+
+    geo = _finite(geo)
+    app = np.clip(_finite(app), -OUTPUT_SH_LIMIT, OUTPUT_SH_LIMIT).astype(np.float32, copy=False)
     big = np.finfo(np.float32).max / 4
-    out.means = np.clip(pos, -big, big).astype(np.float32)
-    out.scales = np.clip(np.nan_to_num(out.scales, nan=0.0), *EXTREME_LOG_SCALE).astype(np.float32)
-    out.quats = normalize_quats(np.nan_to_num(out.quats, nan=0.0)).astype(np.float32)
-    out.opacities = np.clip(out.opacities, *OPACITY_LOGIT_RANGE).astype(np.float32)
-    out.sh_dc = np.clip(out.sh_dc, -OUTPUT_SH_LIMIT, OUTPUT_SH_LIMIT)
-    out.sh_rest = np.clip(out.sh_rest, -OUTPUT_SH_LIMIT, OUTPUT_SH_LIMIT)
-    return out
+    return GaussianCloud(
+        means=np.clip(_finite(world_pos), -big, big).astype(np.float32),
+        scales=np.clip(geo[:, GEO_LOG_SCALE] + math.log(scale), *EXTREME_LOG_SCALE).astype(np.float32),
+        quats=normalize_quats(geo[:, GEO_QUAT].astype(np.float32)),
+        opacities=np.clip(app[:, APP_OPACITY], *OPACITY_LOGIT_RANGE),
+        sh_dc=app[:, APP_SH_DC].copy(),
+        sh_rest=app[:, APP_SH_REST].reshape(-1, 15, 3)[:, :SH_REST_COUNTS[sh_degree]].copy())
 
 
 def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
@@ -261,17 +261,18 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
     selected = select_budget(scores, budget)
 
     t0 = time.perf_counter()
-    hist_g, hist_a, center, scale = _initial_history(src, lineage, selected)
+    hist_g, hist_a, scale = _initial_history(src, lineage, selected)
     timings["features"] = time.perf_counter() - t0
 
     gen = torch.Generator().manual_seed(int(seed))
-    grow = _Growth(src, selected, hist_g, hist_a, center, scale)
+    grow = _Growth(src, selected, hist_g, hist_a, scale)
     for k in range(1, steps + 1):
         say(0.1 + 0.85 * (k - 1) / steps, f"step {k}/{steps}: {len(grow.rows)} lineages")
         if len(grow.rows):
             # The budget chose these Gaussians to densify at the first step; later steps (and
             # every step with "all") let the model decide, lineage by lineage.
-            grow.step(k, model, None if budget == "all" or k > 1 else np.ones(len(grow.rows), bool), gen)
+            grow.step(k, model, None if budget == "all" or k > 1 else np.ones(len(grow.rows), bool), gen,
+                      more=k < steps)
         if every_step or k == steps:
             final = k == steps
             if final:
@@ -288,8 +289,8 @@ class _Growth:
     """The lineages being extended, step after step, and what they have added so far."""
 
     def __init__(self, src: GaussianCloud, selected: np.ndarray, hist_g: np.ndarray, hist_a: np.ndarray,
-                 center: np.ndarray, scale: float):
-        self.src, self.selected, self.center, self.scale = src, selected, center, scale
+                 scale: float):
+        self.src, self.selected, self.scale = src, selected, scale
         self.hist_g, self.hist_a = hist_g, hist_a
         self.rows = selected.copy()     # current-cloud row of each active lineage
         self.roots = selected.copy()    # its ancestor row in the input
@@ -301,8 +302,9 @@ class _Growth:
         self.n_total = len(src)
         self.model_time = 0.0
 
-    def step(self, k: int, model, densify, gen: torch.Generator) -> None:
-        """Extend every active lineage by one predicted stage."""
+    def step(self, k: int, model, densify, gen: torch.Generator, more: bool = True) -> None:
+        """Extend every active lineage by one predicted stage (and, when `more` steps follow,
+        make the lineages of the next one)."""
         t0 = time.perf_counter()
         max_nodes = max(model.geometry.config.max_nodes, model.appearance.config.max_nodes)
         g, a, p, _ = model.predict(self.hist_g[:, -max_nodes:], self.hist_a[:, -max_nodes:], densify, generator=gen)
@@ -324,17 +326,19 @@ class _Growth:
         sh_degree = self.src.sh_degree
         if len(upd):
             self.updates.append((self.rows[upd], _sanitize_rows(g[upd, ks], a[upd, ks], child_world[upd, ks],
-                                                                self.center, self.scale, sh_degree)))
+                                                                self.scale, sh_degree)))
         extra = exists.copy()
         extra[upd, ks] = False
         li, si = np.nonzero(extra)
         new_rows = self.n_total + np.arange(len(li))
         if len(li):
-            self.new_parts.append(_sanitize_rows(g[li, si], a[li, si], child_world[li, si], self.center, self.scale,
-                                                 sh_degree))
+            self.new_parts.append(_sanitize_rows(g[li, si], a[li, si], child_world[li, si], self.scale, sh_degree))
             self.added_parents.append(self.roots[li])
             self.added_steps.append(np.full(len(li), k, np.int64))
             self.n_total += len(li)
+        if not more:
+            self.rows = self.rows[:0]
+            return
         # Next step's lineages: updated parents and their new siblings, one node longer.
         g_node = g.astype(np.float32)
         g_node[..., 10] = 1.0

@@ -315,7 +315,7 @@ class LineageVAE(nn.Module):
         (a mean offset and a per-axis spread in the parent's frame); `sample_offsets` draws
         the centres from it (refinement), else they are the means (training, evaluation)."""
         c = self.config
-        x_last = encoder_inputs(c.kind, nodes)[:, -1]
+        x_last = encoder_inputs(c.kind, nodes[:, -1:])[:, 0]  # relative to itself: the same without history
         cond = torch.cat([z, self.cond(x_last) + self.densify_embed(densify.long())], -1)
         out = self.decoder(cond).view(len(z), c.slots, self.state_dim + 1 + self.spread_dim)
         raw, logit = out[..., :self.state_dim], out[..., self.state_dim]
@@ -679,9 +679,12 @@ class GaussianVAE:
             outs_g.append(self.geometry.decode(z, nodes, f, generator, sample_offsets=sample).children)
             outs_a.append(self.appearance(ha[i:i + batch], f, sample=sample, generator=generator)[0].children)
             used.append(f)
-        flags = torch.cat(used) if len(hg) else torch.zeros(0, dtype=torch.bool)
-        g = torch.cat(outs_g) if len(hg) else torch.zeros((0, self.slots, 11))
-        a = torch.cat(outs_a) if len(hg) else torch.zeros((0, self.slots, 50))
+        def join(parts):  # without a copy in the usual case of a single batch
+            return parts[0] if len(parts) == 1 else torch.cat(parts)
+
+        flags = join(used) if len(hg) else torch.zeros(0, dtype=torch.bool)
+        g = join(outs_g) if len(hg) else torch.zeros((0, self.slots, 11))
+        a = join(outs_a) if len(hg) else torch.zeros((0, self.slots, 50))
         source = self.meta.get("existence", "geometry")
         p = {"geometry": g[..., 10], "appearance": a[..., 49]}.get(source, 0.5 * (g[..., 10] + a[..., 49]))
         return g, a, p.clone(), flags

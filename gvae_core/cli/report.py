@@ -18,7 +18,7 @@ def register(subparsers) -> None:
         "controls, a Hessian budget sweep), evaluate (Chamfer, PSNR/SSIM at 1x/1.5x/2x, NIQE) and write "
         "OUT/README.md, OUT/results.json and plots. Scenes and training runs are cached ($GVAE_CACHE_DIR).")
     p.add_argument("--profile", choices=list(PROTOCOLS), default="quick",
-                   help="quick: the two held-out scenes at small sizes (about 20 min on 2 cores); "
+                   help="quick: the two held-out scenes at small sizes (about 6 min on 2 cores from nothing); "
                    "full: all six scenes at the benchmark profile (hours)")
     p.add_argument("--out", type=Path, default=Path("reports"), help="report folder (default: %(default)s)")
     p.add_argument("--scenes", nargs="*", default=None, help="only these scenes (default: the profile's)")
