@@ -5,7 +5,8 @@ Per scene: progressive 3DGS with lineage up to the training resolution, continue
 higher-resolution images (the 1.5x and 2x baselines, the paper's 700p/800p columns); then, from
 the training-resolution stage and its lineage only, refinement +1..+4 by Ours (every Gaussian),
 Ours-∇² (the Hessian budget) and two controls at Ours-∇²'s budget: random selection, and the
-plain 3DGS split of the selected Gaussians without the model; and a Hessian budget sweep. Each
+plain 3DGS split of the selected Gaussians without the model; Ours-∇² with the model's appearance
+at every step (the ablation of `carry_appearance`); and a Hessian budget sweep. Each
 cloud is scored by Chamfer distance to the ground-truth mesh, PSNR/SSIM against ground-truth
 test views at 1x, 1.5x and 2x the training resolution, NIQE of its 2x renders, its Gaussian
 count and refine time. Scenes and training runs are cached and reused.
@@ -25,6 +26,7 @@ import numpy as np
 
 #: Methods in results rows: the 3DGS baselines, the model, and the controls.
 BASELINE, OURS, OURS_H, RANDOM, SPLIT, SWEEP = "3dgs", "ours", "ours_h", "random", "split", "sweep"
+OURS_H_MODEL_APP = "ours_h_app"  # ablation: the model's appearance at every step (`carry_appearance=False`)
 SCALES = ("1x", "1.5x", "2x")
 
 
@@ -263,6 +265,8 @@ def run_scene(run: SceneRun, model, *, say: Callable[[str], None] = print) -> li
 
     refined(OURS, refine_steps(base, budget="all", **common), "all")
     chosen = refined(OURS_H, refine_steps(base, budget=p.budget, scores=scores, **common), p.budget)
+    refined(OURS_H_MODEL_APP, refine_steps(base, budget=p.budget, scores=scores, carry_appearance=False, **common),
+            p.budget)
     count = len(chosen)
     noise = np.random.default_rng(p.seed + 1).random(len(base)).astype(np.float32)
     refined(RANDOM, refine_steps(base, budget=count, scores=noise, **common), count)

@@ -4,7 +4,8 @@ Score the input Gaussians (Hessian), pick the budget's share, and run the lineag
 `steps` sequential steps: each step extends every lineage selected so far by one stage. The
 budget says where to densify: the selected Gaussians all densify at the first step; the models
 say how (how many children, where, how large, what colour) and, at later steps, whether each
-descendant densifies again, as they learned from progressive training. With the budget "all"
+descendant densifies again, as they learned from progressive training. Later steps change
+geometry only (children carry their parent's appearance, `carry_appearance`). With the budget "all"
 every Gaussian is given to the models, which decide at every step. For a lineage,
 the existing slot nearest its last node updates that Gaussian in place; every other existing
 slot becomes a new Gaussian (appended after the input rows). Outputs are sanitised: finite,
@@ -203,16 +204,20 @@ def _sanitize_rows(geo: np.ndarray, app: np.ndarray, world_pos: np.ndarray, scal
 def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
            cameras: Sequence[Camera] | None = None, lineage: Any = None, seed: int = 0,
            progress: Callable[[float, str], None] | None = None, hessian_options: dict | None = None,
-           scores: Any = None) -> RefineResult:
+           scores: Any = None, carry_appearance: bool = True) -> RefineResult:
     """Refine `cloud` by `steps` (>= 1) sequential model steps on the Gaussians the budget selects
     (see `select_budget`). `model`: a `GaussianVAE` or a model directory (default: the bundled
     one). `cameras`: views for the Hessian (default: views placed around the cloud). `lineage`:
     the training lineage whose last stage is this cloud (default: one-node lineages). `scores`:
-    precomputed Hessian scores (skips scoring). Raises ValueError on non-finite input rows."""
+    precomputed Hessian scores (skips scoring). `carry_appearance`: after the first step the model
+    changes geometry only, every child taking its parent's colour, SH and opacity (fed its own
+    predictions, the model's appearance changes compound and PSNR above the training resolution
+    falls with every step; `reports/` has the ablation). Raises ValueError on non-finite input
+    rows."""
     result = None
     for result in refine_steps(cloud, steps=steps, budget=budget, model=model, cameras=cameras, lineage=lineage,
                                seed=seed, progress=progress, hessian_options=hessian_options, scores=scores,
-                               every_step=False):
+                               every_step=False, carry_appearance=carry_appearance):
         pass
     return result
 
@@ -220,7 +225,8 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model:
 def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
                  cameras: Sequence[Camera] | None = None, lineage: Any = None, seed: int = 0,
                  progress: Callable[[float, str], None] | None = None, hessian_options: dict | None = None,
-                 scores: Any = None, every_step: bool = True) -> Iterator[RefineResult]:
+                 scores: Any = None, every_step: bool = True,
+                 carry_appearance: bool = True) -> Iterator[RefineResult]:
     """`refine`, yielding the result after every step (+1, +2, ...; each one the same as `refine`
     with that many steps and the same seed), or only after the last with `every_step=False`."""
     from .vae import GaussianVAE, load_default_model  # noqa: PLC0415
@@ -272,7 +278,7 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
             # The budget chose these Gaussians to densify at the first step; later steps (and
             # every step with "all") let the model decide, lineage by lineage.
             grow.step(k, model, None if budget == "all" or k > 1 else np.ones(len(grow.rows), bool), gen,
-                      more=k < steps)
+                      more=k < steps, carry_appearance=carry_appearance and k > 1)
         if every_step or k == steps:
             final = k == steps
             if final:
@@ -302,13 +308,16 @@ class _Growth:
         self.n_total = len(src)
         self.model_time = 0.0
 
-    def step(self, k: int, model, densify, gen: torch.Generator, more: bool = True) -> None:
+    def step(self, k: int, model, densify, gen: torch.Generator, more: bool = True,
+             carry_appearance: bool = False) -> None:
         """Extend every active lineage by one predicted stage (and, when `more` steps follow,
         make the lineages of the next one)."""
         t0 = time.perf_counter()
         max_nodes = max(model.geometry.config.max_nodes, model.appearance.config.max_nodes)
         g, a, p, _ = model.predict(self.hist_g[:, -max_nodes:], self.hist_a[:, -max_nodes:], densify, generator=gen)
         g, a, p = g.numpy().astype(np.float64), a.numpy(), p.numpy()
+        if carry_appearance:  # every slot takes the last node's appearance; existence stays the model's
+            a[..., :-1] = self.hist_a[:, -1, None, :-1]
         self.model_time += time.perf_counter() - t0
         last = self.hist_g[:, -1].astype(np.float64)
         size = np.exp(np.clip(last[:, 7:10], -20.0, 10.0).mean(1))

@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .experiment import BASELINE, OURS, OURS_H, RANDOM, SCALES, SPLIT, SWEEP, _finite
+from .experiment import BASELINE, OURS, OURS_H, OURS_H_MODEL_APP, RANDOM, SCALES, SPLIT, SWEEP, _finite
 
-METHOD_NAMES = {BASELINE: "3DGS", OURS: "Ours", OURS_H: "Ours-∇²", RANDOM: "Random (same budget)",
+METHOD_NAMES = {BASELINE: "3DGS", OURS: "Ours", OURS_H: "Ours-∇²",
+                OURS_H_MODEL_APP: "Ours-∇², model appearance at every step", RANDOM: "Random (same budget)",
                 SPLIT: "Plain split (same budget)"}
 
 
@@ -113,7 +114,7 @@ def ablation_table(doc) -> list[str]:
     head = ["Method", "step", "Chamfer %↓", "accuracy %↓", "completeness %↓", "ΔPSNR 2x dB", "ΔSSIM 2x",
             "added", "refine ms"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for method in (OURS, OURS_H, RANDOM, SPLIT):
+    for method in (OURS, OURS_H, OURS_H_MODEL_APP, RANDOM, SPLIT):
         for k in range(1, doc["protocol"]["steps"] + 1):
             cells = {c: [] for c in head[2:]}
             for scene in _scenes(doc):

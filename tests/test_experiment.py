@@ -11,8 +11,8 @@ from PIL import Image
 
 from gvae_core import GaussianCloud
 from gvae_core.camera import orbit
-from gvae_core.experiment import (BASELINE, OURS, OURS_H, RANDOM, SCALES, SPLIT, SWEEP, Protocol, SceneRun,
-                                  run_scene)
+from gvae_core.experiment import (BASELINE, OURS, OURS_H, OURS_H_MODEL_APP, RANDOM, SCALES, SPLIT, SWEEP, Protocol,
+                                  SceneRun, run_scene)
 from gvae_core.report import write_report
 from gvae_core.vae import GaussianVAE
 
@@ -89,7 +89,7 @@ def test_every_method_and_step_is_scored(experiment):
     by = {(r["method"], r.get("step"), r.get("scale"), r.get("budget")) for r in rows}
     for s in SCALES:
         assert (BASELINE, 0, s, None) in by
-    for method in (OURS, OURS_H, RANDOM, SPLIT):
+    for method in (OURS, OURS_H, OURS_H_MODEL_APP, RANDOM, SPLIT):
         assert {k for m, k, _, _ in by if m == method} == {1, 2}
     assert {b for m, _, _, b in by if m == SWEEP} == {"0.1", "1.0"}
     for r in rows:

@@ -292,3 +292,22 @@ def test_budget_forces_densification_at_the_first_step_only():
     calls.clear()
     refine(_cloud(n=30), steps=2, budget="all", model=model)
     assert len(calls) == 2 and all(c is None for c in calls)
+
+
+def _appearances(cloud: GaussianCloud) -> set[bytes]:
+    rows = np.concatenate([cloud.opacities[:, None], cloud.sh_dc, cloud.sh_rest.reshape(len(cloud), -1)], 1)
+    return {row.tobytes() for row in np.ascontiguousarray(rows, np.float32)}
+
+
+@pytest.mark.parametrize("carry", [True, False])
+def test_appearance_is_carried_after_the_first_step(carry):
+    """With `carry_appearance` (the default) the second step adds and updates geometry only: every
+    Gaussian after +2 has an appearance that some Gaussian had after +1. Without it the model's
+    appearance changes apply again, and new appearances appear."""
+    from gvae_core.refine import refine_steps
+
+    cloud = _cloud(48, seed=5)
+    first, second = refine_steps(cloud, steps=2, budget=1.0, model=_model(exist_logit=4.0), seed=2,
+                                 carry_appearance=carry)
+    assert len(second.cloud) > len(first.cloud)  # the second step did add Gaussians
+    assert (_appearances(second.cloud) <= _appearances(first.cloud)) == carry
