@@ -642,8 +642,9 @@ class GaussianVAE:
     def create(cls, geometry: VAEConfig | None = None, appearance: VAEConfig | None = None,
                seed: int = 0) -> "GaussianVAE":
         torch.manual_seed(seed)
-        g = LineageVAE(geometry or VAEConfig(kind="geometry", d_model=32, decoder_hidden=96, max_nodes=4))
-        a = LineageVAE(appearance or VAEConfig(kind="appearance", d_model=32, decoder_hidden=96, max_nodes=4))
+        g = LineageVAE(geometry or VAEConfig(kind="geometry", d_model=32, layers=1, decoder_hidden=96, max_nodes=4))
+        a = LineageVAE(appearance or VAEConfig(kind="appearance", d_model=32, layers=1, decoder_hidden=96,
+                                               max_nodes=4))
         if g.config.slots != a.config.slots:
             raise ValueError("geometry and appearance models need the same number of slots")
         return cls(g.eval(), a.eval())

@@ -222,10 +222,13 @@ def test_cli_refine_and_fit(tmp_path, capsys):
     (tmp_path / "run").mkdir()
     lin.save(tmp_path / "run" / "lineage.npz")
     code = gvae(["fit-vae", str(tmp_path / "run"), "--holdout", str(tmp_path / "run"), "--out",
-                 str(tmp_path / "fitted"), "--steps", "3", "--batch", "8", "--quiet"])
+                 str(tmp_path / "fitted"), "--steps", "3", "--batch", "8", "--quiet", "--d-model", "16",
+                 "--layers", "1", "--decoder-hidden", "24"])
     assert code == 0
     fitted = GaussianVAE.load(tmp_path / "fitted")
     assert fitted.meta["steps"] == 3 and "holdout" in fitted.meta["metrics"]
+    for vae in (fitted.geometry, fitted.appearance):
+        assert (vae.config.d_model, vae.config.layers, vae.config.decoder_hidden) == (16, 1, 24)
     assert gvae(["fit-vae", str(tmp_path / "nothing"), "--out", str(tmp_path / "f2"), "--quiet"]) == 2
 
 
