@@ -300,14 +300,23 @@ class GaussianCloud:
                              extra={k: (v.clone() if is_torch(v) else v.copy()) for k, v in self.extra.items()})
 
     # ------------------------------------------------------ validation
+    def nonfinite_rows(self) -> np.ndarray:
+        """Rows (ascending) with a NaN or an infinity in any parameter."""
+        c = self.numpy()
+        arrays = [getattr(c, name) for name in _FIELDS]
+        if all(np.isfinite(a).all() for a in arrays):  # the usual case, without per-row bookkeeping
+            return np.zeros(0, np.int64)
+        finite = np.ones(len(c), bool)
+        for a in arrays:
+            finite &= np.isfinite(a.reshape(len(c), int(np.prod(a.shape[1:])))).all(axis=1)
+        return np.flatnonzero(~finite)
+
     def validate(self) -> ValidationReport:
         """Rows with non-finite values, zero quaternions and extreme (but finite) values."""
         c = self.numpy()
+        bad = c.nonfinite_rows()
         finite = np.ones(len(c), bool)
-        for name in _FIELDS:
-            arr = getattr(c, name)
-            a = arr.reshape(len(c), int(np.prod(arr.shape[1:])))  # -1 is ambiguous when N = 0
-            finite &= np.isfinite(a).all(axis=1)
+        finite[bad] = False
         with np.errstate(invalid="ignore", over="ignore"):
             qnorm = np.linalg.norm(c.quats.astype(np.float64), axis=1)
             zero_q = finite & (qnorm < 1e-12)
@@ -316,7 +325,7 @@ class GaussianCloud:
             far = finite & (np.abs(c.means) > EXTREME_POSITION).any(1)
         return ValidationReport(
             n=len(c),
-            nonfinite_rows=np.flatnonzero(~finite),
+            nonfinite_rows=bad,
             zero_quat_rows=np.flatnonzero(zero_q),
             extreme_scale_rows=np.flatnonzero(ext_scale),
             extreme_opacity_rows=np.flatnonzero(ext_op),

@@ -301,15 +301,13 @@ def run_experiment(protocol: Protocol | str, *, model=None, scenes=None, cache=N
     """The whole experiment: every scene prepared and evaluated, `jobs` scenes at a time in
     worker processes of one torch thread each (default: one per core); returns the results
     document (protocol, model, per-scene run logs and timings, rows)."""
-    import os  # noqa: PLC0415
-
     from .vae import GaussianVAE, default_model_dir  # noqa: PLC0415
 
     p = PROTOCOLS[protocol] if isinstance(protocol, str) else protocol
     model_dir = Path(model) if model is not None else default_model_dir()
     loaded = GaussianVAE.load(model_dir)
     names = list(scenes or p.scenes)
-    jobs = max(1, min(jobs or os.cpu_count() or 1, len(names)))
+    jobs = _job_count(jobs, len(names))
     started = time.time()
     t0 = time.perf_counter()
     doc = {"protocol": {**asdict(p), "train_config": p.train_config().to_dict()},
@@ -335,15 +333,20 @@ def prepare_scenes(names, protocol: Protocol, *, cache=None, jobs: int | None = 
                    say: Callable[[str], None] = print) -> dict[str, SceneRun]:
     """`prepare_scene` for several scenes, `jobs` at a time in worker processes of one torch
     thread each (default: one per core)."""
-    import os  # noqa: PLC0415
-
     names = list(names)
-    jobs = max(1, min(jobs or os.cpu_count() or 1, len(names)))
+    jobs = _job_count(jobs, len(names))
     if jobs == 1:
         return {name: prepare_scene(name, protocol, cache=cache, say=say) for name in names}
     with _pool(jobs) as pool:
         futures = {name: pool.submit(prepare_scene, name, protocol, cache=cache, say=_print) for name in names}
         return {name: f.result() for name, f in futures.items()}
+
+
+def _job_count(jobs: int | None, tasks: int) -> int:
+    """Worker processes for `tasks` scenes: `jobs`, or one per core, and no more than the tasks."""
+    import os  # noqa: PLC0415
+
+    return max(1, min(jobs or os.cpu_count() or 1, tasks))
 
 
 def _pool(jobs: int):

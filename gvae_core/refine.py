@@ -5,11 +5,11 @@ Score the input Gaussians (Hessian), pick the budget's share, and run the lineag
 budget says where to densify: the selected Gaussians all densify at the first step; the models
 say how (how many children, where, how large, what colour) and, at later steps, whether each
 descendant densifies again, as they learned from progressive training. Later steps change
-geometry only (children carry their parent's appearance, `carry_appearance`). With the budget "all"
-every Gaussian is given to the models, which decide at every step. For a lineage,
-the existing slot nearest its last node updates that Gaussian in place; every other existing
-slot becomes a new Gaussian (appended after the input rows). Outputs are sanitised: finite,
-unit quaternions, log-scales and opacity logits inside finite ranges.
+geometry only (children carry their parent's appearance, `carry_appearance`). With the budget
+"all" every Gaussian is given to the models, which decide at every step. For a lineage, the
+existing slot nearest its last node updates that Gaussian in place; every other existing slot
+becomes a new Gaussian (appended after the input rows). Outputs are sanitised: finite, unit
+quaternions, log-scales and opacity logits inside finite ranges.
 """
 
 from __future__ import annotations
@@ -24,11 +24,10 @@ import torch
 
 from ._callable import make_module_callable
 from .camera import Camera
-from .cloud import EXTREME_LOG_SCALE, OPACITY_LOGIT_RANGE, SH_REST_COUNTS, GaussianCloud, normalize_quats
+from .cloud import _FIELDS, EXTREME_LOG_SCALE, OPACITY_LOGIT_RANGE, SH_REST_COUNTS, GaussianCloud, normalize_quats
 
 AUTO_FRACTION_RANGE = (0.01, 0.5)
 OUTPUT_SH_LIMIT = 1e3
-_FIELDS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 
 
 @dataclass
@@ -170,16 +169,6 @@ def _initial_history(cloud: GaussianCloud, lineage: Any, selected: np.ndarray):
     return geo, app, float(scale)
 
 
-def _nonfinite_rows(cloud: GaussianCloud) -> np.ndarray:
-    arrays = [getattr(cloud, name) for name in _FIELDS]
-    if all(np.isfinite(a).all() for a in arrays):  # the usual case, without per-row bookkeeping
-        return np.zeros(0, np.int64)
-    bad = np.zeros(len(cloud), bool)
-    for a in arrays:
-        bad |= ~np.isfinite(a.reshape(len(cloud), -1)).all(1)
-    return np.flatnonzero(bad)
-
-
 def _finite(x: np.ndarray) -> np.ndarray:
     return x if np.isfinite(x).all() else np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
 
@@ -237,7 +226,7 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
         raise ValueError(f"refine: steps must be an integer >= 1, got {steps!r}")
     src = cloud.numpy()
-    bad = _nonfinite_rows(src)
+    bad = src.nonfinite_rows()
     if len(bad):
         rows = ", ".join(str(int(r)) for r in bad[:5])
         raise ValueError(f"refine: the cloud has non-finite values in {len(bad)} row(s) "

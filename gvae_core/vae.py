@@ -220,6 +220,10 @@ class VAEConfig:
             raise ValueError(f"VAEConfig.kind must be one of {sorted(FEATURES)}, got {self.kind!r}")
 
 
+#: The size of the bundled models (both of them); `GaussianVAE.create` and `gvae fit-vae` default to it.
+DEFAULT_SIZE = {"d_model": 32, "layers": 1, "decoder_hidden": 96, "max_nodes": 4}
+
+
 @dataclass
 class SlotPrediction:
     """Decoded next stage: per lineage C slots of node features (the `exist` column holds the
@@ -640,11 +644,13 @@ class GaussianVAE:
 
     @classmethod
     def create(cls, geometry: VAEConfig | None = None, appearance: VAEConfig | None = None,
-               seed: int = 0) -> "GaussianVAE":
+               seed: int = 0, **size) -> "GaussianVAE":
+        """Untrained models. Configs not given are the bundled models' size (`DEFAULT_SIZE`),
+        with `size` (VAEConfig fields, for both) overriding it."""
         torch.manual_seed(seed)
-        g = LineageVAE(geometry or VAEConfig(kind="geometry", d_model=32, layers=1, decoder_hidden=96, max_nodes=4))
-        a = LineageVAE(appearance or VAEConfig(kind="appearance", d_model=32, layers=1, decoder_hidden=96,
-                                               max_nodes=4))
+        size = {**DEFAULT_SIZE, **size}
+        g = LineageVAE(geometry or VAEConfig(kind="geometry", **size))
+        a = LineageVAE(appearance or VAEConfig(kind="appearance", **size))
         if g.config.slots != a.config.slots:
             raise ValueError("geometry and appearance models need the same number of slots")
         return cls(g.eval(), a.eval())

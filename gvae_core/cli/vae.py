@@ -23,10 +23,11 @@ def register(subparsers) -> None:
     p.add_argument("--steps", type=int, default=3000, help="optimiser steps (default: %(default)s)")
     p.add_argument("--batch", type=int, default=256, help="lineages per step (default: %(default)s)")
     p.add_argument("--lr", type=float, default=2e-3, help="peak learning rate (default: %(default)s)")
-    p.add_argument("--d-model", type=int, default=32, help="transformer width of both models (default: %(default)s)")
-    p.add_argument("--layers", type=int, default=1, help="encoder layers of both models (default: %(default)s)")
-    p.add_argument("--decoder-hidden", type=int, default=96,
-                   help="decoder hidden width of both models (default: %(default)s)")
+    p.add_argument("--d-model", type=int, default=None, help="transformer width of both models "
+                   "(default: the bundled models')")
+    p.add_argument("--layers", type=int, default=None, help="encoder layers (default: the bundled models')")
+    p.add_argument("--decoder-hidden", type=int, default=None,
+                   help="decoder hidden width (default: the bundled models')")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_fit)
@@ -75,14 +76,13 @@ def load_runs(runs: list[Path], slots: int = 4):
 
 
 def run_fit(args: argparse.Namespace) -> int:
-    from ..vae import (FitConfig, GaussianVAE, VAEConfig, copy_parent_baseline, evaluate, fit,  # noqa: PLC0415
-                       synthetic_transitions)
+    from ..vae import FitConfig, GaussianVAE, copy_parent_baseline, evaluate, fit, synthetic_transitions  # noqa: PLC0415
 
     if not args.runs and args.synthetic <= 0:
         raise ValueError("fit-vae: give at least one RUN_DIR (or --synthetic N)")
-    size = dict(d_model=args.d_model, layers=args.layers, decoder_hidden=args.decoder_hidden, max_nodes=4)
-    model = GaussianVAE.create(VAEConfig(kind="geometry", **size), VAEConfig(kind="appearance", **size),
-                               seed=args.seed)
+    size = {k: v for k, v in (("d_model", args.d_model), ("layers", args.layers),
+                              ("decoder_hidden", args.decoder_hidden)) if v is not None}
+    model = GaussianVAE.create(seed=args.seed, **size)
     train = load_runs(args.runs, model.slots)
     for run in args.holdout:  # fail early on a missing held-out run; they are read after training
         if not (run.is_file() or run.is_dir()):
