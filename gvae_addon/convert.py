@@ -17,7 +17,8 @@ import json
 import bpy
 import numpy as np
 
-from gvae_core.cloud import SH_REST_COUNTS, GaussianCloud
+from gvae_core.cloud import GaussianCloud
+from gvae_core.conventions import SH_REST_COUNTS
 
 LAYOUT_KEY = "gvae_ply"
 STEP_ATTR = "gvae_step"

@@ -14,6 +14,7 @@ from bpy.types import Operator, OperatorFileListElement
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from gvae_core.cloud import GaussianCloud
+from gvae_core.ply import read_ply, write_ply
 
 from . import convert, nodes
 
@@ -25,14 +26,12 @@ AXES = {
 }
 
 
-def _read(path: str, sanitize: bool):
-    """read_ply, with its warnings (dropped rows) returned as messages."""
-    from gvae_core.ply import read_ply  # noqa: PLC0415 - keep add-on start-up light
-
+def _with_messages(function, *args, **kwargs):
+    """function(*args, **kwargs) and the warnings it gave (dropped rows, say), as messages."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        cloud = read_ply(path, sanitize=sanitize)
-    return cloud, [str(w.message) for w in caught]
+        value = function(*args, **kwargs)
+    return value, [str(w.message) for w in caught]
 
 
 def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
@@ -62,51 +61,16 @@ def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
     return obj
 
 
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of w,x,y,z quaternions (broadcasting)."""
-    aw, av = a[..., :1], a[..., 1:]
-    bw, bv = b[..., :1], b[..., 1:]
-    w = aw * bw - np.sum(av * bv, axis=-1, keepdims=True)
-    v = aw * bv + bw * av + np.cross(av, bv)
-    return np.concatenate([w, v], axis=-1)
-
-
-def apply_matrix(cloud: GaussianCloud, matrix) -> tuple[GaussianCloud, list[str]]:
-    """`cloud` moved by a 4x4 object matrix with uniform positive scale (rotation, uniform scale,
-    translation): positions, quaternions and log-scales change; SH rest coefficients do not
-    (reported in the returned messages when they would need rotating)."""
-    m = np.array(matrix, np.float64).reshape(4, 4)
-    lin = m[:3, :3]
-    sv = np.linalg.svd(lin, compute_uv=False)
-    if sv.min() <= 1e-12 or sv.max() / sv.min() - 1.0 > 1e-4:
-        raise ValueError(f"the object's scale is not uniform (singular values {np.round(sv, 6).tolist()}); "
-                         "apply or clear the scale, or export without Apply Transform")
-    if np.linalg.det(lin) < 0:
-        raise ValueError("the object's transform mirrors (negative scale); Gaussians cannot be mirrored "
-                         "by a rotation: clear the negative scale or export without Apply Transform")
-    s = float(np.cbrt(np.linalg.det(lin)))
-    rot = lin / s
-    from gvae_core.cloud import rotmat_to_quat  # noqa: PLC0415
-
-    q_obj = rotmat_to_quat(rot)
-    means = np.asarray(cloud.means, np.float64) @ lin.T + m[:3, 3]
-    quats = _quat_mul(q_obj[None], np.asarray(cloud.quats, np.float64))
-    out = cloud.replace(means=means.astype(np.float32), quats=quats.astype(np.float32),
-                        scales=(np.asarray(cloud.scales, np.float64) + math.log(s)).astype(np.float32))
-    messages = []
-    if cloud.sh_degree > 0 and not np.allclose(rot, np.eye(3), atol=1e-7):
-        messages.append("SH rest coefficients (view-dependent colour) were not rotated with the object")
-    return out, messages
-
-
 def export_splat(obj, path: str, *, apply_transform: bool = False, write_step: bool = False):
     """Write a splat object as a 3DGS PLY (atomic). Returns (count, messages)."""
-    from gvae_core.ply import write_ply  # noqa: PLC0415
-
     cloud, steps = convert.cloud_from_object(obj)
     messages = []
     if apply_transform:
-        cloud, messages = apply_matrix(cloud, obj.matrix_world)
+        try:
+            cloud, messages = _with_messages(cloud.transformed, obj.matrix_world)
+        except ValueError as exc:
+            raise ValueError(f"object {obj.name!r}: {exc}; apply or clear its scale, or export without "
+                             "Apply Transform") from None
     if write_step and steps is not None:
         cloud = cloud.replace(extra={**cloud.extra, convert.STEP_ATTR: steps})
     write_ply(cloud, path)
@@ -155,7 +119,7 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
             # Read every file first: a bad file leaves the blend file untouched.
             loaded = []
             for path in self._paths():
-                cloud, messages = _read(path, self.drop_invalid)
+                cloud, messages = _with_messages(read_ply, path, sanitize=self.drop_invalid)
                 loaded.append((path, cloud))
                 for msg in messages:
                     self.report({"WARNING"}, msg)

@@ -18,7 +18,7 @@ import math
 
 import bpy
 
-from gvae_core.cloud import LOG_SCALE_RANGE, OPACITY_LOGIT_RANGE, SH_C0
+from gvae_core.conventions import LOG_SCALE_RANGE, OPACITY_LOGIT_RANGE, SH_C0
 
 GROUP_NAME = "GaussianVAE Splats"
 MATERIAL_NAME = "GaussianVAE Splat"

@@ -11,45 +11,9 @@ import numpy as np
 from bpy.props import IntProperty, StringProperty
 from bpy.types import Operator
 
-from gvae_core.cloud import GaussianCloud
+from gvae_core.budget import parse_budget
 
 from . import convert, runtime
-
-
-def parse_budget(text: str):
-    """The refine budget: "auto" (the Hessian scores decide), "all", a fraction in (0, 1] of the
-    Gaussians ("0.25" or "25%"), or a count ("5000")."""
-    t = str(text).strip().lower()
-    if t in ("", "auto", "all"):
-        return t or "auto"
-    try:
-        if t.endswith("%"):
-            value = float(t[:-1]) / 100.0
-        elif any(ch in t for ch in ".e"):
-            value = float(t)
-        else:
-            count = int(t)
-            if count < 1:
-                raise ValueError
-            return count
-    except ValueError:
-        raise ValueError(f"budget must be 'auto', 'all', a fraction in (0, 1] or a count >= 1, "
-                         f"got {text!r}") from None
-    if not 0.0 < value <= 1.0:
-        raise ValueError(f"budget fraction must be in (0, 1], got {text!r}")
-    return value
-
-
-def _extras_for(source: GaussianCloud, n_out: int, parents: np.ndarray, added: np.ndarray) -> dict:
-    """The input's extra properties (which refine does not interpret) for every output row: the
-    input rows keep theirs, an added Gaussian inherits its parent's."""
-    extra = {}
-    for key, value in source.extra.items():
-        col = np.zeros(n_out, value.dtype)
-        col[:len(source)] = value
-        col[added] = value[parents]
-        extra[key] = col
-    return extra
 
 
 def refine_object(obj, *, steps: int = 1, budget="auto", model=None, seed: int = 0,
@@ -74,7 +38,6 @@ def refine_object(obj, *, steps: int = 1, budget="auto", model=None, seed: int =
             or (len(parents) and (parents.min() < 0 or parents.max() >= n_in)):
         raise RuntimeError(f"refine returned an inconsistent result ({n_in} in, {n_out} out, "
                            f"{len(added)} added)")
-    out = out.replace(extra=_extras_for(cloud, n_out, parents, added))
     marks = np.zeros(n_out, np.int32)
     base = 0
     if old_steps is not None:

@@ -71,8 +71,8 @@ def runtime_installed() -> bool:
 
 def refine_status() -> tuple[bool, str]:
     """(available, message) for Refine, without importing torch."""
-    if not _has_module("gvae_core.refine"):
-        return False, "Refine is not in this build: gvae_core.refine is missing"
+    if not _has_module("gvae_core.refinement"):
+        return False, "Refine is not in this build: gvae_core.refinement is missing"
     if not torch_available():
         return False, "Refine needs PyTorch: install it in the add-on preferences"
     if not _has_module("safetensors"):
@@ -81,13 +81,13 @@ def refine_status() -> tuple[bool, str]:
 
 
 def core_refine():
-    """`gvae_core.refine.refine`, imported on first use (this imports torch). Raises RuntimeError
+    """`gvae_core.refinement.refine`, imported on first use (this imports torch). Raises RuntimeError
     with a user-facing message when it cannot be imported."""
     ok, message = refine_status()
     if not ok:
         raise RuntimeError(message)
     try:
-        module = importlib.import_module("gvae_core.refine")
+        module = importlib.import_module("gvae_core.refinement")
     except ImportError as exc:
         raise RuntimeError(f"Refine could not be loaded: {exc}") from exc
     return module.refine

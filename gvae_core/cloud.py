@@ -9,22 +9,16 @@ the arrays already are torch tensors or a conversion to torch is asked for.
 from __future__ import annotations
 
 import dataclasses
+import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
 
-#: Number of SH "rest" coefficients per channel for SH degree 0..3.
-SH_REST_COUNTS = {0: 0, 1: 3, 2: 8, 3: 15}
-_DEGREE_OF_REST = {k: d for d, k in SH_REST_COUNTS.items()}
-
-#: Range log-scales are clamped to on activation: exp(±30) is finite in float32 and squares safely
-#: in float64; the renderer clamps further where it needs to.
-LOG_SCALE_RANGE = (-30.0, 30.0)
-#: Range opacity logits are clamped to on activation.
-OPACITY_LOGIT_RANGE = (-50.0, 50.0)
-#: SH band-0 constant: colour = SH_C0 * f_dc + 0.5.
-SH_C0 = 0.28209479177387814
+from . import quaternions
+from .conventions import (LOG_SCALE_RANGE, OPACITY_LOGIT_RANGE, SH_DEGREE_OF_REST, SH_REST_COUNTS, activate_opacities,
+                          activate_scales, clip, dc_to_rgb, is_torch)
 
 #: Beyond these, values are reported as extreme by `validate()` (they still render).
 EXTREME_LOG_SCALE = (-20.0, 12.0)
@@ -32,11 +26,6 @@ EXTREME_OPACITY_LOGIT = 30.0
 EXTREME_POSITION = 1e6
 
 _FIELDS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
-
-
-def is_torch(x: Any) -> bool:
-    """True for a torch tensor, without importing torch."""
-    return type(x).__module__.startswith("torch")
 
 
 def _torch():
@@ -123,9 +112,9 @@ class GaussianCloud:
                 raise ValueError(f"GaussianCloud.{name} must have shape {shape}, "
                                  f"got {tuple(getattr(self, name).shape)}")
         rest = tuple(self.sh_rest.shape)
-        if len(rest) != 3 or rest[0] != n or rest[2] != 3 or rest[1] not in _DEGREE_OF_REST:
+        if len(rest) != 3 or rest[0] != n or rest[2] != 3 or rest[1] not in SH_DEGREE_OF_REST:
             raise ValueError(f"GaussianCloud.sh_rest must have shape (N, K, 3) with K in "
-                             f"{sorted(_DEGREE_OF_REST)}, got {rest}")
+                             f"{sorted(SH_DEGREE_OF_REST)}, got {rest}")
         for k, v in self.extra.items():
             if v.shape[:1] != (n,):
                 raise ValueError(f"GaussianCloud.extra[{k!r}] must have {n} rows, got shape {tuple(v.shape)}")
@@ -139,7 +128,7 @@ class GaussianCloud:
 
     @property
     def sh_degree(self) -> int:
-        return _DEGREE_OF_REST[int(self.sh_rest.shape[1])]
+        return SH_DEGREE_OF_REST[int(self.sh_rest.shape[1])]
 
     @property
     def is_torch(self) -> bool:
@@ -166,32 +155,25 @@ class GaussianCloud:
                    sh_dc=np.zeros((0, 3), np.float32), sh_rest=np.zeros((0, k, 3), np.float32))
 
     # ------------------------------------------------------------ activations
-    def _ns(self):
-        return _torch() if self.is_torch else np
-
     def activated_scales(self):
         """Standard deviations along the Gaussian's local axes: exp(clamped log-scale)."""
-        return self._ns().exp(_clip(self.scales, *LOG_SCALE_RANGE))
+        return activate_scales(self.scales)
 
     def activated_opacities(self):
         """Opacities in [0, 1]: sigmoid(clamped logit)."""
-        x = _clip(self.opacities, *OPACITY_LOGIT_RANGE)
-        if self.is_torch:
-            return _torch().sigmoid(x)
-        return 1.0 / (1.0 + np.exp(-x))
+        return activate_opacities(self.opacities)
 
     def unit_quats(self):
         """Unit w,x,y,z quaternions; a zero (or non-finite) quaternion becomes the identity."""
-        return normalize_quats(self.quats)
+        return quaternions.normalize(self.quats)
 
     def rotation_matrices(self):
         """(N,3,3) rotation matrices of the unit quaternions (columns are the local axes)."""
-        return quat_to_rotmat(self.unit_quats())
+        return quaternions.to_rotmat(self.unit_quats())
 
     def base_color(self):
         """RGB of the SH DC term: SH_C0 * f_dc + 0.5, clamped at 0 (view-independent colour)."""
-        c = self.sh_dc * SH_C0 + 0.5
-        return c.clamp(min=0.0) if self.is_torch else np.maximum(c, 0.0)
+        return dc_to_rgb(self.sh_dc)
 
     # ------------------------------------------------------- subsets, joins
     def select(self, index) -> "GaussianCloud":
@@ -299,6 +281,70 @@ class GaussianCloud:
         return GaussianCloud(**{n: dup(getattr(self, n)) for n in _FIELDS},
                              extra={k: (v.clone() if is_torch(v) else v.copy()) for k, v in self.extra.items()})
 
+    # ------------------------------------------------------ geometry
+    def normalization(self) -> tuple[np.ndarray, float]:
+        """Centre (3,) and scale of the Gaussian centres, robust to a few far floaters: the centre
+        of their 1st..99th percentile box and half of its longest side (1 when degenerate). This
+        is the scene-normalised frame, (x - centre) / scale, of lineage features and Hessian
+        scores, so that one model serves every scene."""
+        p = np.asarray(self.numpy().means, np.float64).reshape(-1, 3)
+        if not np.isfinite(p).all():
+            p = p[np.isfinite(p).all(1)]
+        if len(p) == 0:
+            return np.zeros(3), 1.0
+        lo, hi = np.percentile(p, [1, 99], axis=0)
+        scale = float(np.max(hi - lo)) / 2.0
+        return (lo + hi) / 2.0, (scale if scale > 1e-8 else 1.0)
+
+    def transformed(self, matrix) -> "GaussianCloud":
+        """The cloud moved by a 4x4 matrix of rotation, uniform positive scale and translation (a
+        Blender object's world matrix, say): positions, quaternions and log-scales change. SH rest
+        coefficients are not rotated; a warning says so when they would need it. Raises
+        ValueError for a non-uniform or mirroring scale, which Gaussians cannot follow."""
+        m = np.array(matrix, np.float64).reshape(4, 4)
+        lin = m[:3, :3]
+        sv = np.linalg.svd(lin, compute_uv=False)
+        if sv.min() <= 1e-12 or sv.max() / sv.min() - 1.0 > 1e-4:
+            raise ValueError(f"the transform's scale is not uniform (singular values {np.round(sv, 6).tolist()})")
+        if np.linalg.det(lin) < 0:
+            raise ValueError("the transform mirrors (negative scale); Gaussians cannot be mirrored by a rotation")
+        s = float(np.cbrt(np.linalg.det(lin)))
+        rot = lin / s
+        c = self.numpy()
+        out = c.replace(
+            means=(np.asarray(c.means, np.float64) @ lin.T + m[:3, 3]).astype(np.float32),
+            quats=quaternions.multiply(quaternions.from_rotmat(rot)[None], np.asarray(c.quats, np.float64))
+            .astype(np.float32),
+            scales=(np.asarray(c.scales, np.float64) + math.log(s)).astype(np.float32))
+        if c.sh_degree > 0 and not np.allclose(rot, np.eye(3), atol=1e-7):
+            warnings.warn("SH rest coefficients (view-dependent colour) were not rotated with the cloud",
+                          stacklevel=2)
+        return out
+
+    def append_children(self, children: "GaussianCloud", parents) -> "GaussianCloud":
+        """This cloud followed by `children` (numpy), child i born from row `parents[i]` of the
+        result: a row of this cloud or an earlier child. The one policy for the extra properties
+        (which the algorithm does not interpret) of Gaussians that refinement or a control adds: a
+        child takes its own value where `children.extra` has the property, else its parent's; where
+        the cloud has `gvae_id`, each child gets a fresh id, and its parent's id as `gvae_parent`."""
+        n, m = len(self), len(children)
+        parents = np.asarray(parents, np.int64).reshape(-1)
+        if len(parents) != m or (m and (parents.min() < 0 or (parents >= n + np.arange(m)).any())):
+            raise ValueError(f"append_children: {len(parents)} parents for {m} children, each a row before "
+                             f"the child's own")
+        root = parents.copy()  # the ancestor of every child among this cloud's rows
+        while (later := root >= n).any():
+            root[later] = parents[root[later] - n]
+        extra = {key: children.extra[key] if key in children.extra else np.asarray(value)[root]
+                 for key, value in self.extra.items()}
+        if "gvae_id" in self.extra and "gvae_id" not in children.extra:
+            ids = np.asarray(self.extra["gvae_id"])
+            new = (int(ids.max(initial=-1)) + 1 + np.arange(m)).astype(ids.dtype)
+            extra["gvae_id"] = new
+            if "gvae_parent" in self.extra:
+                extra["gvae_parent"] = np.concatenate([ids, new])[parents].astype(self.extra["gvae_parent"].dtype)
+        return GaussianCloud.concat([self.numpy(), children.numpy().replace(extra=extra)])
+
     # ------------------------------------------------------ validation
     def nonfinite_rows(self) -> np.ndarray:
         """Rows (ascending) with a NaN or an infinity in any parameter."""
@@ -344,78 +390,6 @@ class GaussianCloud:
         if bool(zero.any()):
             out.quats[zero] = out.quats.new_tensor([1.0, 0, 0, 0]) if out.is_torch else np.array(
                 [1.0, 0, 0, 0], out.quats.dtype)
-        out.scales = _clip(out.scales, *LOG_SCALE_RANGE)
-        out.opacities = _clip(out.opacities, *OPACITY_LOGIT_RANGE)
+        out.scales = clip(out.scales, *LOG_SCALE_RANGE)
+        out.opacities = clip(out.opacities, *OPACITY_LOGIT_RANGE)
         return out
-
-
-# ---------------------------------------------------------------- helpers
-
-def _clip(x, lo: float, hi: float):
-    return x.clamp(lo, hi) if is_torch(x) else np.clip(x, lo, hi)
-
-
-def normalize_quats(q):
-    """Unit quaternions (w,x,y,z); rows with zero or non-finite norm become the identity.
-    Gradients stay finite: the norm is guarded before dividing."""
-    if is_torch(q):
-        torch = _torch()
-        norm = q.norm(dim=-1, keepdim=True)
-        good = torch.isfinite(norm) & (norm > 1e-12)
-        safe = torch.where(good, norm, torch.ones_like(norm))
-        ident = torch.zeros_like(q)
-        ident[..., 0] = 1.0
-        return torch.where(good, q / safe, ident)
-    q = np.asarray(q)
-    with np.errstate(invalid="ignore", over="ignore"):
-        norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    good = np.isfinite(norm) & (norm > 1e-12)
-    out = np.where(good, q / np.where(good, norm, 1.0), 0.0).astype(q.dtype, copy=False)
-    out[..., 0] = np.where(good[..., 0], out[..., 0], 1.0)
-    return out
-
-
-def quat_to_rotmat(q):
-    """(…,4) unit w,x,y,z quaternions to (…,3,3) rotation matrices."""
-    w, x, y, z = (q[..., i] for i in range(4))
-    rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]
-    if is_torch(q):
-        return _torch().stack(rows, -1).reshape(q.shape[:-1] + (3, 3))
-    return np.stack(rows, -1).reshape(q.shape[:-1] + (3, 3))
-
-
-def rotmat_to_quat(m):
-    """(…,3,3) rotation matrices to (…,4) unit w,x,y,z quaternions with w >= 0 (numpy only)."""
-    m = np.asarray(m, np.float64)
-    flat = m.reshape(-1, 3, 3)
-    out = np.empty((flat.shape[0], 4))
-    tr = flat[:, 0, 0] + flat[:, 1, 1] + flat[:, 2, 2]
-    # Choose the numerically largest of w, x, y, z as the pivot (Shepperd's method).
-    cand = np.stack([tr, flat[:, 0, 0], flat[:, 1, 1], flat[:, 2, 2]], 1)
-    pivot = cand.argmax(1)
-    for p in range(4):
-        sel = pivot == p
-        if not sel.any():
-            continue
-        a = flat[sel]
-        if p == 0:
-            s = np.sqrt(np.maximum(1 + a[:, 0, 0] + a[:, 1, 1] + a[:, 2, 2], 1e-300)) * 2
-            q = [0.25 * s, (a[:, 2, 1] - a[:, 1, 2]) / s, (a[:, 0, 2] - a[:, 2, 0]) / s, (a[:, 1, 0] - a[:, 0, 1]) / s]
-        elif p == 1:
-            s = np.sqrt(np.maximum(1 + a[:, 0, 0] - a[:, 1, 1] - a[:, 2, 2], 1e-300)) * 2
-            q = [(a[:, 2, 1] - a[:, 1, 2]) / s, 0.25 * s, (a[:, 0, 1] + a[:, 1, 0]) / s, (a[:, 0, 2] + a[:, 2, 0]) / s]
-        elif p == 2:
-            s = np.sqrt(np.maximum(1 - a[:, 0, 0] + a[:, 1, 1] - a[:, 2, 2], 1e-300)) * 2
-            q = [(a[:, 0, 2] - a[:, 2, 0]) / s, (a[:, 0, 1] + a[:, 1, 0]) / s, 0.25 * s, (a[:, 1, 2] + a[:, 2, 1]) / s]
-        else:
-            s = np.sqrt(np.maximum(1 - a[:, 0, 0] - a[:, 1, 1] + a[:, 2, 2], 1e-300)) * 2
-            q = [(a[:, 1, 0] - a[:, 0, 1]) / s, (a[:, 0, 2] + a[:, 2, 0]) / s, (a[:, 1, 2] + a[:, 2, 1]) / s, 0.25 * s]
-        out[sel] = np.stack(q, 1)
-    out *= np.where(out[:, :1] < 0, -1.0, 1.0)
-    out /= np.linalg.norm(out, axis=1, keepdims=True)
-    return out.reshape(m.shape[:-2] + (4,))
-

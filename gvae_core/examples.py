@@ -10,7 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .cloud import SH_C0, GaussianCloud, rotmat_to_quat
+from .cloud import GaussianCloud
+from .conventions import rgb_to_dc
+from .quaternions import from_rotmat
 
 __all__ = ["example_cloud", "write_example"]
 
@@ -37,7 +39,7 @@ def example_cloud(n: int = 4096, *, seed: int = 0, radius: float = 1.0, tube: fl
     hue = u / (2 * np.pi)
     rgb = np.clip(np.abs((hue[:, None] * 6 + np.array([0.0, 4.0, 2.0])) % 6 - 3) - 1, 0, 1)
     rgb = 0.15 + 0.7 * rgb
-    sh_dc = (rgb - 0.5) / SH_C0
+    sh_dc = rgb_to_dc(rgb)
     sh_rest = np.zeros((n, 15, 3))
     # Degree-1 basis functions are -y, z, -x (times a constant) of the direction d from the camera
     # to the Gaussian: these coefficients add -0.3*C1*(d . normal), brighter where it faces the camera.
@@ -48,7 +50,7 @@ def example_cloud(n: int = 4096, *, seed: int = 0, radius: float = 1.0, tube: fl
     opacities = np.full(n, 2.0) + rng.normal(0.0, 0.2, n)
     return GaussianCloud(
         means=means.astype(np.float32), scales=scales.astype(np.float32),
-        quats=rotmat_to_quat(rot).astype(np.float32), opacities=opacities.astype(np.float32),
+        quats=from_rotmat(rot).astype(np.float32), opacities=opacities.astype(np.float32),
         sh_dc=sh_dc.astype(np.float32), sh_rest=sh_rest.astype(np.float32))
 
 

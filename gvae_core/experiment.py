@@ -201,8 +201,8 @@ def render_timing(cloud, camera, repeats: int = 3, samples: int = 64, seed: int 
 
     import torch  # noqa: PLC0415
 
-    from .render import render  # noqa: PLC0415
-    from .render.reference import render_reference  # noqa: PLC0415
+    from .rendering import render  # noqa: PLC0415
+    from .rendering.reference import render_reference  # noqa: PLC0415
 
     tc = cloud.to_torch()
     times = []
@@ -221,8 +221,9 @@ def render_timing(cloud, camera, repeats: int = 3, samples: int = 64, seed: int 
 
 def run_scene(run: SceneRun, model, *, say: Callable[[str], None] = print) -> list[dict]:
     """Every method and step on one prepared scene; one row per (method, step, budget)."""
+    from .controls import plain_split  # noqa: PLC0415
     from .hessian import hessian_scores  # noqa: PLC0415
-    from .refine import plain_split, refine_steps  # noqa: PLC0415
+    from .refinement import refine_steps  # noqa: PLC0415
 
     p = run.protocol
     k = p.train_stage

@@ -19,17 +19,17 @@ import torch
 
 from .camera import Camera
 from .cloud import GaussianCloud
+from .rendering import render
 
 BLOCK = 6  # position (3) + log-scale (3)
 
 
 def default_views(cloud: GaussianCloud, views: int = 4, resolution: int = 96,
-                  fov_x: float = math.radians(50.0)) -> list[Camera]:
+                  fov_x: float = math.radians(50.0), normalization=None) -> list[Camera]:
     """`views` cameras spread over a sphere around the cloud (Fibonacci lattice), each looking at
-    its robust centre (`scene_normalization`) from where a sphere of 1.4 half-extents just fits."""
-    from .lineage import scene_normalization  # noqa: PLC0415
-
-    center, half = scene_normalization(cloud.numpy().means)
+    its robust centre from where a sphere of 1.4 half-extents just fits. `normalization`: the
+    cloud's (centre, scale) when known (`GaussianCloud.normalization`)."""
+    center, half = normalization or cloud.normalization()
     radius = 1.4 * half / math.sin(0.5 * fov_x)  # a sphere of radius 1.4 half-extents fills the view
     cams = []
     golden = math.pi * (3.0 - math.sqrt(5.0))
@@ -43,36 +43,35 @@ def default_views(cloud: GaussianCloud, views: int = 4, resolution: int = 96,
 
 
 def _prepare(cloud: GaussianCloud):
-    """A float32 torch copy whose means and log-scales are leaves that require grad, and the
-    scene scale used to express position gradients in the normalised frame."""
-    from .lineage import scene_normalization  # noqa: PLC0415
-
+    """A float32 torch copy whose means and log-scales are leaves that require grad."""
     c = cloud.detach().to_torch(dtype=torch.float32) if cloud.is_torch else cloud.to_torch(dtype=torch.float32)
-    _, scale = scene_normalization(c.means.detach().cpu().numpy())
     means = c.means.detach().clone().requires_grad_(True)
     scales = c.scales.detach().clone().requires_grad_(True)
-    return c.replace(means=means, scales=scales), means, scales, float(scale)
+    return c.replace(means=means, scales=scales), means, scales
 
 
 def _render_image(cloud: GaussianCloud, camera: Camera, settings=None) -> torch.Tensor:
-    from .render import render  # noqa: PLC0415
-
     return render(cloud, camera, settings=settings).image
 
 
 def hessian_blocks(cloud: GaussianCloud, cameras: Sequence[Camera] | None = None, *, probes: int = 4,
-                   views: int = 4, resolution: int = 96, seed: int = 0, render_settings=None) -> torch.Tensor:
+                   views: int = 4, resolution: int = 96, seed: int = 0, render_settings=None,
+                   normalization=None) -> torch.Tensor:
     """(N,6,6) Hutchinson-style estimate of sum over views of J_i^T J_i (position in the
     normalised frame, log-scale), from `probes` Rademacher-weighted backward passes per view.
-    `render_settings`: a `gvae_core.render.RenderSettings` (speed/memory knobs only)."""
+    `render_settings`: a `gvae_core.rendering.RenderSettings` (speed/memory knobs only);
+    `normalization`: the cloud's (centre, scale) when known (`GaussianCloud.normalization`)."""
     if probes < 1:
         raise ValueError(f"hessian: probes must be >= 1, got {probes}")
     n = len(cloud)
     blocks = torch.zeros((n, BLOCK, BLOCK), dtype=torch.float64)
     if n == 0:
         return blocks
-    cams = list(cameras) if cameras is not None else default_views(cloud, views, resolution)
-    rc, means, scales, scale = _prepare(cloud)
+    normalization = normalization or cloud.normalization()
+    cams = list(cameras) if cameras is not None else default_views(cloud, views, resolution,
+                                                                   normalization=normalization)
+    scale = normalization[1]
+    rc, means, scales = _prepare(cloud)
     gen = torch.Generator().manual_seed(int(seed))
     for cam in cams:
         image = _render_image(rc, cam, render_settings)
@@ -93,7 +92,8 @@ def hessian_blocks_reference(cloud: GaussianCloud, cameras: Sequence[Camera], re
     """Slow exact reference: J_i^T J_i accumulated pixel by pixel (one backward per pixel channel)."""
     n = len(cloud)
     blocks = torch.zeros((n, BLOCK, BLOCK), dtype=torch.float64)
-    rc, means, scales, scale = _prepare(cloud)
+    scale = cloud.normalization()[1]
+    rc, means, scales = _prepare(cloud)
     for cam in cameras:
         image = _render_image(rc, cam, render_settings).reshape(-1)
         for p in range(image.numel()):
@@ -126,12 +126,12 @@ def scores_from_blocks(blocks: torch.Tensor, score: str = "logdet", ridge: float
 
 def hessian_scores(cloud: GaussianCloud, cameras: Sequence[Camera] | None = None, *, probes: int = 4,
                    views: int = 4, score: str = "logdet", seed: int = 0, resolution: int = 96,
-                   ridge: float = 1e-2, render_settings=None) -> torch.Tensor:
+                   ridge: float = 1e-2, render_settings=None, normalization=None) -> torch.Tensor:
     """(N,) finite, non-negative per-Gaussian scores: the Gauss-Newton block of the renders over
     `cameras` (or `views` cameras around the cloud at `resolution` px), estimated with `probes`
     random +-1 pixel weightings per view; see the module docstring."""
     if score not in ("logdet", "trace"):
         raise ValueError(f"hessian: score must be 'logdet' or 'trace', got {score!r}")
     blocks = hessian_blocks(cloud, cameras, probes=probes, views=views, resolution=resolution, seed=seed,
-                            render_settings=render_settings)
+                            render_settings=render_settings, normalization=normalization)
     return scores_from_blocks(blocks, score, ridge)

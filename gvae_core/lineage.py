@@ -11,19 +11,24 @@ serves every scene. numpy only; torch is never imported here.
 
 from __future__ import annotations
 
-import os
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .cloud import LOG_SCALE_RANGE, SH_REST_COUNTS, GaussianCloud, normalize_quats
+from . import quaternions
+from .atomic import atomic_write
+from .cloud import EXTREME_LOG_SCALE, GaussianCloud
+from .conventions import LOG_SCALE_RANGE, OPACITY_LOGIT_RANGE, SH_REST_COUNTS
 
 GEOMETRY_DIM = 11
 APPEARANCE_DIM = 50
 #: Column slices of the feature vectors.
 GEO_POSITION, GEO_QUAT, GEO_LOG_SCALE, GEO_EXIST = slice(0, 3), slice(3, 7), slice(7, 10), 10
 APP_SH_REST, APP_SH_DC, APP_OPACITY, APP_EXIST = slice(0, 45), slice(45, 48), 48, 49
+#: `cloud_from_features(bounded=True)` keeps SH coefficients within +-BOUNDED_SH.
+BOUNDED_SH = 1e3
 
 _FORMAT = "gvae-lineage-1"
 _PARAMS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
@@ -31,28 +36,13 @@ _PARAMS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 
 # ------------------------------------------------------------------ features
 
-def scene_normalization(points) -> tuple[np.ndarray, float]:
-    """Centre (3,) and scale of a point set, robust to a few far floaters: the centre of the
-    1st..99th percentile box and half of its longest side. Used by the trainer (on the last
-    stage) and by `Lineage.from_cloud`, so that trained lineages and refined clouds agree."""
-    p = np.asarray(points, np.float64).reshape(-1, 3)
-    if not np.isfinite(p).all():
-        p = p[np.isfinite(p).all(1)]
-    if len(p) == 0:
-        return np.zeros(3), 1.0
-    lo, hi = np.percentile(p, [1, 99], axis=0)
-    scale = float(np.max(hi - lo)) / 2.0
-    return (lo + hi) / 2.0, (scale if scale > 1e-8 else 1.0)
-
-
 def geometry_features(cloud: GaussianCloud, center, scale: float, exist: float = 1.0) -> np.ndarray:
     """(N,11) float32: normalised position, unit quaternion (w >= 0), log-scale - log(scale),
     exist."""
     c = cloud.numpy()
     out = np.empty((len(c), GEOMETRY_DIM), np.float32)
     out[:, GEO_POSITION] = (c.means.astype(np.float64) - np.asarray(center, np.float64)) / scale
-    q = normalize_quats(c.quats.astype(np.float64))
-    out[:, GEO_QUAT] = q * np.where(q[:, :1] < 0, -1.0, 1.0)
+    out[:, GEO_QUAT] = quaternions.canonical(c.quats.astype(np.float64))
     out[:, GEO_LOG_SCALE] = np.clip(c.scales, *LOG_SCALE_RANGE) - np.log(scale)
     out[:, GEO_EXIST] = exist
     return out
@@ -70,21 +60,41 @@ def appearance_features(cloud: GaussianCloud, exist: float = 1.0) -> np.ndarray:
     return out
 
 
-def cloud_from_features(geometry, appearance, center, scale: float, sh_degree: int = 3) -> GaussianCloud:
-    """Inverse of `geometry_features` / `appearance_features` (exist columns ignored)."""
+def cloud_from_features(geometry, appearance, center, scale: float, sh_degree: int = 3, *, means=None,
+                        bounded: bool = False) -> GaussianCloud:
+    """Inverse of `geometry_features` / `appearance_features` (exist columns ignored). `means`:
+    world positions (float64) to use instead of the features' own (which are rounded in the
+    normalised frame). `bounded`: a cloud that renders and writes whatever the features hold
+    (predicted ones): non-finite values become 0, log-scales and opacity logits are clipped to
+    the ranges `GaussianCloud.validate` accepts, SH coefficients to +-1e3, quaternions made unit."""
     g = np.asarray(geometry, np.float64).reshape(-1, GEOMETRY_DIM)
     a = np.asarray(appearance, np.float32).reshape(-1, APPEARANCE_DIM)
     if len(g) != len(a):
         raise ValueError(f"cloud_from_features: {len(g)} geometry rows but {len(a)} appearance rows")
     k = SH_REST_COUNTS[sh_degree]
+    pos = g[:, GEO_POSITION] * scale + np.asarray(center, np.float64) if means is None else np.asarray(means)
+    if bounded:
+        big = np.finfo(np.float32).max / 4
+        g, a, pos = _finite(g), np.clip(_finite(a), -BOUNDED_SH, BOUNDED_SH), np.clip(_finite(pos), -big, big)
+    log_scales = g[:, GEO_LOG_SCALE] + math.log(scale)
+    quats = g[:, GEO_QUAT].astype(np.float32)
+    opacities = a[:, APP_OPACITY]
+    if bounded:
+        log_scales = np.clip(log_scales, *EXTREME_LOG_SCALE)
+        quats = quaternions.normalize(quats)
+        opacities = np.clip(opacities, *OPACITY_LOGIT_RANGE)
     return GaussianCloud(
-        means=(g[:, GEO_POSITION] * scale + np.asarray(center, np.float64)).astype(np.float32),
-        scales=(g[:, GEO_LOG_SCALE] + np.log(scale)).astype(np.float32),
-        quats=g[:, GEO_QUAT].astype(np.float32),
-        opacities=a[:, APP_OPACITY].copy(),
+        means=pos.astype(np.float32),
+        scales=log_scales.astype(np.float32),
+        quats=quats,
+        opacities=opacities.copy(),
         sh_dc=a[:, APP_SH_DC].copy(),
         sh_rest=a[:, APP_SH_REST].reshape(-1, 15, 3)[:, :k].copy(),
     )
+
+
+def _finite(x: np.ndarray) -> np.ndarray:
+    return x if np.isfinite(x).all() else np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
 
 
 # ------------------------------------------------------------------ batches
@@ -202,13 +212,13 @@ class Lineage:
                    resolution: int = 0) -> "Lineage":
         """One-node lineages for a cloud without history. Ids come from the cloud's `gvae_id`
         property when it has unique ones, else 0..N-1; the normalisation from the cloud itself
-        (`scene_normalization`) unless given."""
+        (`GaussianCloud.normalization`) unless given."""
         cloud = cloud.numpy()
         ids = cloud.extra.get("gvae_id")
         if ids is None or ids.ndim != 1 or len(np.unique(ids)) != len(ids) or (np.asarray(ids) < 0).any():
             ids = np.arange(len(cloud), dtype=np.int64)
         if center is None or scale is None:
-            c, s = scene_normalization(cloud.means)
+            c, s = cloud.normalization()
             center = c if center is None else center
             scale = s if scale is None else scale
         lin = cls(center, scale)
@@ -225,7 +235,7 @@ class Lineage:
         for s in range(n_stages):
             snap = self.snapshots[s]
             out.add_stage(snap.cloud, snap.ids, snap.parents, self.resolutions[s])
-        out.set_normalization(*scene_normalization(self.snapshots[n_stages - 1].cloud.means))
+        out.set_normalization(*self.snapshots[n_stages - 1].cloud.normalization())
         return out
 
     # ------------------------------------------------------------ access
@@ -344,15 +354,7 @@ class Lineage:
                 arrays[f"s{s}_{name}"] = np.asarray(getattr(snap.cloud, name), np.float32)
             arrays[f"s{s}_ids"] = snap.ids
             arrays[f"s{s}_parents"] = snap.parents
-        tmp = path.with_name(path.name + ".tmp")
-        try:
-            with open(tmp, "wb") as f:
-                np.savez(f, **arrays)
-            os.replace(tmp, path)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
-        return path
+        return atomic_write(path, lambda f: np.savez(f, **arrays))
 
     @classmethod
     def load(cls, path) -> "Lineage":

@@ -13,16 +13,16 @@ dtype on read; other readers see a standard file.
 
 from __future__ import annotations
 
-import os
-import uuid
-from collections import Counter
 import warnings
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .cloud import SH_REST_COUNTS, GaussianCloud
+from .atomic import atomic_write
+from .cloud import GaussianCloud
+from .conventions import SH_REST_COUNTS
 
 __all__ = ["PlyError", "read_ply", "write_ply"]
 
@@ -437,8 +437,7 @@ def write_ply(cloud: GaussianCloud, path) -> Path:
             raise PlyError(f"{where}: refusing to write {len(bad)} Gaussian(s) with non-finite "
                            f"parameters, rows [{head_rows}]; use cloud.sanitize() first")
 
-    _atomic_write(path, write_body)
-    return path
+    return atomic_write(path, write_body)
 
 
 def _np(x) -> np.ndarray:
@@ -490,20 +489,3 @@ def _ply_storable(a: np.ndarray, name: str, where: str):
                        "2**53 have no exact PLY type")
     raise PlyError(f"{where}: cannot write extra property {name!r} of dtype {a.dtype}: "
                    "PLY holds 8..32-bit integers, float32 and float64")
-
-
-def _atomic_write(path: Path, write_body) -> None:
-    """Call write_body(file) on a temporary file beside `path`, then rename it into place; on
-    any error the temporary file is removed and `path` is left as it was."""
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write_body(f)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise

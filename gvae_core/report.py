@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_write_text
 from .experiment import BASELINE, OURS, OURS_H, OURS_H_MODEL_APP, RANDOM, SCALES, SPLIT, SWEEP, _finite
 
 METHOD_NAMES = {BASELINE: "3DGS", OURS: "Ours", OURS_H: "Ours-∇²",
@@ -269,9 +269,7 @@ def write_report(doc: dict, out, *, command: str = "") -> Path:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     doc = _finite(doc)
-    tmp = out / "results.json.tmp"
-    tmp.write_text(json.dumps(doc, indent=1) + "\n")
-    os.replace(tmp, out / "results.json")
+    atomic_write_text(out / "results.json", json.dumps(doc, indent=1) + "\n")
     figures = plots(doc, out)
     p = doc["protocol"]
     model = doc["model"]

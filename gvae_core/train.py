@@ -30,11 +30,16 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from .atomic import atomic_write_text
 from .camera import Camera
-from .cloud import SH_C0, SH_REST_COUNTS, GaussianCloud
+from .cloud import GaussianCloud
+from .conventions import SH_REST_COUNTS, opacity_logit, rgb_to_dc
 from .datasets import Views, load_nerf_synthetic
-from .lineage import Lineage, scene_normalization
+from .densify import DensifyStrategy, GaussianModel
+from .lineage import Lineage
 from .losses import photometric_loss, psnr
+from .ply import write_ply
+from .rendering import render
 
 #: Profiles: overrides of the `TrainConfig` defaults. `default` is the benchmark profile.
 PROFILES: dict[str, dict[str, Any]] = {
@@ -121,6 +126,16 @@ class TrainConfig:
             raise ValueError(f"unknown training profile {name!r}; choose from {sorted(PROFILES)}")
         values = {**PROFILES[name], **{k: v for k, v in overrides.items() if v is not None}}
         return cls(**values)
+
+    def learning_rates(self, extent: float) -> dict[str, float]:
+        """Initial learning rate per parameter (positions relative to the scene extent)."""
+        return {"means": self.position_lr_init * extent, "sh_dc": self.feature_lr, "sh_rest": self.feature_rest_lr,
+                "opacities": self.opacity_lr, "scales": self.scaling_lr, "quats": self.rotation_lr}
+
+    def densify_strategy(self) -> DensifyStrategy:
+        return DensifyStrategy(grad_threshold=self.densify_grad_threshold, percent_dense=self.percent_dense,
+                               prune_opacity=self.prune_opacity, max_world_size=self.max_world_size,
+                               max_screen_fraction=self.max_screen_fraction, max_gaussians=self.max_gaussians)
 
     def to_dict(self) -> dict[str, Any]:
         return json.loads(json.dumps(dataclasses.asdict(self)))
@@ -278,7 +293,7 @@ def initial_cloud(cameras: list[Camera], config: TrainConfig, rng: np.random.Gen
         if pts.ndim != 2 or pts.shape[1] not in (3, 6) or len(pts) == 0 or not np.isfinite(pts).all():
             raise ValueError(f"initial points must be a finite (N,3) or (N,6) array, got shape {pts.shape}")
         xyz = pts[:, :3]
-        dc = (pts[:, 3:6] - 0.5) / SH_C0 if pts.shape[1] == 6 else np.zeros((len(pts), 3))
+        dc = rgb_to_dc(pts[:, 3:6]) if pts.shape[1] == 6 else np.zeros((len(pts), 3))
     n = len(xyz)
     k = min(4, n)
     if k > 1:
@@ -286,7 +301,7 @@ def initial_cloud(cameras: list[Camera], config: TrainConfig, rng: np.random.Gen
         d2 = np.maximum(np.mean(dist[:, 1:] ** 2, axis=1), 1e-7)
     else:
         d2 = np.full(n, 1e-2)
-    logit = math.log(config.init_opacity / (1.0 - config.init_opacity))
+    logit = opacity_logit(config.init_opacity)
     return GaussianCloud(
         means=xyz.astype(np.float32),
         scales=np.repeat(0.5 * np.log(d2)[:, None], 3, 1).astype(np.float32),
@@ -295,183 +310,6 @@ def initial_cloud(cameras: list[Camera], config: TrainConfig, rng: np.random.Gen
         sh_dc=dc.astype(np.float32),
         sh_rest=np.zeros((n, SH_REST_COUNTS[config.sh_degree], 3), np.float32),
     )
-
-
-# ------------------------------------------------------------------ the model
-
-_GROUPS = ("means", "sh_dc", "sh_rest", "opacities", "scales", "quats")
-
-
-class GaussianModel:
-    """Trainable Gaussians: leaf tensors per parameter, one Adam group each (state extended and
-    pruned with the Gaussians), lineage ids and stage anchors, densification statistics."""
-
-    def __init__(self, cloud: GaussianCloud, ids, parents, config: TrainConfig, extent: float,
-                 next_id: int):
-        c = cloud.to_torch(dtype=torch.float32)
-        self.params = {name: getattr(c, name).detach().clone().requires_grad_(True) for name in _GROUPS}
-        self.ids = torch.as_tensor(np.asarray(ids), dtype=torch.int64).clone()
-        self.parents = torch.as_tensor(np.asarray(parents), dtype=torch.int64).clone()
-        self.next_id = int(next_id)
-        self.config = config
-        self.extent = float(extent)
-        lrs = {"means": config.position_lr_init * extent, "sh_dc": config.feature_lr,
-               "sh_rest": config.feature_rest_lr, "opacities": config.opacity_lr,
-               "scales": config.scaling_lr, "quats": config.rotation_lr}
-        self.optimizer = torch.optim.Adam(
-            [{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in _GROUPS], lr=0.0, eps=1e-15)
-        self.reset_stats()
-
-    def __len__(self) -> int:
-        return int(self.params["means"].shape[0])
-
-    def cloud(self) -> GaussianCloud:
-        """The Gaussians as a torch cloud sharing the trainable tensors."""
-        return GaussianCloud(**self.params)
-
-    def snapshot(self) -> GaussianCloud:
-        """A detached numpy copy with int64 extras `gvae_id` and `gvae_parent`."""
-        c = GaussianCloud(**{n: p.detach() for n, p in self.params.items()}).numpy().copy()
-        return c.replace(extra={"gvae_id": self.ids.numpy().copy(), "gvae_parent": self.parents.numpy().copy()})
-
-    def reset_stats(self) -> None:
-        n = len(self)
-        self.grad_accum = torch.zeros(n)
-        self.grad_count = torch.zeros(n)
-        self.max_radii = torch.zeros(n)
-
-    def set_position_lr(self, lr: float) -> None:
-        self.optimizer.param_groups[_GROUPS.index("means")]["lr"] = lr
-
-    # ------------------------------------------------------------ statistics
-    def add_stats(self, means2d_grad: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor,
-                  width: int, height: int) -> None:
-        """Accumulate the view-space positional gradient norm in NDC units (pixel gradient times
-        half the image size, as the reference's 0.0002 threshold expects)."""
-        g = means2d_grad.detach()[:, :2] * g_scale(width, height)
-        norm = g.norm(dim=-1)
-        self.grad_accum += torch.where(visible, norm, torch.zeros_like(norm))
-        self.grad_count += visible.float()
-        self.max_radii = torch.where(visible, torch.maximum(self.max_radii, radii.float()), self.max_radii)
-
-    # ------------------------------------------------------------ structure edits
-    def _edit(self, index: torch.Tensor, new: dict[str, torch.Tensor] | None) -> None:
-        """Keep rows `index` (long) of every parameter and its Adam moments, then append `new`
-        parameter rows with zero moments."""
-        for gi, name in enumerate(_GROUPS):
-            group = self.optimizer.param_groups[gi]
-            old = group["params"][0]
-            kept = old.detach()[index]
-            extra = new[name].detach() if new is not None else kept[:0]
-            param = torch.cat([kept, extra], 0).requires_grad_(True)
-            state = self.optimizer.state.pop(old, None)
-            if state:
-                for key in ("exp_avg", "exp_avg_sq"):
-                    s = state[key][index]
-                    state[key] = torch.cat([s, torch.zeros((len(extra),) + tuple(s.shape[1:]), dtype=s.dtype)], 0)
-                self.optimizer.state[param] = state
-            group["params"][0] = param
-            self.params[name] = param
-
-    def append(self, new: dict[str, torch.Tensor], source_rows: torch.Tensor) -> None:
-        """Add Gaussians born from rows `source_rows`: fresh ids, the source's stage anchor."""
-        n_new = len(source_rows)
-        new_ids = torch.arange(self.next_id, self.next_id + n_new, dtype=torch.int64)
-        self.next_id += n_new
-        parents = self.parents[source_rows]
-        self._edit(torch.arange(len(self)), new)
-        self.ids = torch.cat([self.ids, new_ids])
-        self.parents = torch.cat([self.parents, parents])
-        z = torch.zeros(n_new)
-        self.grad_accum, self.grad_count = torch.cat([self.grad_accum, z]), torch.cat([self.grad_count, z])
-        self.max_radii = torch.cat([self.max_radii, z])
-
-    def keep(self, mask: torch.Tensor) -> None:
-        index = torch.nonzero(mask).flatten()
-        self._edit(index, None)
-        self.ids, self.parents = self.ids[index], self.parents[index]
-        self.grad_accum, self.grad_count = self.grad_accum[index], self.grad_count[index]
-        self.max_radii = self.max_radii[index]
-
-    def clone(self, mask: torch.Tensor) -> int:
-        """Copy the selected Gaussians (the reference's clone: same parameters)."""
-        rows = torch.nonzero(mask).flatten()
-        if len(rows):
-            self.append({n: p.detach()[rows] for n, p in self.params.items()}, rows)
-        return len(rows)
-
-    def split(self, mask: torch.Tensor, generator: torch.Generator, n_children: int = 2) -> int:
-        """Replace each selected Gaussian by `n_children` with positions sampled from it and
-        scales divided by 0.8·n_children (1.6 for two)."""
-        rows = torch.nonzero(mask).flatten()
-        if not len(rows):
-            return 0
-        p = {n: t.detach() for n, t in self.params.items()}
-        src = rows.repeat(n_children)
-        stds = torch.exp(p["scales"][src].clamp(-30, 30))
-        samples = torch.randn(stds.shape, generator=generator) * stds
-        rot = self.cloud().detach().select(src).rotation_matrices()
-        new = {n: t[src] for n, t in p.items()}
-        new["means"] = p["means"][src] + (rot @ samples[:, :, None])[:, :, 0]
-        new["scales"] = torch.log(stds / (0.8 * n_children))
-        n_before = len(self)
-        self.append(new, src)
-        keep = torch.ones(len(self), dtype=torch.bool)
-        keep[rows] = False
-        self.keep(keep)
-        return len(rows)
-
-    def reset_opacity(self, value: float) -> None:
-        """Opacities above `value` come down to it; their Adam moments restart."""
-        logit = math.log(value / (1.0 - value))
-        gi = _GROUPS.index("opacities")
-        old = self.params["opacities"]
-        new = torch.minimum(old.detach(), torch.tensor(logit)).requires_grad_(True)
-        state = self.optimizer.state.pop(old, None)
-        if state:
-            state["exp_avg"] = torch.zeros_like(state["exp_avg"])
-            state["exp_avg_sq"] = torch.zeros_like(state["exp_avg_sq"])
-            self.optimizer.state[new] = state
-        self.optimizer.param_groups[gi]["params"][0] = new
-        self.params["opacities"] = new
-
-    def densify_and_prune(self, generator: torch.Generator, *, prune_large: bool, image_height: int) -> dict[str, int]:
-        """One round of the reference's adaptive density control; returns what it did."""
-        cfg = self.config
-        grads = self.grad_accum / self.grad_count.clamp(min=1.0)
-        scale_max = torch.exp(self.params["scales"].detach().clamp(-30, 30)).max(1).values
-        high = grads >= cfg.densify_grad_threshold
-        large = scale_max > cfg.percent_dense * self.extent
-        clone_mask, split_mask = high & ~large, high & large
-        if cfg.max_gaussians is not None:
-            room = max(cfg.max_gaussians - len(self), 0)
-            cand = clone_mask | split_mask
-            if int(cand.sum()) > room:  # keep the highest gradients that fit
-                score = torch.where(cand, grads, torch.full_like(grads, -1.0))
-                chosen = torch.zeros_like(cand)
-                if room:
-                    chosen[torch.topk(score, room).indices] = True
-                clone_mask, split_mask = clone_mask & chosen, split_mask & chosen
-        n_clone = self.clone(clone_mask)
-        pad = torch.zeros(len(self) - len(split_mask), dtype=torch.bool)
-        n_split = self.split(torch.cat([split_mask, pad]), generator)
-        prune = torch.sigmoid(self.params["opacities"].detach()) < cfg.prune_opacity
-        if prune_large:
-            scale_max = torch.exp(self.params["scales"].detach().clamp(-30, 30)).max(1).values
-            prune |= scale_max > cfg.max_world_size * self.extent
-            if cfg.max_screen_fraction is not None:
-                prune |= self.max_radii > cfg.max_screen_fraction * image_height
-        if bool(prune.all()):  # never prune everything away
-            prune[torch.argmax(self.params["opacities"].detach())] = False
-        self.keep(~prune)
-        self.reset_stats()
-        return {"cloned": n_clone, "split": n_split, "pruned": int(prune.sum())}
-
-
-def g_scale(width: int, height: int) -> torch.Tensor:
-    """Pixel-to-NDC factor of screen-space gradients: d(ndc)/d(pixel) = 2/size, so a gradient
-    with respect to pixels times size/2 is the gradient with respect to NDC."""
-    return torch.tensor([0.5 * width, 0.5 * height])
 
 
 def position_lr(config: TrainConfig, extent: float, step: int, total: int) -> float:
@@ -514,12 +352,6 @@ def _peak_rss_mb() -> float:
 
 # ------------------------------------------------------------------ training
 
-def _render_fn():
-    from .render import render  # noqa: PLC0415 - the renderer is optional until training
-
-    return render
-
-
 def _targets(views, background) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(views.composite(background)))
 
@@ -528,7 +360,6 @@ def evaluate_psnr(cloud: GaussianCloud, views, background, sh_degree: int, max_v
     """Mean PSNR over (up to `max_views` evenly spaced) views, images composited on background."""
     if views is None or len(views) == 0:
         return float("nan")
-    render = _render_fn()
     n = len(views)
     pick = range(n) if max_views is None or max_views >= n else np.linspace(0, n - 1, max_views).round().astype(int)
     targets = views.composite(background)
@@ -541,9 +372,7 @@ def evaluate_psnr(cloud: GaussianCloud, views, background, sh_degree: int, max_v
 
 
 def _write_json(path: Path, obj) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2), encoding="utf-8")
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps(obj, indent=2))
 
 
 def _load_resume(out_dir: Path, config: TrainConfig):
@@ -597,7 +426,6 @@ def train_progressive(data, config: TrainConfig | None = None, *, out_dir=None, 
 
 def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, progress: bool) -> TrainResult:
     source = make_view_source(data, test)
-    render = _render_fn()
     out = Path(out_dir) if out_dir is not None else None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
@@ -610,6 +438,7 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
     stage_paths = [out / f"stage_{s}.ply" for s in range(first_stage)] if out is not None else []
     bg = config.background
     model: GaussianModel | None = None
+    strategy = config.densify_strategy()
     global_iter = sum(config.iterations[:first_stage])
 
     for s in range(first_stage, len(config.resolutions)):
@@ -630,7 +459,7 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         else:
             snap = lineage.snapshots[-1]
             cloud, ids, parents = snap.cloud, snap.ids, snap.ids  # survivors are their own anchors
-        model = GaussianModel(cloud, ids, parents, config, extent, next_id)
+        model = GaussianModel(cloud, ids, parents, config.learning_rates(extent), extent, next_id)
         sched = config.stage_schedule(s)
         targets = _targets(train_views, bg)
         cams = train_views.cameras
@@ -643,7 +472,7 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         bar = _progress_bar(n_iter, f"stage {s + 1}/{len(config.resolutions)} {height}px", progress)
         t0 = time.perf_counter()
         for it in range(1, n_iter + 1):
-            model.set_position_lr(position_lr(config, extent, it - 1, n_iter))
+            model.set_lr("means", position_lr(config, extent, it - 1, n_iter))
             degree = config.sh_degree_at(global_iter)
             if not order:
                 order = list(rng.permutation(len(cams)))
@@ -661,16 +490,15 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
                 model.optimizer.zero_grad(set_to_none=True)
                 if sched["densify_from"] <= it <= sched["densify_until"]:
                     if it % sched["densify_every"] == 0 and it < n_iter:
-                        done = model.densify_and_prune(gen, prune_large=it > sched["opacity_reset_every"],
-                                                       image_height=height)
+                        done = strategy.densify_and_prune(model, gen, image_height=height,
+                                                          prune_large=it > sched["opacity_reset_every"])
                         for k in counts:
                             counts[k] += done[k]
                     if it % sched["opacity_reset_every"] == 0 and it < sched["densify_until"]:
                         model.reset_opacity(config.reset_opacity_value)
             global_iter += 1
             if bar is not None and (it % 10 == 0 or it == n_iter):
-                mse = float(((result.image.detach() - targets[v]) ** 2).mean())
-                bar.set_postfix(loss=f"{float(loss):.4f}", psnr=f"{-10 * math.log10(max(mse, 1e-10)):.2f}",
+                bar.set_postfix(loss=f"{float(loss):.4f}", psnr=f"{psnr(result.image, targets[v]):.2f}",
                                 n=len(model))
                 bar.update(10 if it % 10 == 0 else it % 10)
         seconds = time.perf_counter() - t0
@@ -681,7 +509,7 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         snap_cloud = model.snapshot()
         ids_np, parents_np = snap_cloud.extra["gvae_id"], snap_cloud.extra["gvae_parent"]
         lineage.add_stage(snap_cloud.replace(extra={}), ids_np, parents_np, height)
-        lineage.set_normalization(*scene_normalization(snap_cloud.means))
+        lineage.set_normalization(*snap_cloud.normalization())
         next_id = model.next_id
         degree = config.sh_degree_at(global_iter)
         torch_cloud = snap_cloud.replace(extra={}).to_torch()
@@ -696,8 +524,6 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
                  "eval_seconds": round(time.perf_counter() - t1, 3), "next_id": next_id, **counts}
         log.append(entry)
         if out is not None:
-            from .ply import write_ply  # noqa: PLC0415
-
             stage_paths.append(write_ply(snap_cloud, out / f"stage_{s}.ply"))
             lineage.save(out / "lineage.npz")
             _write_json(out / "log.json", log)

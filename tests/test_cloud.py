@@ -4,8 +4,7 @@ import numpy as np
 import pytest
 
 from gvae_core import GaussianCloud
-from gvae_core.cloud import (LOG_SCALE_RANGE, SH_C0, normalize_quats, quat_to_rotmat,
-                             rotmat_to_quat)
+from gvae_core.conventions import LOG_SCALE_RANGE, SH_C0
 
 
 def make_cloud(n=6, degree=2, seed=0, **extra):
@@ -46,21 +45,6 @@ def test_activations_are_finite_and_correct():
     assert o[0] < 1e-20 and o[1] == 1.0 and o[2] == 0.5
 
 
-def test_quaternions_and_rotations():
-    q = np.array([[0, 0, 0, 0], [2, 0, 0, 0], [np.nan, 1, 0, 0], [1, 2, 3, 4]], np.float64)
-    u = normalize_quats(q)
-    np.testing.assert_allclose(u[:3], [[1, 0, 0, 0]] * 3)
-    np.testing.assert_allclose(u[3], q[3] / np.linalg.norm(q[3]))
-    r = quat_to_rotmat(normalize_quats(make_cloud(n=50).quats))
-    np.testing.assert_allclose(r @ r.transpose(0, 2, 1), np.broadcast_to(np.eye(3), r.shape), atol=1e-12)
-    np.testing.assert_allclose(np.linalg.det(r), 1.0, atol=1e-12)
-    back = rotmat_to_quat(r)
-    np.testing.assert_allclose(quat_to_rotmat(back), r, atol=1e-12)
-    # 90 degrees about z maps x to y.
-    rz = quat_to_rotmat(np.array([np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)]))
-    np.testing.assert_allclose(rz @ [1, 0, 0], [0, 1, 0], atol=1e-12)
-
-
 def test_select_concat_and_sh_degree():
     a = make_cloud(n=5, degree=1, ids=np.arange(5, dtype=np.int64))
     b = make_cloud(n=3, degree=3, seed=1)
@@ -89,10 +73,6 @@ def test_torch_round_trip_keeps_values_and_extra_dtypes():
     assert len(t.select(torch.tensor([0, 3]))) == 2
     with pytest.raises(ValueError, match="numpy and torch"):
         GaussianCloud.concat([c, t])
-    # The guarded normalisation keeps gradients finite at a zero quaternion.
-    q = torch.zeros(2, 4, requires_grad=True)
-    normalize_quats(q).sum().backward()
-    assert torch.isfinite(q.grad).all()
 
 
 def test_validate_and_sanitize():
@@ -113,3 +93,63 @@ def test_validate_and_sanitize():
     np.testing.assert_array_equal(clean.quats[2], [1, 0, 0, 0])  # old row 3
     assert clean.scales.max() <= LOG_SCALE_RANGE[1]
     assert c.means[2, 1] != c.means[2, 1]  # the original is untouched
+
+
+def _points(pts) -> GaussianCloud:
+    n = len(pts)
+    return GaussianCloud(means=np.asarray(pts, np.float32), scales=np.zeros((n, 3)), quats=np.tile([1.0, 0, 0, 0], (n, 1)),
+                         opacities=np.zeros(n), sh_dc=np.zeros((n, 3)))
+
+
+def test_normalization_ignores_floaters():
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-1, 1, size=(2000, 3)) + [3.0, 0.0, 0.0]
+    pts[:5] = 1e4  # a few floaters
+    center, scale = _points(pts).normalization()
+    np.testing.assert_allclose(center, [3.0, 0.0, 0.0], atol=0.05)
+    assert 0.9 < scale < 1.0
+    assert _points(np.zeros((4, 3))).normalization()[1] == 1.0
+    assert _points(np.zeros((0, 3))).normalization()[1] == 1.0
+
+
+def test_transformed_moves_positions_rotations_and_scales():
+    from gvae_core import quaternions
+
+    c = make_cloud(n=20, degree=0)
+    angle = 0.7
+    rot = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1.0]])
+    m = np.eye(4)
+    m[:3, :3] = 2.5 * rot
+    m[:3, 3] = [1.0, -2.0, 0.5]
+    moved = c.transformed(m)
+    np.testing.assert_allclose(moved.means, c.means @ (2.5 * rot).T + m[:3, 3], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(moved.scales, c.scales + np.log(2.5), rtol=1e-5, atol=1e-5)
+    got = quaternions.to_rotmat(quaternions.normalize(moved.quats.astype(np.float64)))
+    want = rot @ quaternions.to_rotmat(quaternions.normalize(c.quats))
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    np.testing.assert_array_equal(moved.sh_dc, c.sh_dc.astype(np.float32))
+    with pytest.warns(UserWarning, match="SH rest"):
+        make_cloud(n=3, degree=1).transformed(m)
+    for bad in (np.diag([1.0, 2.0, 1.0, 1.0]), np.diag([-1.0, 1.0, 1.0, 1.0])):
+        with pytest.raises(ValueError, match="uniform|mirror"):
+            c.transformed(bad)
+
+
+def test_append_children_extras_policy():
+    base = make_cloud(n=4, degree=1, gvae_id=np.array([10, 11, 12, 13], np.int64),
+                      gvae_parent=np.array([-1, 10, 10, 12], np.int64), tag=np.array([1.0, 2.0, 3.0, 4.0], np.float32))
+    kids = make_cloud(n=3, degree=1, seed=2).numpy()
+    out = base.append_children(kids, [1, 3, 4])  # the third child is born from the first child
+    assert len(out) == 7 and out.sh_degree == 1
+    np.testing.assert_array_equal(out.means[4:], kids.means)
+    np.testing.assert_array_equal(out.extra["tag"], [1, 2, 3, 4, 2, 4, 2])      # inherited from the ancestor
+    np.testing.assert_array_equal(out.extra["gvae_id"], [10, 11, 12, 13, 14, 15, 16])  # fresh ids
+    np.testing.assert_array_equal(out.extra["gvae_parent"], [-1, 10, 10, 12, 11, 13, 14])  # the parent's id
+    assert out.extra["gvae_id"].dtype == np.int64
+    own = kids.replace(extra={"tag": np.array([7.0, 8.0, 9.0], np.float32)})
+    np.testing.assert_array_equal(base.append_children(own, [0, 0, 0]).extra["tag"][4:], [7, 8, 9])
+    plain = make_cloud(n=2, degree=1)
+    assert set(plain.append_children(kids, [0, 1, 0]).extra) == set()
+    for bad in ([0, 1], [0, 1, 6], [0, -1, 0]):
+        with pytest.raises(ValueError, match="parents"):
+            base.append_children(kids, bad)

@@ -32,7 +32,7 @@ def _sphere(n_lat=12, n_lon=24, r=0.6):
 
 def _scene(root, size=48):
     """A textured ball of Gaussians on the mesh of a sphere, rendered into a NeRF-Synthetic folder."""
-    from gvae_core.render import render
+    from gvae_core.rendering import render
     from gvae_core.scenes.build import write_mesh_ply
 
     rng = np.random.default_rng(0)

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from gvae_core import Camera, GaussianCloud
-from gvae_core.render import RenderSettings
 from gvae_core.hessian import (default_views, hessian_blocks, hessian_blocks_reference, hessian_scores,
                                scores_from_blocks)
+from gvae_core.rendering import RenderSettings
 
 
 def _cloud(n=4, seed=0, spread=0.3, log_scale=math.log(0.15)) -> GaussianCloud:

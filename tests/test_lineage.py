@@ -4,9 +4,8 @@ import numpy as np
 import pytest
 
 from gvae_core.cloud import GaussianCloud
-from gvae_core.lineage import (APP_EXIST, APP_OPACITY, APP_SH_DC, APP_SH_REST, GEO_EXIST, GEO_LOG_SCALE,
-                               GEO_POSITION, GEO_QUAT, Lineage, appearance_features, cloud_from_features,
-                               geometry_features, scene_normalization)
+from gvae_core.lineage import (APP_EXIST, APP_OPACITY, APP_SH_DC, APP_SH_REST, GEO_EXIST, GEO_LOG_SCALE, GEO_POSITION,
+                               GEO_QUAT, Lineage, appearance_features, cloud_from_features, geometry_features)
 
 
 def random_cloud(n, rng, degree=3):
@@ -152,16 +151,6 @@ def test_feature_layout_and_inverse():
     np.testing.assert_array_equal(back.sh_rest, cloud.sh_rest)
 
 
-def test_scene_normalization_ignores_floaters():
-    rng = np.random.default_rng(5)
-    pts = rng.uniform(-1, 1, size=(2000, 3)) + [3.0, 0.0, 0.0]
-    pts[:5] = 1e4  # a few floaters
-    center, scale = scene_normalization(pts)
-    np.testing.assert_allclose(center, [3.0, 0.0, 0.0], atol=0.05)
-    assert 0.9 < scale < 1.0
-    assert scene_normalization(np.zeros((4, 3)))[1] == 1.0
-
-
 def test_from_cloud_is_one_node_lineages():
     rng = np.random.default_rng(6)
     cloud = random_cloud(7, rng).replace(extra={"gvae_id": np.arange(10, 17, dtype=np.int64)})
@@ -235,7 +224,7 @@ def test_prefix_keeps_the_first_stages_and_renormalises():
     for s in range(2):
         np.testing.assert_array_equal(pre.snapshot(s).ids, lin.snapshot(s).ids)
         np.testing.assert_array_equal(pre.snapshot(s).cloud.means, lin.snapshot(s).cloud.means)
-    center, scale = scene_normalization(lin.snapshot(1).cloud.means)  # nothing from later stages
+    center, scale = lin.snapshot(1).cloud.normalization()  # nothing from later stages
     np.testing.assert_allclose(pre.center, center)
     assert pre.scale == pytest.approx(scale)
     a, b = pre.sequences(1), lin.sequences(1)

@@ -8,8 +8,9 @@ import torch
 
 from gvae_core import GaussianCloud
 from gvae_core.cli import main as gvae
+from gvae_core.controls import plain_split
 from gvae_core.lineage import Lineage
-from gvae_core.refine import RefineResult, otsu_threshold, parse_budget, refine, select_budget
+from gvae_core.refinement import RefineResult, refine
 from gvae_core.vae import GaussianVAE
 
 
@@ -66,32 +67,6 @@ def _check_result(cloud: GaussianCloud, r: RefineResult, steps: int):
     for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
         np.testing.assert_array_equal(getattr(r.cloud, name)[untouched], getattr(src, name)[untouched])
     assert set(r.cloud.extra) == set(cloud.extra)
-
-
-def test_budget_selection():
-    scores = np.array([5.0, 1.0, 9.0, 3.0, 7.0, 0.0, 2.0, 8.0])
-    np.testing.assert_array_equal(select_budget(scores, "all"), np.arange(8))
-    np.testing.assert_array_equal(select_budget(scores, 3), [2, 4, 7])
-    np.testing.assert_array_equal(select_budget(scores, 0.25), [2, 7])
-    assert len(select_budget(scores, 100)) == 8 and len(select_budget(scores, 0)) == 0
-    assert len(select_budget(scores, 0.01)) == 1
-    for bad in (-1, 1.5, "most", True, None):
-        with pytest.raises(ValueError):
-            select_budget(scores, bad)
-    # auto: a clear high-score mode is found, within 1%..50% of the rows
-    rng = np.random.default_rng(0)
-    bimodal = np.r_[rng.normal(1, 0.2, 900), rng.normal(6, 0.3, 100)]
-    auto = select_budget(bimodal, "auto")
-    assert set(auto.tolist()) == set(range(900, 1000))
-    assert 10 <= len(select_budget(rng.uniform(size=1000), "auto")) <= 500
-    unimodal = rng.normal(10, 4, 10000)  # no separate mode: the upper tail beyond one robust sigma
-    assert 1000 < len(select_budget(unimodal, "auto")) < 2500
-    assert len(select_budget(np.zeros(50), "auto")) == 1
-    assert 1.0 < otsu_threshold(bimodal) < 6.0
-    assert parse_budget("10%") == 0.1 and parse_budget("0.2") == 0.2 and parse_budget("500") == 500
-    assert parse_budget("ALL") == "all"
-    with pytest.raises(ValueError, match="budget"):
-        parse_budget("lots")
 
 
 @pytest.mark.parametrize("budget", ["all", 0.25, 7, "auto", 0])
@@ -232,21 +207,10 @@ def test_cli_refine_and_fit(tmp_path, capsys):
     assert gvae(["fit-vae", str(tmp_path / "nothing"), "--out", str(tmp_path / "f2"), "--quiet"]) == 2
 
 
-def test_top_rows_matches_a_stable_sort():
-    from gvae_core.refine import _top_rows
-
-    rng = np.random.default_rng(3)
-    for n in (1, 7, 100, 1000):
-        scores = rng.integers(0, 5, n).astype(np.float64)  # many ties
-        order = np.argsort(-scores, kind="stable")
-        for count in (0, 1, n // 3, n - 1, n, n + 5):
-            np.testing.assert_array_equal(_top_rows(scores, count), np.sort(order[:count]))
-
-
 def test_refine_steps_yields_each_step_like_refine():
     import time as _time
 
-    from gvae_core.refine import refine_steps
+    from gvae_core.refinement import refine_steps
 
     cloud = _cloud(n=30)
     model = _model()
@@ -264,8 +228,6 @@ def test_refine_steps_yields_each_step_like_refine():
 
 
 def test_plain_split_control():
-    from gvae_core.refine import plain_split
-
     cloud = _cloud(n=20)
     rows = np.array([2, 5, 7])
     out = list(plain_split(cloud, rows, steps=3, seed=1))
@@ -307,7 +269,7 @@ def test_appearance_is_carried_after_the_first_step(carry):
     """With `carry_appearance` (the default) the second step adds and updates geometry only: every
     Gaussian after +2 has an appearance that some Gaussian had after +1. Without it the model's
     appearance changes apply again, and new appearances appear."""
-    from gvae_core.refine import refine_steps
+    from gvae_core.refinement import refine_steps
 
     cloud = _cloud(48, seed=5)
     first, second = refine_steps(cloud, steps=2, budget=1.0, model=_model(exist_logit=4.0), seed=2,

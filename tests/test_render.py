@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from gvae_core import Camera, GaussianCloud
-from gvae_core.render import RenderOutput, RenderSettings, render
-from gvae_core.render.reference import render_reference
+from gvae_core.rendering import RenderOutput, RenderSettings, render
+from gvae_core.rendering.reference import render_reference
 
 BG = (0.25, 0.5, 0.8)
 FIELDS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
@@ -284,10 +284,12 @@ def test_bad_arguments():
         render(cloud, camera(), settings=RenderSettings(backward="magic"))
 
 
-def test_gvae_core_render_is_callable_even_after_submodule_import():
+def test_package_functions_stay_functions_after_submodule_imports():
     import gvae_core
-    import gvae_core.render.reference  # noqa: F401  (binds gvae_core.render to the package)
+    import gvae_core.refinement  # noqa: F401
+    import gvae_core.rendering.reference  # noqa: F401
 
+    assert callable(gvae_core.refine) and gvae_core.refine is gvae_core.refinement.refine
     out = gvae_core.render(random_cloud(5, 0, seed=0), camera(8, 6))
     assert isinstance(out, RenderOutput) and out.image.shape == (6, 8, 3)
 

@@ -11,7 +11,7 @@ from PIL import Image
 from gvae_core import Camera, GaussianCloud
 from gvae_core.cli import main
 from gvae_core.ply import write_ply
-from gvae_core.render import render
+from gvae_core.rendering import render
 
 
 def _cloud(n=40, seed=0) -> GaussianCloud:

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from gvae_core import Camera, load_nerf_synthetic
-from gvae_core import scenes
+from gvae_core import Camera, load_nerf_synthetic, scenes
 from gvae_core.cli import main as cli_main
-from gvae_core.scenes import cameras, geometry as g
+from gvae_core.scenes import cameras
+from gvae_core.scenes import geometry as g
 from tests.conftest import requires_bpy
 
 FULL_SCENE = "chair"  # thin legs: the hardest silhouette for the projection check

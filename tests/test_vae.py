@@ -239,8 +239,9 @@ def test_densify_flag_conditions_the_slots():
 
 
 def test_geometry_model_is_rotation_equivariant():
-    from gvae_core.cloud import quat_to_rotmat, rotmat_to_quat
-    from gvae_core.vae import quat_multiply
+    from gvae_core.quaternions import from_rotmat as rotmat_to_quat
+    from gvae_core.quaternions import multiply as quat_multiply
+    from gvae_core.quaternions import to_rotmat as quat_to_rotmat
 
     model = GaussianVAE.create(seed=5)
     data = synthetic_transitions(16, 3, seed=2)[1]

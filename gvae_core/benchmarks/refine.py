@@ -25,9 +25,8 @@ def _load_model():
 def _heldout_transitions(model):
     """Transitions of the model's held-out scenes from the cached `full` experiment runs (what
     `make train-model` evaluated), when they are on disk; else synthetic ones."""
-    from ..cli.vae import load_runs  # noqa: PLC0415
     from ..experiment import PROTOCOLS, runs_dir  # noqa: PLC0415
-    from ..vae import synthetic_transitions  # noqa: PLC0415
+    from ..vae import load_runs, synthetic_transitions  # noqa: PLC0415
 
     p = PROTOCOLS["full"]
     folder = runs_dir() / f"{p.name}-{p.run_key()}"
@@ -40,7 +39,7 @@ def _heldout_transitions(model):
 def run(args) -> None:
     from ..examples import example_cloud  # noqa: PLC0415
     from ..hessian import hessian_scores  # noqa: PLC0415
-    from ..refine import refine  # noqa: PLC0415
+    from ..refinement import refine  # noqa: PLC0415
     from ..vae import copy_parent_baseline, evaluate  # noqa: PLC0415
 
     quick = bool(getattr(args, "quick", False))

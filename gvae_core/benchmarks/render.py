@@ -65,8 +65,8 @@ def _one(n: int, height: int, threads: int, repeats: int, samples: int, queue) -
     import torch  # noqa: PLC0415
 
     torch.set_num_threads(threads)
-    from ..render import render  # noqa: PLC0415
-    from ..render.reference import render_reference  # noqa: PLC0415
+    from ..rendering import render  # noqa: PLC0415
+    from ..rendering.reference import render_reference  # noqa: PLC0415
 
     cloud = benchmark_scene(n)
     cam = benchmark_camera(height)

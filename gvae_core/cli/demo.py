@@ -39,8 +39,8 @@ def run_trained(folder: Path, args: argparse.Namespace) -> int:
     from ..hessian import default_views  # noqa: PLC0415
     from ..lineage import Lineage  # noqa: PLC0415
     from ..ply import read_ply, write_ply  # noqa: PLC0415
-    from ..refine import refine  # noqa: PLC0415
-    from ..render import render  # noqa: PLC0415
+    from ..refinement import refine  # noqa: PLC0415
+    from ..rendering import render  # noqa: PLC0415
 
     cloud = read_ply(folder / "scene.ply")
     lineage = Lineage.load(folder / "lineage.npz") if (folder / "lineage.npz").is_file() else None

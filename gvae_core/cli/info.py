@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cloud import SH_REST_COUNTS, GaussianCloud
+from ..cloud import GaussianCloud
+from ..conventions import SH_REST_COUNTS
 
 
 def register(subparsers) -> None:

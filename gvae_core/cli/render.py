@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_write
 from ..camera import Camera, orbit
 
 
@@ -95,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     # stall each other. Only effective when torch is not imported yet (the usual CLI case).
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from ..ply import read_ply  # noqa: PLC0415
-    from ..render import render  # noqa: PLC0415
+    from ..rendering import render  # noqa: PLC0415
 
     background = _parse_background(args.background)
     if args.height is not None and args.height <= 0:
@@ -118,8 +119,6 @@ def run(args: argparse.Namespace) -> int:
         out = render(cloud, cam, background=background, sh_degree=args.sh_degree)
         pixels = (out.image.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
         target = args.out / f"{i:0{width}d}_{Path(name).stem}.png"
-        tmp = target.with_suffix(".png.part")
-        Image.fromarray(pixels).save(tmp, format="PNG")
-        os.replace(tmp, target)
+        atomic_write(target, lambda f, p=pixels: Image.fromarray(p).save(f, format="PNG"))
         print(f"{target} ({cam.width}x{cam.height}, {time.perf_counter() - start:.2f} s)")
     return 0

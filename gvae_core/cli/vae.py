@@ -53,30 +53,8 @@ def register(subparsers) -> None:
     r.set_defaults(func=run_refine)
 
 
-def _lineage_path(run: Path) -> Path:
-    path = run / "lineage.npz" if run.is_dir() else run
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no lineage file (expected RUN_DIR/lineage.npz from `gvae train`)")
-    return path
-
-
-def load_runs(runs: list[Path], slots: int = 4):
-    """Transitions of every run, each tagged with its run directory."""
-    from ..lineage import Lineage  # noqa: PLC0415
-    from ..vae import lineage_transitions  # noqa: PLC0415
-
-    out = []
-    for run in runs:
-        path = _lineage_path(run)
-        lin = Lineage.load(path)
-        if lin.n_stages < 2:
-            raise ValueError(f"{path}: needs at least two stages to learn transitions, has {lin.n_stages}")
-        out += lineage_transitions(lin, source=str(run), max_children=slots)
-    return out
-
-
 def run_fit(args: argparse.Namespace) -> int:
-    from ..vae import FitConfig, GaussianVAE, copy_parent_baseline, evaluate, fit, synthetic_transitions  # noqa: PLC0415
+    from ..vae import FitConfig, GaussianVAE, copy_parent_baseline, evaluate, fit, load_runs, synthetic_transitions  # noqa: PLC0415
 
     if not args.runs and args.synthetic <= 0:
         raise ValueError("fit-vae: give at least one RUN_DIR (or --synthetic N)")
@@ -154,9 +132,10 @@ def _scene_name(run: Path) -> str:
 
 
 def run_refine(args: argparse.Namespace) -> int:
+    from ..budget import parse_budget  # noqa: PLC0415
     from ..lineage import Lineage  # noqa: PLC0415
     from ..ply import read_ply, write_ply  # noqa: PLC0415
-    from ..refine import parse_budget, refine  # noqa: PLC0415
+    from ..refinement import refine  # noqa: PLC0415
 
     budget = parse_budget(args.budget)
     t0 = time.perf_counter()

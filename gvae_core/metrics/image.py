@@ -26,7 +26,7 @@ class ImageScores:
 
 def render_views(cloud, views, background=(1.0, 1.0, 1.0), sh_degree: int | None = None) -> np.ndarray:
     """(N,H,W,3) float32 renders of `cloud` from every camera of `views`, clamped to [0,1]."""
-    from ..render import render  # noqa: PLC0415
+    from ..rendering import render  # noqa: PLC0415
 
     c = cloud.to_torch() if not cloud.is_torch else cloud
     with torch.no_grad():

@@ -16,8 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from . import GENERATOR_VERSION, MARKER, PROFILES, scene_key
-from . import blender, cameras
+from . import GENERATOR_VERSION, MARKER, PROFILES, blender, cameras, scene_key
 from . import geometry as g
 from .library import SCENES
 

@@ -147,10 +147,10 @@ def scenario_install(bpy, args: dict) -> dict:
     res = {"addons": list(bpy.context.preferences.addons.keys())}
     if args.get("model_dir"):
         try:
-            import gvae_core.refine  # noqa: F401, PLC0415
+            import gvae_core.refinement  # noqa: F401, PLC0415
             from gvae_core.vae import GaussianVAE, load_default_model  # noqa: PLC0415
         except Exception as exc:  # noqa: BLE001
-            res.update(model=None, what=f"gvae_core.refine is not importable: {exc}")
+            res.update(model=None, what=f"gvae_core.refinement is not importable: {exc}")
             return res
         try:
             load_default_model()
@@ -179,13 +179,12 @@ class _StandInResult:
 
 
 def _stand_in_module(fail: bool):
-    """TEST-ONLY stand-in for gvae_core.refine: NOT the model. It appends, per step, a shifted copy
+    """TEST-ONLY stand-in for gvae_core.refinement: NOT the model. It appends, per step, a shifted copy
     of the first quarter of the input, so the glue's bookkeeping (rows, parents, steps, extras,
     gvae_step) can be checked exactly."""
     import types  # noqa: PLC0415
 
     import numpy as np  # noqa: PLC0415
-    from gvae_core.cloud import GaussianCloud  # noqa: PLC0415
 
     calls = []
 
@@ -196,22 +195,20 @@ def _stand_in_module(fail: bool):
             raise ValueError("stand-in failure")
         n = len(cloud)
         k = max(1, n // 4)
-        parts, parents, step = [cloud], [], []
+        out, parents, step = cloud, [], []
         for s in range(1, steps + 1):
-            child = cloud.select(np.arange(k)).copy()
+            child = cloud.select(np.arange(k))
             child.means = child.means + np.float32(0.01 * s)
-            child.extra = {}
-            parts.append(child)
+            out = out.append_children(child.replace(extra={}), np.arange(k))  # the core's extras policy
             parents.append(np.arange(k))
             step.append(np.full(k, s))
             if progress:
                 progress(s / steps, f"stand-in step {s}")
-        out = GaussianCloud.concat(parts)
         return _StandInResult(cloud=out, added=np.arange(n, len(out)), parents=np.concatenate(parents),
                               step=np.concatenate(step), scores=np.zeros(n),
                               timings={"hessian": 0.0, "model": 0.0, "total": 0.0})
 
-    module = types.ModuleType("gvae_core.refine")
+    module = types.ModuleType("gvae_core.refinement")
     module.refine = refine
     module.calls = calls
     return module
@@ -243,18 +240,18 @@ def scenario_refine_glue(bpy, args: dict) -> dict:
     obj = bpy.context.active_object
     res = {}
     # 1. Refine not importable: a clear error, object unchanged, the panel says so.
-    sys.modules["gvae_core.refine"] = None
+    sys.modules["gvae_core.refinement"] = None
     res["panel_unavailable"] = draw_panels(bpy)
     n0 = len(obj.data.vertices)
     res["unavailable"] = failure(bpy, lambda: bpy.ops.gvae.refine(steps=1))
     res["unavailable_count"] = len(obj.data.vertices)
     # 2. A refine that raises: reported, object unchanged.
-    sys.modules["gvae_core.refine"] = _stand_in_module(fail=True)
+    sys.modules["gvae_core.refinement"] = _stand_in_module(fail=True)
     res["failing"] = failure(bpy, lambda: bpy.ops.gvae.refine(steps=1))
     res["failing_count"] = len(obj.data.vertices)
     # 3. The stand-in, twice (steps continue from the first run).
     stand_in = _stand_in_module(fail=False)
-    sys.modules["gvae_core.refine"] = stand_in
+    sys.modules["gvae_core.refinement"] = stand_in
     res["panel_available"] = draw_panels(bpy)
     res["bad_budget"] = failure(bpy, lambda: bpy.ops.gvae.refine(budget="lots"))
     bpy.ops.gvae.refine(steps=2, budget="0.5", seed=7)

@@ -17,8 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gvae_core.cloud import GaussianCloud, quat_to_rotmat, normalize_quats
+from gvae_core.cloud import GaussianCloud
 from gvae_core.ply import read_ply, write_ply
+from gvae_core.quaternions import normalize as normalize_quats
+from gvae_core.quaternions import to_rotmat as quat_to_rotmat
 from tests.conftest import requires_bpy
 
 pytestmark = requires_bpy
@@ -223,7 +225,7 @@ def test_bad_files_leave_the_scene_unchanged(extension_zip, tmp_path):
 
 
 def test_refine_glue_with_test_stand_in(extension_zip, tmp_path):
-    """Tests the operator's data path (not the model): gvae_core.refine is replaced, inside the
+    """Tests the operator's data path (not the model): gvae_core.refinement is replaced, inside the
     Blender process only, by a labelled test stand-in that appends shifted copies of rows."""
     n = 40
     src = tmp_path / "in.ply"
@@ -233,7 +235,7 @@ def test_refine_glue_with_test_stand_in(extension_zip, tmp_path):
                        export=str(tmp_path / "refined.ply"), export_step=str(tmp_path / "step.ply"))
     assert "not in this build" in res["unavailable"]["error"] and res["unavailable"]["unchanged"]
     assert res["unavailable_count"] == n
-    assert "Refine is not in this build: gvae_core.refine is missing" in res["panel_unavailable"]
+    assert "Refine is not in this build: gvae_core.refinement is missing" in res["panel_unavailable"]
     assert f"in: {n:,} Gaussians" in " ".join(res["panel_unavailable"])
     assert not any("Refine is not" in t or "needs PyTorch" in t for t in res["panel_available"])
     assert "PyTorch is available: Refine can run" in res["panel_available"]

@@ -14,7 +14,6 @@ quaternions, log-scales and opacity logits inside finite ranges.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Sequence
@@ -22,19 +21,22 @@ from typing import Any, Callable, Iterator, Sequence
 import numpy as np
 import torch
 
-from ._callable import make_module_callable
+from .budget import select_budget
 from .camera import Camera
-from .cloud import _FIELDS, EXTREME_LOG_SCALE, OPACITY_LOGIT_RANGE, SH_REST_COUNTS, GaussianCloud, normalize_quats
-
-AUTO_FRACTION_RANGE = (0.01, 0.5)
-OUTPUT_SH_LIMIT = 1e3
+from .cloud import _FIELDS, GaussianCloud
+from .hessian import hessian_scores
+from .lineage import (APP_EXIST, GEO_EXIST, GEO_LOG_SCALE, GEO_POSITION, Lineage, appearance_features,
+                      cloud_from_features, geometry_features)
+from .vae import GaussianVAE, load_default_model
+from .vae.features import FEATURE_LOG_SCALE_RANGE, FEATURE_POSITION_LIMIT
 
 
 @dataclass
 class RefineResult:
-    """The refined cloud (input rows first, in input order, then the added ones), which rows were
-    added, each added row's parent row in the input, the step that added it, the input's Hessian
-    scores, the input rows the budget selected, and seconds per part."""
+    """The refined cloud (input rows first, in input order, then the added ones; extra properties
+    as `GaussianCloud.append_children` gives them), which rows were added, each added row's
+    ancestor row in the input, the step that added it, the input's Hessian scores, the input rows
+    the budget selected, and seconds per part."""
 
     cloud: GaussianCloud
     added: np.ndarray
@@ -55,96 +57,13 @@ class RefineResult:
                 f"(per step: {', '.join(str(int(c)) for c in per_step) or '-'}), {len(self.cloud)} out; {times}")
 
 
-def parse_budget(text: str) -> str | float | int:
-    """CLI budget: 'all', 'auto', a fraction ('0.1' or '10%') or a count ('5000')."""
-    t = str(text).strip().lower()
-    if t in ("all", "auto"):
-        return t
-    try:
-        if t.endswith("%"):
-            return float(t[:-1]) / 100.0
-        if any(ch in t for ch in ".e"):
-            return float(t)
-        return int(t)
-    except ValueError:
-        raise ValueError(f"budget must be 'all', 'auto', a fraction (0.1, 10%) or a count, got {text!r}") from None
-
-
-def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
-    """Otsu's threshold: the cut that maximises the between-class variance of a 1D histogram."""
-    v = np.asarray(values, np.float64)
-    lo, hi = float(v.min()), float(v.max())
-    if not hi > lo:
-        return hi
-    hist, edges = np.histogram(v, bins=bins, range=(lo, hi))
-    p = hist / hist.sum()
-    centers = 0.5 * (edges[:-1] + edges[1:])
-    w0 = np.cumsum(p)
-    m0 = np.cumsum(p * centers)
-    total = m0[-1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        between = (total * w0 - m0) ** 2 / (w0 * (1.0 - w0))
-    between[~np.isfinite(between)] = -1.0
-    return float(edges[int(np.argmax(between)) + 1])
-
-
-def select_budget(scores: np.ndarray, budget: Any) -> np.ndarray:
-    """Rows (ascending) to refine. 'all': every row; a float in (0, 1]: that fraction of the rows
-    with the highest scores; an int: that many; 'auto': the rows above Otsu's threshold of the
-    scores (the high-score class) that are also more than one robust standard deviation
-    (1.4826 MAD) above the median score, kept between 1% and 50% of the rows."""
-    n = len(scores)
-    if isinstance(budget, str):
-        if budget == "all":
-            return np.arange(n, dtype=np.int64)
-        if budget != "auto":
-            raise ValueError(f"budget must be 'all', 'auto', a fraction or a count, got {budget!r}")
-        if n == 0:
-            return np.zeros(0, np.int64)
-        v = np.asarray(scores, np.float64)
-        median = float(np.median(v))
-        robust = median + 1.4826 * float(np.median(np.abs(v - median)))  # robust z-score of 1
-        count = int((v > max(otsu_threshold(v), robust)).sum())
-        lo, hi = (math.ceil(f * n) for f in AUTO_FRACTION_RANGE)
-        count = min(max(count, lo), hi)
-    elif isinstance(budget, (bool, np.bool_)):
-        raise ValueError(f"budget must be 'all', 'auto', a fraction or a count, got {budget!r}")
-    elif isinstance(budget, (int, np.integer)):
-        if budget < 0:
-            raise ValueError(f"budget count must be >= 0, got {budget}")
-        count = min(int(budget), n)
-    elif isinstance(budget, (float, np.floating)):
-        if not 0.0 <= budget <= 1.0:
-            raise ValueError(f"budget fraction must be in [0, 1], got {budget}")
-        count = min(int(math.ceil(budget * n - 1e-9)), n)
-    else:
-        raise ValueError(f"budget must be 'all', 'auto', a fraction or a count, got {budget!r}")
-    return _top_rows(np.asarray(scores, np.float64), count)
-
-
-def _top_rows(scores: np.ndarray, count: int) -> np.ndarray:
-    """The `count` rows with the highest scores, ties going to the lower row, ascending: the first
-    `count` of a stable descending sort, in O(N) (`np.partition` instead of a sort)."""
-    n = len(scores)
-    if count <= 0:
-        return np.zeros(0, np.int64)
-    if count >= n:
-        return np.arange(n, dtype=np.int64)
-    cut = np.partition(scores, n - count)[n - count]   # the count-th largest value
-    above = np.flatnonzero(scores > cut)
-    ties = np.flatnonzero(scores == cut)[: count - len(above)]
-    return np.sort(np.concatenate([above, ties])).astype(np.int64)
-
-
-def _initial_history(cloud: GaussianCloud, lineage: Any, selected: np.ndarray):
+def _initial_history(cloud: GaussianCloud, lineage: Lineage | None, selected: np.ndarray, normalization):
     """Node features (M,T,11), (M,T,50) of the selected rows, and the normalisation's scale. The
     last node is always the input Gaussian itself; earlier nodes come from the lineage when given.
     Without a lineage the selected rows are one-node lineages (as `Lineage.from_cloud` makes them)
-    in the frame of the whole cloud (`scene_normalization`)."""
-    from .lineage import appearance_features, geometry_features, scene_normalization  # noqa: PLC0415
-
+    in the frame of the whole cloud, `normalization`."""
     sub = cloud.select(selected)
-    center, scale = scene_normalization(cloud.means) if lineage is None else (lineage.center, lineage.scale)
+    center, scale = normalization if lineage is None else (lineage.center, lineage.scale)
     geo = geometry_features(sub, center, scale)[:, None]
     app = appearance_features(sub)[:, None]
     if lineage is not None and lineage.n_stages > 1:
@@ -169,29 +88,8 @@ def _initial_history(cloud: GaussianCloud, lineage: Any, selected: np.ndarray):
     return geo, app, float(scale)
 
 
-def _finite(x: np.ndarray) -> np.ndarray:
-    return x if np.isfinite(x).all() else np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
-
-
-def _sanitize_rows(geo: np.ndarray, app: np.ndarray, world_pos: np.ndarray, scale: float, sh_degree: int):
-    """Raw, finite, bounded parameters of predicted nodes (the inverse of the lineage features,
-    `cloud_from_features`, with positions given in world units, float64)."""
-    from .lineage import APP_OPACITY, APP_SH_DC, APP_SH_REST, GEO_LOG_SCALE, GEO_QUAT  # noqa: PLC0415
-
-    geo = _finite(geo)
-    app = np.clip(_finite(app), -OUTPUT_SH_LIMIT, OUTPUT_SH_LIMIT).astype(np.float32, copy=False)
-    big = np.finfo(np.float32).max / 4
-    return GaussianCloud(
-        means=np.clip(_finite(world_pos), -big, big).astype(np.float32),
-        scales=np.clip(geo[:, GEO_LOG_SCALE] + math.log(scale), *EXTREME_LOG_SCALE).astype(np.float32),
-        quats=normalize_quats(geo[:, GEO_QUAT].astype(np.float32)),
-        opacities=np.clip(app[:, APP_OPACITY], *OPACITY_LOGIT_RANGE),
-        sh_dc=app[:, APP_SH_DC].copy(),
-        sh_rest=app[:, APP_SH_REST].reshape(-1, 15, 3)[:, :SH_REST_COUNTS[sh_degree]].copy())
-
-
 def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
-           cameras: Sequence[Camera] | None = None, lineage: Any = None, seed: int = 0,
+           cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, seed: int = 0,
            progress: Callable[[float, str], None] | None = None, hessian_options: dict | None = None,
            scores: Any = None, carry_appearance: bool = True) -> RefineResult:
     """Refine `cloud` by `steps` (>= 1) sequential model steps on the Gaussians the budget selects
@@ -212,14 +110,12 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model:
 
 
 def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
-                 cameras: Sequence[Camera] | None = None, lineage: Any = None, seed: int = 0,
+                 cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, seed: int = 0,
                  progress: Callable[[float, str], None] | None = None, hessian_options: dict | None = None,
                  scores: Any = None, every_step: bool = True,
                  carry_appearance: bool = True) -> Iterator[RefineResult]:
     """`refine`, yielding the result after every step (+1, +2, ...; each one the same as `refine`
     with that many steps and the same seed), or only after the last with `every_step=False`."""
-    from .vae import GaussianVAE, load_default_model  # noqa: PLC0415
-
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     say = progress or (lambda fraction, message: None)
@@ -244,10 +140,9 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
     t0 = time.perf_counter()
     if scores is None and budget == "all":
         scores = np.zeros(n, np.float32)  # every Gaussian is refined: nothing to rank
+    normalization = src.normalization()  # the frame of Hessian positions and of lineages without history
     if scores is None:
-        from .hessian import hessian_scores  # noqa: PLC0415
-
-        scores = hessian_scores(src, cameras, seed=seed, **(hessian_options or {}))
+        scores = hessian_scores(src, cameras, seed=seed, normalization=normalization, **(hessian_options or {}))
     scores = np.nan_to_num(np.asarray(scores.detach().cpu() if torch.is_tensor(scores) else scores,
                                       np.float32).reshape(-1), nan=0.0, posinf=0.0, neginf=0.0)
     if len(scores) != n:
@@ -256,7 +151,7 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
     selected = select_budget(scores, budget)
 
     t0 = time.perf_counter()
-    hist_g, hist_a, scale = _initial_history(src, lineage, selected)
+    hist_g, hist_a, scale = _initial_history(src, lineage, selected, normalization)
     timings["features"] = time.perf_counter() - t0
 
     gen = torch.Generator().manual_seed(int(seed))
@@ -292,10 +187,16 @@ class _Growth:
         self.world = src.means[selected].astype(np.float64)  # exact world positions of the last nodes
         self.new_parts: list[GaussianCloud] = []
         self.updates: list[tuple[np.ndarray, GaussianCloud]] = []  # (rows, new values), in step order
-        self.added_parents: list[np.ndarray] = []
+        self.added_parents: list[np.ndarray] = []  # ancestor rows in the input
+        self.born_from: list[np.ndarray] = []      # rows (of the output) of the Gaussians they came from
         self.added_steps: list[np.ndarray] = []
         self.n_total = len(src)
         self.model_time = 0.0
+
+    def _cloud(self, geometry: np.ndarray, appearance: np.ndarray, world: np.ndarray) -> GaussianCloud:
+        """Predicted nodes as raw, finite, bounded Gaussians at exact world positions."""
+        return cloud_from_features(geometry, appearance, 0.0, self.scale, self.src.sh_degree, means=world,
+                                   bounded=True)
 
     def step(self, k: int, model, densify, gen: torch.Generator, more: bool = True,
              carry_appearance: bool = False) -> None:
@@ -306,32 +207,31 @@ class _Growth:
         g, a, p, _ = model.predict(self.hist_g[:, -max_nodes:], self.hist_a[:, -max_nodes:], densify, generator=gen)
         g, a, p = g.numpy().astype(np.float64), a.numpy(), p.numpy()
         if carry_appearance:  # every slot takes the last node's appearance; existence stays the model's
-            a[..., :-1] = self.hist_a[:, -1, None, :-1]
+            a[..., :APP_EXIST] = self.hist_a[:, -1, None, :APP_EXIST]
         self.model_time += time.perf_counter() - t0
         last = self.hist_g[:, -1].astype(np.float64)
-        size = np.exp(np.clip(last[:, 7:10], -20.0, 10.0).mean(1))
-        last_pos = np.clip(np.nan_to_num(last[:, 0:3]), -1e6, 1e6)
-        dist = np.linalg.norm(g[..., 0:3] - last_pos[:, None], axis=-1) / size[:, None]
+        size = np.exp(np.clip(last[:, GEO_LOG_SCALE], *FEATURE_LOG_SCALE_RANGE).mean(1))
+        last_pos = np.clip(np.nan_to_num(last[:, GEO_POSITION]), -FEATURE_POSITION_LIMIT, FEATURE_POSITION_LIMIT)
+        dist = np.linalg.norm(g[..., GEO_POSITION] - last_pos[:, None], axis=-1) / size[:, None]
         # Existence is sampled (seeded): thresholding at 0.5 would never add a child whose
         # probability is below one half, under-generating systematically.
         exists = torch.rand(p.shape, generator=gen).numpy() < p
         keeper = np.argmin(np.where(exists, dist, np.inf), 1)
         # World positions: the parent's exact world position plus the predicted offset.
-        child_world = self.world[:, None] + (g[..., 0:3] - last_pos[:, None]) * self.scale
+        child_world = self.world[:, None] + (g[..., GEO_POSITION] - last_pos[:, None]) * self.scale
         # Updated parents (the nearest existing slot), then the extra slots as new Gaussians.
         upd = np.flatnonzero(exists.any(1))
         ks = keeper[upd]
-        sh_degree = self.src.sh_degree
         if len(upd):
-            self.updates.append((self.rows[upd], _sanitize_rows(g[upd, ks], a[upd, ks], child_world[upd, ks],
-                                                                self.scale, sh_degree)))
+            self.updates.append((self.rows[upd], self._cloud(g[upd, ks], a[upd, ks], child_world[upd, ks])))
         extra = exists.copy()
         extra[upd, ks] = False
         li, si = np.nonzero(extra)
         new_rows = self.n_total + np.arange(len(li))
         if len(li):
-            self.new_parts.append(_sanitize_rows(g[li, si], a[li, si], child_world[li, si], self.scale, sh_degree))
+            self.new_parts.append(self._cloud(g[li, si], a[li, si], child_world[li, si]))
             self.added_parents.append(self.roots[li])
+            self.born_from.append(self.rows[li])
             self.added_steps.append(np.full(len(li), k, np.int64))
             self.n_total += len(li)
         if not more:
@@ -339,13 +239,13 @@ class _Growth:
             return
         # Next step's lineages: updated parents and their new siblings, one node longer.
         g_node = g.astype(np.float32)
-        g_node[..., 10] = 1.0
-        a[..., 49] = 1.0
+        g_node[..., GEO_EXIST] = 1.0
+        a[..., APP_EXIST] = 1.0
         cont = np.concatenate([upd, li])
         slot = np.concatenate([ks, si])
         prev_g, prev_a = self.hist_g[cont], self.hist_a[cont]  # fancy indexing copies
-        prev_g[len(upd):, :, 10] = 0.0
-        prev_a[len(upd):, :, 49] = 0.0
+        prev_g[len(upd):, :, GEO_EXIST] = 0.0
+        prev_a[len(upd):, :, APP_EXIST] = 0.0
         self.hist_g = np.concatenate([prev_g, g_node[cont, slot][:, None]], 1)
         self.hist_a = np.concatenate([prev_a, a[cont, slot][:, None]], 1)
         self.world = child_world[cont, slot]
@@ -355,7 +255,8 @@ class _Growth:
     def result(self, scores: np.ndarray, timings: dict, t_start: float) -> RefineResult:
         """The input rows (with in-place updates applied in step order) followed by the added ones."""
         t0 = time.perf_counter()
-        out = GaussianCloud.concat([self.src] + self.new_parts) if self.new_parts else self.src.copy()  # copies
+        added = GaussianCloud.concat(self.new_parts) if self.new_parts else GaussianCloud.empty(self.src.sh_degree)
+        out = self.src.append_children(added, np.concatenate([np.zeros(0, np.int64)] + self.born_from))  # copies
         for rows, values in self.updates:
             for name in _FIELDS:
                 getattr(out, name)[rows] = getattr(values, name)
@@ -366,47 +267,3 @@ class _Growth:
             parents=np.concatenate(self.added_parents) if self.added_parents else np.zeros(0, np.int64),
             step=np.concatenate(self.added_steps) if self.added_steps else np.zeros(0, np.int64),
             scores=scores, selected=self.selected, timings=timings)
-
-
-def plain_split(cloud: GaussianCloud, rows, *, steps: int = 1, seed: int = 0,
-                every_step: bool = True) -> Iterator[RefineResult]:
-    """Control without a model: the reference 3DGS split applied to `rows` and then, step after
-    step, to all their descendants. Each Gaussian becomes two whose centres are drawn from it and
-    whose scales are divided by 1.6 (other parameters copied); the first child takes the
-    parent's row. Yields a `RefineResult` after every step (or only the last)."""
-    t_start = time.perf_counter()
-    src = cloud.numpy()
-    n = len(src)
-    selected = np.unique(np.asarray(rows, np.int64))
-    rng = np.random.default_rng(seed)
-    out = src.copy()
-    active = selected.copy()
-    roots = selected.copy()
-    parents, step_of = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
-    for k in range(1, steps + 1):
-        sub = out.select(active)
-        sigma = np.exp(np.clip(sub.scales.astype(np.float64), *EXTREME_LOG_SCALE))
-        rot = sub.rotation_matrices()
-        draws = [np.einsum("nij,nj->ni", rot, rng.standard_normal(sigma.shape) * sigma) for _ in range(2)]
-        children = sub.copy()
-        children.scales = (sub.scales - math.log(1.6)).astype(np.float32)
-        children.quats = normalize_quats(sub.quats).astype(np.float32)
-        second = children.copy()
-        children.means = (sub.means + draws[0]).astype(np.float32)
-        second.means = (sub.means + draws[1]).astype(np.float32)
-        for name in ("means", "scales", "quats"):
-            getattr(out, name)[active] = getattr(children, name)
-        new_rows = len(out) + np.arange(len(active))
-        out = GaussianCloud.concat([out, second.replace(extra={})])
-        parents.append(roots.copy())
-        step_of.append(np.full(len(active), k, np.int64))
-        active = np.concatenate([active, new_rows])
-        roots = np.concatenate([roots, roots])
-        if every_step or k == steps:
-            result = RefineResult(cloud=out.copy(), added=np.arange(n, len(out), dtype=np.int64),
-                                  parents=np.concatenate(parents), step=np.concatenate(step_of),
-                                  scores=np.zeros(n, np.float32), selected=selected,
-                                  timings={"hessian": 0.0, "model": 0.0, "total": time.perf_counter() - t_start})
-            suspended = time.perf_counter()
-            yield result
-            t_start += time.perf_counter() - suspended

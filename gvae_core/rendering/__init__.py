@@ -16,9 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .._callable import make_module_callable
 from ..camera import Camera
-from ..cloud import GaussianCloud, is_torch
+from ..cloud import GaussianCloud
+from ..conventions import is_torch
 from .projection import Projected, project
 from .rasterize import composite, pack, tiles_to_image
 from .tiles import Binning, bin_gaussians
@@ -110,5 +110,3 @@ def render(cloud: GaussianCloud, camera: Camera, *, background=(0.0, 0.0, 0.0), 
                         means2d=proj.means2d, num_pairs=binning.num_pairs,
                         num_evaluations=binning.evaluations, tile_size=s.tile_size)
 
-
-make_module_callable(__name__, "render")

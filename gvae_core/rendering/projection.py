@@ -12,8 +12,9 @@ from dataclasses import dataclass
 
 import torch
 
+from .. import quaternions
 from ..camera import Camera
-from ..cloud import rotmat_to_quat
+from ..conventions import activate_opacities, activate_scales, dc_to_rgb
 from .sh import sh_to_rgb
 
 #: Near plane: Gaussians with camera depth <= NEAR are culled before any division (DESIGN.md).
@@ -24,10 +25,6 @@ DILATION = 0.3
 FOV_CLAMP = 1.3
 #: Contributions with alpha below this are skipped; no Gaussian with opacity below it is drawn.
 ALPHA_MIN = 1.0 / 255.0
-#: Log-scales are clamped to this range on use (exp(20) ~ 5e8 scene units).
-LOG_SCALE_RANGE = (-30.0, 20.0)
-#: Opacity logits are clamped to this range on use (sigmoid stays finite and positive).
-OPACITY_LOGIT_RANGE = (-50.0, 50.0)
 #: Entries of the projected axes J W R S are clamped to this many pixels, so that the 2D
 #: covariance and its determinant stay finite in float32; a Gaussian a hundred million
 #: pixels wide is flat over any image anyway.
@@ -58,17 +55,6 @@ class Projected:
     footprint: torch.Tensor
 
 
-def _safe_unit_quats(q: torch.Tensor) -> torch.Tensor:
-    """Unit quaternions; zero or non-finite ones become the identity with a zero gradient."""
-    n2 = (q * q).sum(-1, keepdim=True)
-    good = torch.isfinite(n2) & (n2 > 1e-24)
-    safe_q = torch.where(good, q, torch.ones_like(q))
-    unit = safe_q / torch.sqrt(torch.where(good, n2, torch.full_like(n2, 4.0)))
-    ident = torch.zeros_like(q)
-    ident[..., 0] = 1.0
-    return torch.where(good, unit, ident)
-
-
 def project(means, log_scales, quats, opacity_logits, sh_dc, sh_rest, camera: Camera, sh_degree: int,
             dtype: torch.dtype = torch.float32) -> Projected:
     """Project N Gaussians (raw parameters, torch) through `camera` following DESIGN.md."""
@@ -94,13 +80,9 @@ def project(means, log_scales, quats, opacity_logits, sh_dc, sh_rest, camera: Ca
     j12 = -fy * v.clamp(-lim_y, lim_y) * iz
 
     # Rotation to camera space as one quaternion: q_cam = q_camera ⊗ q_gaussian.
-    qa, qb, qc, qd = (float(t) for t in rotmat_to_quat(camera.rotation))
-    w0, x0, y0, z0 = _safe_unit_quats(quats.to(dtype)).unbind(-1)
-    w = qa * w0 - qb * x0 - qc * y0 - qd * z0
-    qx = qa * x0 + qb * w0 + qc * z0 - qd * y0
-    qy = qa * y0 - qb * z0 + qc * w0 + qd * x0
-    qz = qa * z0 + qb * y0 - qc * x0 + qd * w0
-    s0, s1, s2 = torch.exp(log_scales.to(dtype).clamp(*LOG_SCALE_RANGE)).unbind(-1)
+    q_camera = torch.as_tensor(quaternions.from_rotmat(camera.rotation), dtype=dtype, device=dev)
+    w, qx, qy, qz = quaternions.multiply(q_camera, quaternions.normalize(quats.to(dtype))).unbind(-1)
+    s0, s1, s2 = activate_scales(log_scales.to(dtype)).unbind(-1)
     # Columns of R diag(s): the Gaussian's axes in camera space, scaled by their std-devs.
     m00, m01, m02 = (1 - 2 * (qy * qy + qz * qz)) * s0, 2 * (qx * qy - w * qz) * s1, 2 * (qx * qz + w * qy) * s2
     m10, m11, m12 = 2 * (qx * qy + w * qz) * s0, (1 - 2 * (qx * qx + qz * qz)) * s1, 2 * (qy * qz - w * qx) * s2
@@ -121,7 +103,7 @@ def project(means, log_scales, quats, opacity_logits, sh_dc, sh_rest, camera: Ca
     inv_det = 1.0 / det
     conics = torch.stack([syy * inv_det, -sxy * inv_det, sxx * inv_det], -1)
 
-    opac = torch.sigmoid(opacity_logits.to(dtype).clamp(*OPACITY_LOGIT_RANGE))
+    opac = activate_opacities(opacity_logits.to(dtype))
     mx = fx * u + cx
     my = fy * v + cy
 
@@ -147,7 +129,7 @@ def project(means, log_scales, quats, opacity_logits, sh_dc, sh_rest, camera: Ca
                 / torch.sqrt(torch.where(ok, n2, torch.ones_like(n2)))).to(dtype)
         colors = sh_to_rgb(sh_dc.to(dtype), sh_rest.to(dtype), dirs, sh_degree)
     else:
-        colors = (sh_dc.to(dtype) * 0.28209479177387814 + 0.5).clamp(min=0.0)
+        colors = dc_to_rgb(sh_dc.to(dtype))
 
     vis = visible[:, None]
     means2d = torch.where(vis, torch.stack([mx, my], -1), zero)
