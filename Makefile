@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 # Spinning OpenMP waits slow torch badly when the cores are shared (see BENCHMARKS.md).
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: install test demo bench report extension clean train-model
+.PHONY: install lint test demo bench report extension clean train-model
 
 install: $(STAMP)
 
@@ -17,6 +17,10 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e ".[blender,test]"
 	touch $(STAMP)
+
+# ruff, configured in pyproject.toml ([tool.ruff]).
+lint: install
+	$(PY) -m ruff check .
 
 test: install
 	$(PY) -m pytest -q

@@ -7,12 +7,12 @@ everything else calls `gvae_core`. Register from a source checkout with
 
 from __future__ import annotations
 
+import importlib
+
 _MODULES = ("preferences", "io_ops", "refine_ops", "ui")
 
 
 def _modules():
-    import importlib  # noqa: PLC0415
-
     return [importlib.import_module(f"{__name__}.{name}") for name in _MODULES]
 
 

@@ -16,8 +16,8 @@ import numpy as np
 
 import gvae_addon
 from gvae_addon import convert
-from gvae_core.benchmarks.ply import random_cloud
-from gvae_core.ply import write_ply
+from gvae_core.examples import random_cloud
+from gvae_core.ply import read_ply, write_ply
 
 
 def _clear():
@@ -104,7 +104,6 @@ def main() -> int:
         out["export_identical"] = bool(same)
 
         # Context: the add-on's own parts, and Blender's C++ PLY importer (no splat set-up).
-        from gvae_core.ply import read_ply  # noqa: PLC0415
 
         t_read, t_mesh = [], []
         for _ in range(repeats):

@@ -132,7 +132,7 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
                         points_only=self.points_only, min_opacity=self.min_opacity))
                 except ValueError as exc:
                     raise ValueError(f"{path}: {exc}") from exc
-        except Exception as exc:  # noqa: BLE001 - any failure: report it, undo what was added
+        except Exception as exc:
             for obj in made:
                 me = obj.data
                 bpy.data.objects.remove(obj)
@@ -183,7 +183,7 @@ class EXPORT_SCENE_OT_gaussian_splat(Operator, ExportHelper):
         try:
             count, messages = export_splat(obj, self.filepath, apply_transform=self.apply_transform,
                                            write_step=self.write_step)
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             self.report({"ERROR"}, f"Gaussian splat export failed: {exc}")
             return {"CANCELLED"}
         for msg in messages:

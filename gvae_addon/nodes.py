@@ -8,8 +8,9 @@ only (a point cloud instead of ellipsoids) and the lowest opacity shown.
 
 Material: colour = max(SH_C0 * f_dc + 0.5, 0) and alpha = sigmoid(opacity), read with Attribute
 nodes, emitted (splat colours are radiance, not albedo) over a transparent BSDF; it works in EEVEE
-and Cycles. Back faces are transparent, so each ellipsoid is blended once. Attributes are looked up both as instancer attributes (ellipsoids) and as geometry
-attributes (points only); the missing lookup reads zero, so their sum is the value.
+and Cycles. Back faces are transparent, so each ellipsoid is blended once. Attributes are looked
+up both as instancer attributes (ellipsoids) and as geometry attributes (points only); the
+missing lookup reads zero, so their sum is the value.
 """
 
 from __future__ import annotations

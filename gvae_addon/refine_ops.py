@@ -97,7 +97,7 @@ class GVAE_OT_refine(Operator):
                     model = os.path.dirname(model)
             info = refine_object(obj, steps=self.steps, budget=budget, model=model, seed=self.seed,
                                  progress=progress)
-        except Exception as exc:  # noqa: BLE001 - report anything; the object is unchanged
+        except Exception as exc:
             self.report({"ERROR"}, f"Refine failed: {exc}")
             return {"CANCELLED"}
         finally:

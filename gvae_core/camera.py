@@ -75,7 +75,7 @@ class Camera:
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
 
     # -------------------------------------------------------------- helpers
-    def scaled(self, height: int) -> "Camera":
+    def scaled(self, height: int) -> Camera:
         """The same view at another image height (width keeps the aspect ratio)."""
         height = int(height)
         sy = height / self.height
@@ -97,7 +97,7 @@ class Camera:
 
     # ---------------------------------------------------------- Blender I/O
     @classmethod
-    def from_blender_c2w(cls, c2w, camera_angle_x: float, width: int, height: int) -> "Camera":
+    def from_blender_c2w(cls, c2w, camera_angle_x: float, width: int, height: int) -> Camera:
         """From a NeRF-Synthetic / Blender camera-to-world matrix (y up, looking along -z)."""
         c2w = np.asarray(c2w, np.float64) @ _FLIP_YZ
         fx = 0.5 * width / math.tan(0.5 * float(camera_angle_x))
@@ -110,7 +110,7 @@ class Camera:
     # ------------------------------------------------------------ builders
     @classmethod
     def look_at(cls, eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0), *, width: int = 400,
-                height: int = 400, fov_x: float = math.radians(50.0)) -> "Camera":
+                height: int = 400, fov_x: float = math.radians(50.0)) -> Camera:
         """A camera at `eye` looking at `target`, with `up` pointing up in the image."""
         eye = np.asarray(eye, np.float64)
         forward = np.asarray(target, np.float64) - eye

@@ -12,7 +12,8 @@ import dataclasses
 import math
 import warnings
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -143,12 +144,12 @@ class GaussianCloud:
         """The six parameter arrays by field name (not `extra`)."""
         return {name: getattr(self, name) for name in _FIELDS}
 
-    def replace(self, **changes) -> "GaussianCloud":
+    def replace(self, **changes) -> GaussianCloud:
         """A copy with some fields replaced (arrays are shared, not copied)."""
         return dataclasses.replace(self, **changes)
 
     @classmethod
-    def empty(cls, sh_degree: int = 0) -> "GaussianCloud":
+    def empty(cls, sh_degree: int = 0) -> GaussianCloud:
         k = SH_REST_COUNTS[sh_degree]
         return cls(means=np.zeros((0, 3), np.float32), scales=np.zeros((0, 3), np.float32),
                    quats=np.zeros((0, 4), np.float32), opacities=np.zeros((0,), np.float32),
@@ -176,7 +177,7 @@ class GaussianCloud:
         return dc_to_rgb(self.sh_dc)
 
     # ------------------------------------------------------- subsets, joins
-    def select(self, index) -> "GaussianCloud":
+    def select(self, index) -> GaussianCloud:
         """The Gaussians picked by a boolean mask or an integer index array (numpy or torch)."""
         if self.is_torch:
             torch = _torch()
@@ -196,7 +197,7 @@ class GaussianCloud:
         return GaussianCloud(**fields, extra=extra)
 
     @staticmethod
-    def concat(clouds: Sequence["GaussianCloud"]) -> "GaussianCloud":
+    def concat(clouds: Sequence[GaussianCloud]) -> GaussianCloud:
         """Join clouds of the same kind (numpy or torch). SH degree is raised to the largest one
         (missing coefficients are zero); an `extra` key missing from a cloud is filled with zeros."""
         clouds = list(clouds)
@@ -227,7 +228,7 @@ class GaussianCloud:
             extra[k] = (_torch().cat if is_torch(template) else np.concatenate)(parts, 0)
         return GaussianCloud(**fields, extra=extra)
 
-    def with_sh_degree(self, degree: int) -> "GaussianCloud":
+    def with_sh_degree(self, degree: int) -> GaussianCloud:
         """A copy with SH truncated or zero-padded to `degree`."""
         k = SH_REST_COUNTS[degree]
         rest = self.sh_rest
@@ -243,7 +244,7 @@ class GaussianCloud:
         return self.replace(sh_rest=np.concatenate([rest, np.zeros(pad_shape, rest.dtype)], 1))
 
     # -------------------------------------------------------- conversions
-    def to_torch(self, device=None, dtype=None) -> "GaussianCloud":
+    def to_torch(self, device=None, dtype=None) -> GaussianCloud:
         """Torch copy (parameters as float32 unless `dtype` is given); `extra` keeps its dtypes."""
         torch = _torch()
         dtype = dtype or torch.float32
@@ -258,7 +259,7 @@ class GaussianCloud:
         extra = {k: conv(v, None) for k, v in self.extra.items()}
         return GaussianCloud(**fields, extra=extra)
 
-    def numpy(self) -> "GaussianCloud":
+    def numpy(self) -> GaussianCloud:
         """numpy copy (float32 parameters, detached from any autograd graph)."""
 
         def conv(x, float32: bool):
@@ -269,13 +270,13 @@ class GaussianCloud:
         extra = {k: conv(v, False) for k, v in self.extra.items()}
         return GaussianCloud(**fields, extra=extra)
 
-    def detach(self) -> "GaussianCloud":
+    def detach(self) -> GaussianCloud:
         if not self.is_torch:
             return self
         return GaussianCloud(**{n: getattr(self, n).detach() for n in _FIELDS},
                              extra={k: v.detach() if is_torch(v) else v for k, v in self.extra.items()})
 
-    def copy(self) -> "GaussianCloud":
+    def copy(self) -> GaussianCloud:
         """Deep copy of every array."""
         dup = (lambda x: x.clone()) if self.is_torch else (lambda x: x.copy())
         return GaussianCloud(**{n: dup(getattr(self, n)) for n in _FIELDS},
@@ -296,7 +297,7 @@ class GaussianCloud:
         scale = float(np.max(hi - lo)) / 2.0
         return (lo + hi) / 2.0, (scale if scale > 1e-8 else 1.0)
 
-    def transformed(self, matrix) -> "GaussianCloud":
+    def transformed(self, matrix) -> GaussianCloud:
         """The cloud moved by a 4x4 matrix of rotation, uniform positive scale and translation (a
         Blender object's world matrix, say): positions, quaternions and log-scales change. SH rest
         coefficients are not rotated; a warning says so when they would need it. Raises
@@ -321,7 +322,7 @@ class GaussianCloud:
                           stacklevel=2)
         return out
 
-    def append_children(self, children: "GaussianCloud", parents) -> "GaussianCloud":
+    def append_children(self, children: GaussianCloud, parents) -> GaussianCloud:
         """This cloud followed by `children` (numpy), child i born from row `parents[i]` of the
         result: a row of this cloud or an earlier child. The one policy for the extra properties
         (which the algorithm does not interpret) of Gaussians that refinement or a control adds: a
@@ -378,7 +379,7 @@ class GaussianCloud:
             far_rows=np.flatnonzero(far),
         )
 
-    def sanitize(self) -> "GaussianCloud":
+    def sanitize(self) -> GaussianCloud:
         """Drop rows with non-finite values, replace zero quaternions by the identity and clamp
         log-scales and opacity logits to their finite ranges. Returns a new cloud."""
         report = self.validate()

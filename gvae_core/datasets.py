@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
 from .camera import Camera
 
@@ -50,7 +51,7 @@ class Views:
     def __len__(self) -> int:
         return len(self.cameras)
 
-    def at_resolution(self, height: int) -> "Views":
+    def at_resolution(self, height: int) -> Views:
         """The same views at another image height: cameras scaled, RGBA area-averaged in
         premultiplied space (as `load_nerf_synthetic` does)."""
         if int(height) == self.images.shape[1]:
@@ -139,8 +140,6 @@ def _find_image(root: Path, rel: str, meta_path: Path, index: int) -> Path:
 
 def _read_rgba(path: Path) -> np.ndarray:
     """(H,W,4) float32 in [0,1]; images without alpha get alpha 1."""
-    from PIL import Image, UnidentifiedImageError  # noqa: PLC0415 - only needed for datasets
-
     try:
         with Image.open(path) as im:
             im.load()

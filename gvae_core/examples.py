@@ -12,9 +12,10 @@ import numpy as np
 
 from .cloud import GaussianCloud
 from .conventions import rgb_to_dc
+from .ply import write_ply
 from .quaternions import from_rotmat
 
-__all__ = ["example_cloud", "write_example"]
+__all__ = ["example_cloud", "random_cloud", "write_example"]
 
 
 def example_cloud(n: int = 4096, *, seed: int = 0, radius: float = 1.0, tube: float = 0.35) -> GaussianCloud:
@@ -54,10 +55,20 @@ def example_cloud(n: int = 4096, *, seed: int = 0, radius: float = 1.0, tube: fl
         sh_dc=sh_dc.astype(np.float32), sh_rest=sh_rest.astype(np.float32))
 
 
+def random_cloud(n: int, seed: int = 0) -> GaussianCloud:
+    """`n` random SH-3 Gaussians (standard-normal parameters, log-scales around -4): the
+    cloud the speed benchmarks read, write, import and export."""
+    rng = np.random.default_rng(seed)
+
+    def f(*shape):
+        return rng.standard_normal(shape, dtype=np.float32)
+
+    return GaussianCloud(means=f(n, 3), scales=f(n, 3) - 4, quats=f(n, 4), opacities=f(n),
+                         sh_dc=f(n, 3), sh_rest=f(n, 15, 3) * 0.1)
+
+
 def write_example(path, n: int = 4096, *, seed: int = 0) -> Path:
     """Write `example_cloud(n, seed=seed)` as a PLY file at `path` (folders created)."""
-    from .ply import write_ply  # noqa: PLC0415
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     return write_ply(example_cloud(n, seed=seed), path)

@@ -17,12 +17,32 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import multiprocessing
+import os
+import statistics
 import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
+import torch
+
+from .controls import plain_split
+from .datasets import load_nerf_synthetic
+from .hessian import hessian_scores
+from .lineage import Lineage
+from .metrics.geometry import MeshDistance, chamfer, read_mesh_ply
+from .metrics.image import image_scores
+from .ply import read_ply
+from .refinement import refine_steps
+from .rendering import render
+from .rendering.reference import render_reference
+from .scenes import cache_dir, make_scene
+from .train import TrainConfig, train_progressive
+from .vae import GaussianVAE, default_model_dir
 
 #: Methods in results rows: the 3DGS baselines, the model, and the controls.
 BASELINE, OURS, OURS_H, RANDOM, SPLIT, SWEEP = "3dgs", "ours", "ours_h", "random", "split", "sweep"
@@ -54,8 +74,6 @@ class Protocol:
     seed: int = 0
 
     def train_config(self):
-        from .train import TrainConfig  # noqa: PLC0415
-
         return TrainConfig.profile("default", resolutions=self.resolutions + self.higher,
                                    iterations=self.iterations + self.higher_iterations, seed=self.seed,
                                    **self.train_overrides)
@@ -99,14 +117,10 @@ class SceneRun:
     seconds: dict[str, float]
 
     def lineage(self, stages: int | None = None):
-        from .lineage import Lineage  # noqa: PLC0415
-
         lin = Lineage.load(self.run_dir / "lineage.npz")
         return lin if stages is None else lin.prefix(stages)
 
     def stage_cloud(self, stage: int):
-        from .ply import read_ply  # noqa: PLC0415
-
         return read_ply(self.run_dir / f"stage_{stage}.ply")
 
     def log(self) -> list[dict]:
@@ -114,17 +128,12 @@ class SceneRun:
 
 
 def runs_dir(cache=None) -> Path:
-    from .scenes import cache_dir  # noqa: PLC0415
-
     return cache_dir(cache) / "runs"
 
 
 def prepare_scene(name: str, protocol: Protocol, *, cache=None, threads: int = 1,
                   say: Callable[[str], None] = print) -> SceneRun:
     """Render the scene (cached) and train its run through every stage (cached, resumable)."""
-    from .scenes import make_scene  # noqa: PLC0415
-    from .train import train_progressive  # noqa: PLC0415
-
     t0 = time.perf_counter()
     scene_dir = make_scene(name, profile=protocol.scene_profile, seed=protocol.seed, cache=cache)
     t1 = time.perf_counter()
@@ -151,9 +160,6 @@ class Evaluator:
     at each scale, NIQE of the 2x renders."""
 
     def __init__(self, run: SceneRun, background=(1.0, 1.0, 1.0)):
-        from .datasets import load_nerf_synthetic  # noqa: PLC0415
-        from .metrics.geometry import MeshDistance, read_mesh_ply  # noqa: PLC0415
-
         p = run.protocol
         self.background = background
         self.mesh = MeshDistance(*read_mesh_ply(run.scene_dir / "mesh.ply"))
@@ -169,9 +175,6 @@ class Evaluator:
             self.views[label] = v
 
     def __call__(self, cloud, *, scales=SCALES, no_reference: bool = True) -> dict[str, float]:
-        from .metrics.geometry import chamfer  # noqa: PLC0415
-        from .metrics.image import image_scores  # noqa: PLC0415
-
         c = chamfer(cloud.means, self.surface, self.mesh)
         row = {"chamfer": c.chamfer, "accuracy": c.accuracy, "completeness": c.completeness,
                "n_gaussians": len(cloud)}
@@ -187,8 +190,6 @@ class Evaluator:
 
 def hessian_cameras(run: SceneRun, count: int):
     """`count` training cameras, evenly spaced, at the training resolution."""
-    from .datasets import load_nerf_synthetic  # noqa: PLC0415
-
     views = load_nerf_synthetic(run.scene_dir, "train", resolution=run.protocol.resolutions[-1])
     pick = np.linspace(0, len(views) - 1, min(count, len(views))).round().astype(int)
     return [views.cameras[i] for i in pick]
@@ -197,13 +198,6 @@ def hessian_cameras(run: SceneRun, count: int):
 def render_timing(cloud, camera, repeats: int = 3, samples: int = 64, seed: int = 0) -> dict:
     """Seconds per forward render (median of `repeats`) and the largest difference from the
     float64 reference renderer on `samples` random pixels of the same image."""
-    import statistics  # noqa: PLC0415
-
-    import torch  # noqa: PLC0415
-
-    from .rendering import render  # noqa: PLC0415
-    from .rendering.reference import render_reference  # noqa: PLC0415
-
     tc = cloud.to_torch()
     times = []
     with torch.no_grad():
@@ -215,16 +209,13 @@ def render_timing(cloud, camera, repeats: int = 3, samples: int = 64, seed: int 
     rng = np.random.default_rng(seed)
     pix = np.stack([rng.integers(0, camera.height, samples), rng.integers(0, camera.width, samples)], 1)
     ref = render_reference(cloud, camera, background=(1.0, 1.0, 1.0), pixels=pix)[0]
-    return {"render_s": statistics.median(times), "render_error": float(np.abs(image[pix[:, 0], pix[:, 1]] - ref).max()),
-            "n_gaussians": len(cloud), "height": camera.height}
+    error = float(np.abs(image[pix[:, 0], pix[:, 1]] - ref).max())
+    return {"render_s": statistics.median(times), "render_error": error, "n_gaussians": len(cloud),
+            "height": camera.height}
 
 
 def run_scene(run: SceneRun, model, *, say: Callable[[str], None] = print) -> list[dict]:
     """Every method and step on one prepared scene; one row per (method, step, budget)."""
-    from .controls import plain_split  # noqa: PLC0415
-    from .hessian import hessian_scores  # noqa: PLC0415
-    from .refinement import refine_steps  # noqa: PLC0415
-
     p = run.protocol
     k = p.train_stage
     evaluate = Evaluator(run)
@@ -302,8 +293,6 @@ def run_experiment(protocol: Protocol | str, *, model=None, scenes=None, cache=N
     """The whole experiment: every scene prepared and evaluated, `jobs` scenes at a time in
     worker processes of one torch thread each (default: one per core); returns the results
     document (protocol, model, per-scene run logs and timings, rows)."""
-    from .vae import GaussianVAE, default_model_dir  # noqa: PLC0415
-
     p = PROTOCOLS[protocol] if isinstance(protocol, str) else protocol
     model_dir = Path(model) if model is not None else default_model_dir()
     loaded = GaussianVAE.load(model_dir)
@@ -345,15 +334,10 @@ def prepare_scenes(names, protocol: Protocol, *, cache=None, jobs: int | None = 
 
 def _job_count(jobs: int | None, tasks: int) -> int:
     """Worker processes for `tasks` scenes: `jobs`, or one per core, and no more than the tasks."""
-    import os  # noqa: PLC0415
-
     return max(1, min(jobs or os.cpu_count() or 1, tasks))
 
 
 def _pool(jobs: int):
-    import multiprocessing  # noqa: PLC0415
-    from concurrent.futures import ProcessPoolExecutor  # noqa: PLC0415
-
     # spawn: a forked torch process can hang in its thread pools.
     return ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_one_thread)
 
@@ -363,15 +347,11 @@ def _print(msg: str) -> None:
 
 
 def _one_thread() -> None:
-    import torch  # noqa: PLC0415
-
     torch.set_num_threads(1)
 
 
 def scene_job(name: str, protocol: Protocol, model_dir, cache=None, say: Callable[[str], None] | None = None):
     """One scene from start to end (a worker process's job): rows and the scene's record."""
-    from .vae import GaussianVAE  # noqa: PLC0415
-
     say = say or _print
     run = prepare_scene(name, protocol, cache=cache, threads=1, say=say)
     t1 = time.perf_counter()

@@ -12,7 +12,7 @@ Score: log det(I + H_i / lambda) with a ridge lambda relative to the mean block 
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch

@@ -209,7 +209,7 @@ class Lineage:
 
     @classmethod
     def from_cloud(cls, cloud: GaussianCloud, center=None, scale: float | None = None,
-                   resolution: int = 0) -> "Lineage":
+                   resolution: int = 0) -> Lineage:
         """One-node lineages for a cloud without history. Ids come from the cloud's `gvae_id`
         property when it has unique ones, else 0..N-1; the normalisation from the cloud itself
         (`GaussianCloud.normalization`) unless given."""
@@ -225,7 +225,7 @@ class Lineage:
         lin.add_stage(cloud.replace(extra={}), ids, np.full(len(cloud), -1, np.int64), resolution)
         return lin
 
-    def prefix(self, n_stages: int) -> "Lineage":
+    def prefix(self, n_stages: int) -> Lineage:
         """The first `n_stages` stages, normalised from the last of them (as the trainer does
         after each stage): what a run stopped there would have recorded, with nothing from later
         stages (the lineage to refine when later stages are kept for evaluation)."""
@@ -357,7 +357,7 @@ class Lineage:
         return atomic_write(path, lambda f: np.savez(f, **arrays))
 
     @classmethod
-    def load(cls, path) -> "Lineage":
+    def load(cls, path) -> Lineage:
         """Read a file written by `save`; bad or foreign files raise ValueError naming the file."""
         path = Path(path)
         if not path.is_file():

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -101,11 +102,9 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model:
     predictions, the model's appearance changes compound and PSNR above the training resolution
     falls with every step; `reports/` has the ablation). Raises ValueError on non-finite input
     rows."""
-    result = None
-    for result in refine_steps(cloud, steps=steps, budget=budget, model=model, cameras=cameras, lineage=lineage,
-                               seed=seed, progress=progress, hessian_options=hessian_options, scores=scores,
-                               every_step=False, carry_appearance=carry_appearance):
-        pass
+    (result,) = refine_steps(cloud, steps=steps, budget=budget, model=model, cameras=cameras, lineage=lineage,
+                             seed=seed, progress=progress, hessian_options=hessian_options, scores=scores,
+                             every_step=False, carry_appearance=carry_appearance)
     return result
 
 

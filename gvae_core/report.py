@@ -166,8 +166,9 @@ def sweep_table(doc) -> list[str]:
 
 
 def memory_table(doc) -> list[str]:
-    lines = ["| Scene | " + " | ".join(f"{e['resolution']} px" for e in next(iter(doc["scenes"].values()))["log"]) + " |"]
-    lines.append("|" + "---|" * (1 + len(next(iter(doc["scenes"].values()))["log"])))
+    first_log = next(iter(doc["scenes"].values()))["log"]
+    lines = ["| Scene | " + " | ".join(f"{e['resolution']} px" for e in first_log) + " |"]
+    lines.append("|" + "---|" * (1 + len(first_log)))
     for scene, info in doc["scenes"].items():
         lines.append(f"| {scene} | " + " | ".join(f"{e['peak_rss_mb']:.0f} MB ({e['n_gaussians']} G)"
                                                  for e in info["log"]) + " |")
@@ -198,10 +199,10 @@ def losses(doc) -> list[str]:
 
 def plots(doc, out: Path) -> list[str]:
     """Speed-against-error figures (PNG); returns their file names."""
-    import matplotlib  # noqa: PLC0415
+    import matplotlib  # noqa: PLC0415 - loaded only to draw, and told first to draw without a screen
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - after matplotlib.use
 
     names = []
 
@@ -286,7 +287,8 @@ def write_report(doc: dict, out, *, command: str = "") -> Path:
           f"from the parent, scales / 1.6) without the model.", "",
           f"Model: {model.get('dir')}, geometry {model['sizes']['geometry'] / 1e6:.2f} MB + appearance "
           f"{model['sizes']['appearance'] / 1e6:.2f} MB (float32). Trained on: "
-          f"{', '.join(model.get('train_scenes') or ['?'])}; held out: {', '.join(model.get('held_out_scenes') or ['?'])}. "
+          f"{', '.join(model.get('train_scenes') or ['?'])}; "
+          f"held out: {', '.join(model.get('held_out_scenes') or ['?'])}. "
           f"Scenes marked (train) were seen in training; the others were not.", "",
           "Metrics: Chamfer = mean of accuracy (Gaussian centres to the ground-truth mesh, exact point-triangle "
           "distances) and completeness (visible mesh samples to the nearest centre), scene units, lower is "

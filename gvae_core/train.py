@@ -23,12 +23,15 @@ import math
 import os
 import resource
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
+from tqdm import tqdm
 
 from .atomic import atomic_write_text
 from .camera import Camera
@@ -120,7 +123,7 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.background must be 3 values, got {self.background}")
 
     @classmethod
-    def profile(cls, name: str = "default", **overrides) -> "TrainConfig":
+    def profile(cls, name: str = "default", **overrides) -> TrainConfig:
         """A named profile (`tiny`, `default`, `full`) with some fields overridden."""
         if name not in PROFILES:
             raise ValueError(f"unknown training profile {name!r}; choose from {sorted(PROFILES)}")
@@ -280,8 +283,6 @@ def initial_cloud(cameras: list[Camera], config: TrainConfig, rng: np.random.Gen
     """The reference initialisation: `points` ((N,3), or (N,6) with RGB in [0,1]) or
     `init_count` uniform random points in `initial_bounds`, nearly grey; isotropic scales from
     the mean squared distance to the 3 nearest neighbours; identity rotations; opacity 0.1."""
-    from scipy.spatial import cKDTree  # noqa: PLC0415
-
     if points is not None and len(points) == 0:
         points = None  # e.g. an empty visual hull: fall back to random points
     if points is None:
@@ -520,7 +521,8 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
                  "seconds_per_iteration": round(seconds / max(n_iter, 1), 5),
                  "n_gaussians": len(snap_cloud), "train_psnr": round(train_psnr, 4),
                  "test_psnr": None if math.isnan(test_psnr) else round(test_psnr, 4),
-                 "peak_rss_mb": round(peak, 1), "rss_start_mb": round(rss_start, 1), "peak_rss_exact": reset_ok, "sh_degree": degree,
+                 "peak_rss_mb": round(peak, 1), "rss_start_mb": round(rss_start, 1), "peak_rss_exact": reset_ok,
+                 "sh_degree": degree,
                  "eval_seconds": round(time.perf_counter() - t1, 3), "next_id": next_id, **counts}
         log.append(entry)
         if out is not None:
@@ -537,6 +539,5 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
 def _progress_bar(total: int, desc: str, enabled: bool):
     if not enabled:
         return None
-    from tqdm import tqdm  # noqa: PLC0415
 
     return tqdm(total=total, desc=desc, leave=True, dynamic_ncols=True)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gvae_core import read_ply, write_ply
-from gvae_core.cli import build_parser, main
+from gvae_core.cli import build_parser, demo, main
 from gvae_core.examples import example_cloud
 
 
@@ -88,8 +88,6 @@ def test_info_on_bad_input_is_one_clear_line(tmp_path, capsys):
 
 
 def test_demo_without_a_trained_example_writes_then_reuses_the_example(tmp_path, capsys, monkeypatch):
-    from gvae_core.cli import demo
-
     monkeypatch.setattr(demo, "trained_example", lambda: None)  # the refine path is tested with it
     monkeypatch.chdir(tmp_path)
     assert main(["demo"]) == 0

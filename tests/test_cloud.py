@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from gvae_core import GaussianCloud
+from gvae_core import GaussianCloud, quaternions
 from gvae_core.conventions import LOG_SCALE_RANGE, SH_C0
 
 
@@ -97,8 +97,8 @@ def test_validate_and_sanitize():
 
 def _points(pts) -> GaussianCloud:
     n = len(pts)
-    return GaussianCloud(means=np.asarray(pts, np.float32), scales=np.zeros((n, 3)), quats=np.tile([1.0, 0, 0, 0], (n, 1)),
-                         opacities=np.zeros(n), sh_dc=np.zeros((n, 3)))
+    return GaussianCloud(means=np.asarray(pts, np.float32), scales=np.zeros((n, 3)),
+                         quats=np.tile([1.0, 0, 0, 0], (n, 1)), opacities=np.zeros(n), sh_dc=np.zeros((n, 3)))
 
 
 def test_normalization_ignores_floaters():
@@ -113,8 +113,6 @@ def test_normalization_ignores_floaters():
 
 
 def test_transformed_moves_positions_rotations_and_scales():
-    from gvae_core import quaternions
-
     c = make_cloud(n=20, degree=0)
     angle = 0.7
     rot = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1.0]])

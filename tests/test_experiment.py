@@ -13,7 +13,10 @@ from gvae_core import GaussianCloud
 from gvae_core.camera import orbit
 from gvae_core.experiment import (BASELINE, OURS, OURS_H, OURS_H_MODEL_APP, RANDOM, SCALES, SPLIT, SWEEP, Protocol,
                                   SceneRun, run_scene)
-from gvae_core.report import write_report
+from gvae_core.rendering import render
+from gvae_core.report import ablation_table, losses, paper_table, write_report
+from gvae_core.scenes.build import write_mesh_ply
+from gvae_core.train import train_progressive
 from gvae_core.vae import GaussianVAE
 
 
@@ -32,9 +35,6 @@ def _sphere(n_lat=12, n_lon=24, r=0.6):
 
 def _scene(root, size=48):
     """A textured ball of Gaussians on the mesh of a sphere, rendered into a NeRF-Synthetic folder."""
-    from gvae_core.rendering import render
-    from gvae_core.scenes.build import write_mesh_ply
-
     rng = np.random.default_rng(0)
     verts, tris = _sphere()
     n = 600
@@ -62,8 +62,6 @@ def _scene(root, size=48):
 
 @pytest.fixture(scope="module")
 def experiment(tmp_path_factory):
-    from gvae_core.train import train_progressive
-
     tmp = tmp_path_factory.mktemp("experiment")
     scene = _scene(tmp / "ball")
     protocol = Protocol("test", scene_profile="none", scenes=("ball",), resolutions=(16, 24), iterations=(40, 30),
@@ -107,7 +105,9 @@ def test_every_method_and_step_is_scored(experiment):
 
 def test_controls_use_the_hessian_budget(experiment):
     _, rows, _, _ = experiment
-    pick = lambda m, k: next(r for r in rows if r["method"] == m and r["step"] == k)  # noqa: E731
+
+    def pick(method, step):
+        return next(r for r in rows if r["method"] == method and r["step"] == step)
     n = pick(OURS_H, 1)["selected"]
     assert pick(RANDOM, 1)["selected"] == n and pick(SPLIT, 1)["selected"] == n
     assert pick(SPLIT, 1)["added"] == n and pick(SPLIT, 2)["added"] == 3 * n  # 2 then 4 children per root
@@ -115,16 +115,49 @@ def test_controls_use_the_hessian_budget(experiment):
     assert pick(OURS, 1)["selected"] == base["n_gaussians"]
 
 
-def test_report_has_the_tables_and_plots(experiment):
-    _, _, doc, tmp = experiment
-    out = tmp / "report"
-    path = write_report(doc, out, command="gvae report --profile test")
+def _known_doc() -> dict:
+    """Two scenes with round numbers: Ours-∇² improves Chamfer by 25% at +1 on both, and loses
+    10% on scene b at +2 (and 0.5 dB of PSNR at 2x)."""
+    rows = []
+    for scene in ("a", "b"):
+        base = dict(scene=scene, method=BASELINE, chamfer=2.0, accuracy=1.0, completeness=3.0, niqe=5.0,
+                    n_gaussians=100, **{f"psnr_{s}": 30.0 for s in SCALES}, **{f"ssim_{s}": 0.9 for s in SCALES})
+        rows += [{**base, "scale": s, "step": 0} for s in SCALES]
+        for k, chamfer in ((1, 1.5), (2, 2.2 if scene == "b" else 1.0)):
+            psnr = 29.5 if (scene, k) == ("b", 2) else 31.0
+            rows.append({**base, "method": OURS_H, "step": k, "chamfer": chamfer, "accuracy": chamfer / 2,
+                         "completeness": 1.5 * chamfer, "psnr_2x": psnr, "added": 10 * k, "refine_s": 0.01})
+            rows.append({**base, "method": OURS, "step": k, "chamfer": 1.8, "added": 100, "refine_s": 0.02})
+    return {"protocol": {"name": "known", "resolutions": [10, 20], "higher": [30, 40], "steps": 2,
+                         "budget": "auto", "scene_profile": "none"},
+            "model": {"dir": None, "sizes": {"geometry": 1000, "appearance": 2000}, "train_scenes": ["a"],
+                      "held_out_scenes": ["b"]},
+            "started": "now", "seconds": 60.0, "rows": rows,
+            "scenes": {s: {"log": [{"resolution": 10, "peak_rss_mb": 100.0, "n_gaussians": 50, "seconds": 1.0,
+                                    "test_psnr": 25.0}], "seconds": {}} for s in ("a", "b")}}
+
+
+def test_report_tables_show_the_numbers_of_a_known_input():
+    doc = _known_doc()
+    table = paper_table(doc, "chamfer", 3, lower_is_better=True)
+    # scene | 3DGS 1x 1.5x 2x | Ours +1 +2 | Ours-∇² +1 +2 | % best | % mean
+    assert table[2] == "| a (train) | 2.000 | 2.000 | 2.000 | 1.800 | 1.800 | 1.500 | 1.000 | 50.0 | 37.5 |"
+    assert table[3] == "| b | 2.000 | 2.000 | 2.000 | 1.800 | 1.800 | 1.500 | 2.200 | 25.0 | 7.5 |"
+    assert table[4] == "| **mean** | 2.000 | 2.000 | 2.000 | 1.800 | 1.800 | 1.500 | 1.600 | 37.5 | 22.5 |"
+    ablation = {line.split(" | ")[1]: line for line in ablation_table(doc)[2:] if line.startswith("| Ours-∇² |")}
+    assert ablation["+1"] == "| Ours-∇² | +1 | +25.00 | +25.00 | +25.00 | +1.000 | +0.0000 | 10 | 10 |"
+    assert ablation["+2"] == "| Ours-∇² | +2 | +20.00 | +20.00 | +20.00 | +0.250 | +0.0000 | 20 | 10 |"
+    assert losses(doc) == ["- b Ours-∇² +2: Chamfer -10.00%, PSNR 2x -0.500 dB"]
+
+
+def test_report_is_written_with_its_results(experiment, tmp_path):
+    _, _, doc, _ = experiment
+    path = write_report(doc, tmp_path, command="gvae report --profile test")
     text = path.read_text()
-    for heading in ("Table 1: Chamfer", "Table 2: NIQE", "Table 3: PSNR", "Ablation", "budget sweep",
-                    "Speed against error", "Memory against training resolution", "Where Ours-∇² loses"):
-        assert heading in text
-    assert "ball" in text and "gvae report --profile test" in text
+    assert "\n".join(paper_table(doc, "chamfer", 5, lower_is_better=True)) in text
+    assert "\n".join(losses(doc)) in text and "gvae report --profile test" in text
     for png in ("refine_time_vs_chamfer.png", "render_time.png", "train_time_vs_psnr.png", "memory_vs_resolution.png"):
-        assert (out / png).stat().st_size > 1000 and png in text
-    data = json.loads((out / "results.json").read_text())
-    assert len(data["rows"]) == len(doc["rows"])
+        assert png in text and Image.open(tmp_path / png).size[0] > 100
+    data = json.loads((tmp_path / "results.json").read_text())
+    assert [(r["method"], r.get("step"), r.get("chamfer")) for r in data["rows"]] == [
+        (r["method"], r.get("step"), r.get("chamfer")) for r in doc["rows"]]

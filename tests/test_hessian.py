@@ -12,7 +12,10 @@ from gvae_core.hessian import (default_views, hessian_blocks, hessian_blocks_ref
 from gvae_core.rendering import RenderSettings
 
 
-def _cloud(n=4, seed=0, spread=0.3, log_scale=math.log(0.15)) -> GaussianCloud:
+LOG_SCALE = math.log(0.15)
+
+
+def _cloud(n=4, seed=0, spread=0.3, log_scale=LOG_SCALE) -> GaussianCloud:
     rng = np.random.default_rng(seed)
     return GaussianCloud(means=rng.uniform(-spread, spread, (n, 3)).astype(np.float32),
                          scales=(log_scale + rng.normal(0, 0.2, (n, 3))).astype(np.float32),

@@ -4,10 +4,14 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial import ConvexHull
 
 from gvae_core import Camera, GaussianCloud
+from gvae_core.datasets import Views
 from gvae_core.metrics.geometry import (MeshDistance, chamfer, closest_point_on_triangles,
                                         point_mesh_distance_reference, read_mesh_ply)
+from gvae_core.metrics.image import image_scores, render_views
+from gvae_core.scenes.build import write_mesh_ply
 
 
 def _segment_closest(p, a, b):
@@ -36,8 +40,6 @@ def _closest_by_projection(p, a, b, c):
 
 
 def _sphere_mesh(n=200, seed=0):
-    from scipy.spatial import ConvexHull
-
     rng = np.random.default_rng(seed)
     v = rng.normal(size=(n, 3))
     v /= np.linalg.norm(v, axis=1, keepdims=True)
@@ -103,8 +105,6 @@ def test_chamfer_bad_and_empty_inputs():
 
 
 def test_mesh_ply_round_trip(tmp_path):
-    from gvae_core.scenes.build import write_mesh_ply
-
     verts, tris = _sphere_mesh(50)
     write_mesh_ply(tmp_path / "mesh.ply", verts, tris)
     v, t = read_mesh_ply(tmp_path / "mesh.ply")
@@ -116,9 +116,6 @@ def test_mesh_ply_round_trip(tmp_path):
 
 
 def test_image_scores_of_a_cloud_against_its_own_renders():
-    from gvae_core.datasets import Views
-    from gvae_core.metrics.image import image_scores, render_views
-
     rng = np.random.default_rng(0)
     n = 200
     cloud = GaussianCloud(means=rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32),

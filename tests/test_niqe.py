@@ -5,7 +5,9 @@ import warnings
 
 import numpy as np
 import pytest
+import skvideo.measure
 from scipy import ndimage
+from skvideo.measure.niqe import get_patches_test_features
 
 from gvae_core.metrics.niqe import niqe, niqe_features, niqe_model
 
@@ -40,7 +42,6 @@ def reference_niqe(img01):
     """The package's own (slow, per-patch) NIQE on 0..255 float luminance."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)  # skvideo imports scipy.misc
-        import skvideo.measure
 
         return float(skvideo.measure.niqe(np.asarray(img01, dtype=np.float64) * 255.0)[0])
 
@@ -48,7 +49,6 @@ def reference_niqe(img01):
 def reference_features(img01):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
-        from skvideo.measure.niqe import get_patches_test_features
 
         return get_patches_test_features(np.asarray(img01, dtype=np.float64) * 255.0, 96)
 

@@ -35,7 +35,7 @@ def reference_rows(cloud):
     """The cloud as plyfile vertex rows in the reference layout (slow, written independently)."""
     n, k = len(cloud), cloud.sh_rest.shape[1]
     cols = {"x": cloud.means[:, 0], "y": cloud.means[:, 1], "z": cloud.means[:, 2]}
-    for i, s in enumerate("xyz"):
+    for s in "xyz":
         cols[f"n{s}"] = np.zeros(n, np.float32)
     for c in range(3):
         cols[f"f_dc_{c}"] = cloud.sh_dc[:, c]

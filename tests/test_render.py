@@ -8,6 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+import gvae_core
+import gvae_core.refinement
+import gvae_core.rendering.reference
 from gvae_core import Camera, GaussianCloud
 from gvae_core.rendering import RenderOutput, RenderSettings, render
 from gvae_core.rendering.reference import render_reference
@@ -285,10 +288,6 @@ def test_bad_arguments():
 
 
 def test_package_functions_stay_functions_after_submodule_imports():
-    import gvae_core
-    import gvae_core.refinement  # noqa: F401
-    import gvae_core.rendering.reference  # noqa: F401
-
     assert callable(gvae_core.refine) and gvae_core.refine is gvae_core.refinement.refine
     out = gvae_core.render(random_cloud(5, 0, seed=0), camera(8, 6))
     assert isinstance(out, RenderOutput) and out.image.shape == (6, 8, 3)

@@ -11,6 +11,7 @@ import sys
 import numpy as np
 import pytest
 from plyfile import PlyData
+from scipy.spatial import cKDTree
 
 from gvae_core import Camera, load_nerf_synthetic, scenes
 from gvae_core.cli import main as cli_main
@@ -225,8 +226,6 @@ def test_mesh_projects_onto_rendered_silhouettes(tiny_scene):
 
 @requires_bpy
 def test_gt_points_are_on_the_mesh_and_seen_by_test_cameras(tiny_scene):
-    from scipy.spatial import cKDTree
-
     root, _ = tiny_scene
     verts, tris = _read_mesh(root / "mesh.ply")
     gt = np.load(root / "gt_points.npy")

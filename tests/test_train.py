@@ -1,5 +1,6 @@
-"""Progressive training: schedules, initialisation, and a tiny end-to-end run on a scene rendered from a known cloud (PSNR rises stage to stage,
-lineage invariants, determinism and resume, outputs and the CLI)."""
+"""Progressive training: schedules, initialisation, and a tiny end-to-end run on a scene rendered
+from a known cloud (PSNR rises stage to stage, lineage invariants, determinism and resume, outputs
+and the CLI)."""
 
 import json
 import math
@@ -8,10 +9,16 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from PIL import Image
+from scipy.spatial import cKDTree
 
 from gvae_core.camera import orbit
+from gvae_core.cli import main
 from gvae_core.cloud import GaussianCloud
 from gvae_core.datasets import Views
+from gvae_core.lineage import Lineage
+from gvae_core.ply import read_ply
+from gvae_core.rendering import render
 from gvae_core.train import (TrainConfig, hull_points, initial_bounds, initial_cloud, position_lr, scene_extent,
                              train_progressive)
 
@@ -19,7 +26,8 @@ from gvae_core.train import (TrainConfig, hull_points, initial_bounds, initial_c
 def test_schedules_scale_with_the_budget():
     cfg = TrainConfig(resolutions=(10, 20), iterations=(3000, 600))
     s0, s1 = cfg.stage_schedule(0), cfg.stage_schedule(1)
-    assert (s0["densify_every"], s0["densify_from"], s0["densify_until"], s0["opacity_reset_every"]) == (25, 50, 1500, 300)
+    keys = ("densify_every", "densify_from", "densify_until", "opacity_reset_every")
+    assert tuple(s0[k] for k in keys) == (25, 50, 1500, 300)
     assert s1["densify_until"] == 300 and s1["densify_every"] == 25
     assert TrainConfig(iterations=(30000,), resolutions=(10,)).stage_schedule(0) == dict(
         iterations=30000, densify_every=100, densify_from=500, densify_until=15000, opacity_reset_every=3000)
@@ -71,8 +79,6 @@ _VIEW_CACHE = {}
 
 def synthetic_views(split, height):
     """Views of the ground-truth cloud rendered directly at each height (straight RGB + alpha)."""
-    from gvae_core.rendering import render
-
     key = (split, height)
     if key not in _VIEW_CACHE:
         gt = ground_truth_cloud()
@@ -144,9 +150,6 @@ def test_lineage_invariants_of_a_run(tiny_run):
 
 
 def test_run_outputs(tiny_run):
-    from gvae_core.lineage import Lineage
-    from gvae_core.ply import read_ply
-
     result, out = tiny_run
     log = json.loads((out / "log.json").read_text())
     assert [e["resolution"] for e in log] == [12, 18, 24]
@@ -202,7 +205,6 @@ def test_same_seed_same_result_from_scratch():
 
 def test_hull_initialisation_lies_inside_the_object():
     pytest.importorskip("gvae_core.rendering")
-    from scipy.spatial import cKDTree
 
     views = synthetic_views("train", 24)
     pts = hull_points(views, 400, np.random.default_rng(0))
@@ -234,9 +236,7 @@ def test_views_at_resolution_area_averages_premultiplied():
 def test_cli_trains_a_scene_dir(tmp_path):
     """`gvae train` on a NeRF-Synthetic folder written from the synthetic views."""
     pytest.importorskip("gvae_core.rendering")
-    from PIL import Image
 
-    from gvae_core.cli import main
 
     scene = tmp_path / "scene"
     for split in ("train", "test"):

@@ -9,9 +9,12 @@ import torch
 
 from gvae_core import GaussianCloud
 from gvae_core.lineage import Lineage
-from gvae_core.vae import (FitConfig, FlowPrior, GaussianVAE, LineageVAE, ParentFrame, TransitionData, VAEConfig,
-                           cyclic_beta, default_model_dir, evaluate, fit, lineage_transitions, match_slots,
-                           match_slots_reference, synthetic_transitions)
+from gvae_core.quaternions import from_rotmat as rotmat_to_quat
+from gvae_core.quaternions import multiply as quat_multiply
+from gvae_core.quaternions import to_rotmat as quat_to_rotmat
+from gvae_core.vae import (EncoderBlock, FitConfig, FlowPrior, GaussianVAE, LineageVAE, ParentFrame, TransitionData,
+                           VAEConfig, copy_parent_baseline, cyclic_beta, default_model_dir, evaluate, fit,
+                           lineage_transitions, match_slots, match_slots_reference, synthetic_transitions)
 
 
 def _perturbed_flow(dim=6, layers=4, seed=0) -> FlowPrior:
@@ -128,7 +131,8 @@ def test_save_load_round_trip(tmp_path):
     loaded = GaussianVAE.load(tmp_path / "m")
     g, a = _degenerate_lineages()
     flags = np.arange(len(g)) % 2 == 0
-    torch.testing.assert_close(model.predict(g, a, flags, sample=False)[0], loaded.predict(g, a, flags, sample=False)[0])
+    torch.testing.assert_close(model.predict(g, a, flags, sample=False)[0],
+                               loaded.predict(g, a, flags, sample=False)[0])
     assert loaded.meta == {"note": "test"}
     assert json.loads((tmp_path / "m" / "config.json").read_text())["geometry"]["kind"] == "geometry"
 
@@ -176,16 +180,13 @@ def test_bundled_model_loads_and_is_small():
 def test_attention_matches_the_fused_reference_kernel():
     """The block's written-out attention (and its one-node shortcut) against torch's fused
     scaled_dot_product_attention."""
-    from gvae_core.vae import EncoderBlock
-
     torch.manual_seed(0)
     block = EncoderBlock(16, 4, 32)
     for t in (1, 2, 5):
         h = torch.randn(7, t, 16)
         m, _, d = h.shape
-        q, k, v = block.qkv(block.norm1(h)).chunk(3, -1)
-        split = lambda x: x.view(m, t, 4, 4).transpose(1, 2)  # noqa: E731
-        full = torch.nn.functional.scaled_dot_product_attention(split(q), split(k), split(v))
+        q, k, v = (x.view(m, t, 4, 4).transpose(1, 2) for x in block.qkv(block.norm1(h)).chunk(3, -1))
+        full = torch.nn.functional.scaled_dot_product_attention(q, k, v)
         x = h + block.out(full.transpose(1, 2).reshape(m, t, d))
         torch.testing.assert_close(block(h), x + block.mlp(block.norm2(x)))
     # and a lineage's encoding does not depend on batch neighbours
@@ -194,8 +195,6 @@ def test_attention_matches_the_fused_reference_kernel():
 
 
 def test_copy_parent_baseline_is_zero_for_identical_children():
-    from gvae_core.vae import copy_parent_baseline
-
     t = synthetic_transitions(32, 2, seed=0)[0]
     t.child_geometry[:] = t.history_geometry[:, -1:]
     t.child_appearance[:] = t.history_appearance[:, -1:]
@@ -223,7 +222,6 @@ def test_densify_flag_conditions_the_slots():
     data = synthetic_transitions(64, 3, seed=4)
     model = fit(data, FitConfig(steps=60, batch=64, lr=3e-3, seed=0)).model
     g, a = data[1].history_geometry, data[1].history_appearance
-    gen = torch.Generator().manual_seed(0)
     _, _, p_no, f_no = model.predict(g, a, np.zeros(len(g), bool), sample=False)
     _, _, p_yes, f_yes = model.predict(g, a, np.ones(len(g), bool), sample=False)
     assert not f_no.any() and f_yes.all()
@@ -235,14 +233,9 @@ def test_densify_flag_conditions_the_slots():
     assert torch.equal(f1, f2) and 0 < int(f1.sum()) < len(g)
     with pytest.raises(ValueError, match="flags"):
         model.predict(g, a, np.ones(3, bool))
-    del gen
 
 
 def test_geometry_model_is_rotation_equivariant():
-    from gvae_core.quaternions import from_rotmat as rotmat_to_quat
-    from gvae_core.quaternions import multiply as quat_multiply
-    from gvae_core.quaternions import to_rotmat as quat_to_rotmat
-
     model = GaussianVAE.create(seed=5)
     data = synthetic_transitions(16, 3, seed=2)[1]
     g = torch.from_numpy(data.history_geometry.copy())
@@ -264,9 +257,12 @@ def test_geometry_model_is_rotation_equivariant():
 
 def test_densified_label_from_lineage_transitions():
     rng = np.random.default_rng(0)
-    mk = lambda n: GaussianCloud(means=rng.normal(size=(n, 3)).astype(np.float32),  # noqa: E731
-                                 scales=np.full((n, 3), -3.0, np.float32), quats=np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
-                                 opacities=np.zeros(n, np.float32), sh_dc=np.zeros((n, 3), np.float32))
+
+    def mk(n):
+        return GaussianCloud(means=rng.normal(size=(n, 3)).astype(np.float32), scales=np.full((n, 3), -3.0, np.float32),
+                             quats=np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32), opacities=np.zeros(n, np.float32),
+                             sh_dc=np.zeros((n, 3), np.float32))
+
     lin = Lineage(np.zeros(3), 1.0)
     lin.add_stage(mk(4), np.arange(4), np.full(4, -1), 50)
     # 0 survives alone, 1 survives and clones (id 4), 2 is split (ids 5, 6), 3 is pruned
@@ -285,8 +281,9 @@ def test_sampled_child_offsets_follow_the_predicted_spread():
     flags = torch.ones(len(g), dtype=torch.bool)
     mean = model.geometry.decode(mu, nodes, flags)
     drawn = model.geometry.decode(mu, nodes, flags, torch.Generator().manual_seed(0), sample_offsets=True)
-    frame_local = torch.einsum("mji,mcj->mci", ParentFrame.of(nodes[:, -1]).rot,
-                               drawn.children[..., 0:3] - nodes[:, -1, None, 0:3]) / ParentFrame.of(nodes[:, -1]).sigma[:, None]
+    frame = ParentFrame.of(nodes[:, -1])
+    frame_local = torch.einsum("mji,mcj->mci", frame.rot, drawn.children[..., 0:3] - nodes[:, -1, None, 0:3])
+    frame_local = frame_local / frame.sigma[:, None]
     torch.testing.assert_close(frame_local.mean(0), mean.local_mean[0], atol=0.05, rtol=0)
     torch.testing.assert_close(frame_local.std(0), mean.local_spread[0], atol=0.05, rtol=0.05)
     # without sampling the centres are the means, whatever the generator

@@ -12,6 +12,7 @@ installs; the zip is then marked for that platform only.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import re
 import shutil
 import subprocess
@@ -43,8 +44,6 @@ _PLATFORMS = (("manylinux", "x86_64", "linux-x64"), ("manylinux", "aarch64", "li
 
 
 def blender_ext() -> Path:
-    import importlib.util  # noqa: PLC0415
-
     spec = importlib.util.find_spec("bpy")  # located, not imported (no Blender start-up)
     if spec is None or spec.origin is None:
         raise SystemExit("the bpy module (pip install bpy==5.0.1) is needed for Blender's blender_ext.py")

@@ -15,13 +15,13 @@ import sys
 import time
 from pathlib import Path
 
+from gvae_core.cli import main as gvae
+from gvae_core.experiment import PROTOCOLS, prepare_scenes
+
 DEFAULT_HOLDOUT = ("chair", "tableware")
 
 
 def main(argv: list[str] | None = None) -> int:
-    from gvae_core.cli import main as gvae  # noqa: PLC0415
-    from gvae_core.experiment import PROTOCOLS, prepare_scenes  # noqa: PLC0415
-
     p = argparse.ArgumentParser(prog="tools/train_model.py", description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=Path("models"), help="model directory (default: models)")
     p.add_argument("--protocol", default="full", choices=list(PROTOCOLS),

@@ -16,6 +16,7 @@ import json
 import os
 import subprocess
 import sys
+from importlib.metadata import version
 from pathlib import Path
 
 
@@ -56,9 +57,7 @@ def run(args) -> None:
 
 
 def _blender_version() -> str:
-    from importlib.metadata import version  # noqa: PLC0415
-
     try:
         return version("bpy")
-    except Exception:  # noqa: BLE001
+    except Exception:
         return "?"

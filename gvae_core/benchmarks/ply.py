@@ -13,14 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from ..cloud import GaussianCloud
+from ..examples import random_cloud
 from ..ply import read_ply, write_ply
-
-
-def random_cloud(n: int, seed: int = 0) -> GaussianCloud:
-    rng = np.random.default_rng(seed)
-    f = lambda *shape: rng.standard_normal(shape, dtype=np.float32)  # noqa: E731
-    return GaussianCloud(means=f(n, 3), scales=f(n, 3) - 4, quats=f(n, 4), opacities=f(n),
-                         sh_dc=f(n, 3), sh_rest=f(n, 15, 3) * 0.1)
 
 
 def max_abs_diff(a: GaussianCloud, b: GaussianCloud) -> float:

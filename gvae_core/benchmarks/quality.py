@@ -9,11 +9,11 @@ from __future__ import annotations
 import dataclasses
 import time
 
+from ..experiment import PROTOCOLS, run_experiment
+from ..report import ablation_table, paper_table
+
 
 def run(args) -> None:
-    from ..experiment import PROTOCOLS, run_experiment  # noqa: PLC0415
-    from ..report import ablation_table, paper_table  # noqa: PLC0415
-
     p = PROTOCOLS["quick"]
     if getattr(args, "quick", False):
         p = dataclasses.replace(p, scenes=p.scenes[:1], steps=2, sweep=())

@@ -12,10 +12,14 @@ import time
 import numpy as np
 import torch
 
+from ..examples import example_cloud
+from ..experiment import PROTOCOLS, runs_dir
+from ..hessian import hessian_scores
+from ..refinement import refine
+from ..vae import GaussianVAE, copy_parent_baseline, default_model_dir, evaluate, load_runs, synthetic_transitions
+
 
 def _load_model():
-    from ..vae import GaussianVAE, default_model_dir  # noqa: PLC0415
-
     directory = default_model_dir()
     if (directory / "config.json").is_file():
         return GaussianVAE.load(directory), str(directory)
@@ -25,9 +29,6 @@ def _load_model():
 def _heldout_transitions(model):
     """Transitions of the model's held-out scenes from the cached `full` experiment runs (what
     `make train-model` evaluated), when they are on disk; else synthetic ones."""
-    from ..experiment import PROTOCOLS, runs_dir  # noqa: PLC0415
-    from ..vae import load_runs, synthetic_transitions  # noqa: PLC0415
-
     p = PROTOCOLS["full"]
     folder = runs_dir() / f"{p.name}-{p.run_key()}"
     runs = [folder / s for s in model.meta.get("held_out_scenes", []) if (folder / s / "lineage.npz").is_file()]
@@ -37,18 +38,12 @@ def _heldout_transitions(model):
 
 
 def run(args) -> None:
-    from ..examples import example_cloud  # noqa: PLC0415
-    from ..hessian import hessian_scores  # noqa: PLC0415
-    from ..refinement import refine  # noqa: PLC0415
-    from ..vae import copy_parent_baseline, evaluate  # noqa: PLC0415
-
     quick = bool(getattr(args, "quick", False))
     model, source = _load_model()
     sizes = model.sizes()
     print(f"model: {source}; torch threads {torch.get_num_threads()}, load {os.getloadavg()[0]:.2f}")
     # The paper's model table: size, training time, inference time (here: 10k three-node lineages,
     # one densifying step, median of 5; the paper's figures are per scene on a GPU).
-    from ..vae import synthetic_transitions  # noqa: PLC0415
 
     lineages = synthetic_transitions(10_000, 3, seed=7)[1].subset(np.arange(10_000))  # two-node lineages
     flags = torch.ones(len(lineages), dtype=torch.bool)

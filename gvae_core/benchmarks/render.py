@@ -13,6 +13,12 @@ import statistics
 import time
 
 import numpy as np
+import torch
+
+from ..camera import Camera
+from ..cloud import GaussianCloud
+from ..rendering import render
+from ..rendering.reference import render_reference
 
 #: (Gaussians, image height, torch threads). The 2-core machine is shared: with other work on it,
 #: two OpenMP threads stall on each other, so every size runs on one thread and the headline
@@ -26,8 +32,6 @@ def benchmark_scene(n: int, seed: int = 0):
     """A surface-like random scene: 70% of the Gaussians on a unit sphere, 30% on a ground plane
     that fills the frame behind it; flat, randomly oriented, sized so that their area covers the
     surfaces about twice (about 2 px wide at 800 px for 100k), SH degree 3, mixed opacities."""
-    from ..cloud import GaussianCloud  # noqa: PLC0415
-
     rng = np.random.default_rng(seed)
     n_sphere = int(0.7 * n)
     d = rng.normal(size=(n_sphere, 3))
@@ -47,8 +51,6 @@ def benchmark_scene(n: int, seed: int = 0):
 
 
 def benchmark_camera(height: int):
-    from ..camera import Camera  # noqa: PLC0415
-
     return Camera.look_at((2.6, 1.2, 1.3), (0.0, 0.0, -0.2), width=height, height=height, fov_x=math.radians(50.0))
 
 
@@ -62,11 +64,7 @@ def _current_rss_mb() -> float:
 
 
 def _one(n: int, height: int, threads: int, repeats: int, samples: int, queue) -> None:
-    import torch  # noqa: PLC0415
-
     torch.set_num_threads(threads)
-    from ..rendering import render  # noqa: PLC0415
-    from ..rendering.reference import render_reference  # noqa: PLC0415
 
     cloud = benchmark_scene(n)
     cam = benchmark_camera(height)

@@ -21,17 +21,17 @@ import time
 from pathlib import Path
 
 import numpy as np
+from plyfile import PlyData
+
+from ..datasets import load_nerf_synthetic
+from ..scenes import PROFILES, bpy_available, list_scenes
+from ..scenes.geometry import sample_surface
 
 LIMITS = {"tiny": None, "default": 2, "full": 1}  # views per split actually rendered
 
 
 def silhouette_miss(root: Path) -> float:
     """Share of mesh surface samples that land on alpha == 0 pixels, over all rendered views."""
-    from plyfile import PlyData
-
-    from ..datasets import load_nerf_synthetic
-    from ..scenes.geometry import sample_surface
-
     ply = PlyData.read(str(root / "mesh.ply"))
     v = ply["vertex"]
     verts = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64)
@@ -52,8 +52,6 @@ def silhouette_miss(root: Path) -> float:
 
 
 def run(args) -> None:
-    from ..scenes import PROFILES, bpy_available, list_scenes
-
     if not bpy_available():
         print("skipped: needs the bpy module (pip install bpy==5.0.1)")
         return

@@ -13,11 +13,11 @@ import os
 import tempfile
 import time
 
+from ..scenes import BlenderNotAvailable, list_scenes, make_scene
+from ..train import TrainConfig, train_progressive
+
 
 def run(args) -> None:
-    from ..scenes import BlenderNotAvailable, list_scenes, make_scene  # noqa: PLC0415
-    from ..train import TrainConfig, train_progressive  # noqa: PLC0415
-
     quick = bool(getattr(args, "quick", False))
     profile = "tiny" if quick else "default"
     name = os.environ.get("GVAE_BENCH_TRAIN_SCENE") or list_scenes()[0]

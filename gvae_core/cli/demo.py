@@ -24,7 +24,7 @@ TRAINED_EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "trained"
 
 def trained_example() -> Path | None:
     """The bundled trained example folder, when it and the bundled model are both present."""
-    from ..vae import default_model_dir  # noqa: PLC0415
+    from ..vae import default_model_dir
 
     if (TRAINED_EXAMPLE / "scene.ply").is_file() and (default_model_dir() / "config.json").is_file():
         return TRAINED_EXAMPLE
@@ -33,14 +33,14 @@ def trained_example() -> Path | None:
 
 def run_trained(folder: Path, args: argparse.Namespace) -> int:
     """Refine the trained example `args.steps` steps; write the refined PLY and before/after renders."""
-    import numpy as np  # noqa: PLC0415
-    from PIL import Image  # noqa: PLC0415
+    import numpy as np
+    from PIL import Image
 
-    from ..hessian import default_views  # noqa: PLC0415
-    from ..lineage import Lineage  # noqa: PLC0415
-    from ..ply import read_ply, write_ply  # noqa: PLC0415
-    from ..refinement import refine  # noqa: PLC0415
-    from ..rendering import render  # noqa: PLC0415
+    from ..hessian import default_views
+    from ..lineage import Lineage
+    from ..ply import read_ply, write_ply
+    from ..refinement import refine
+    from ..rendering import render
 
     cloud = read_ply(folder / "scene.ply")
     lineage = Lineage.load(folder / "lineage.npz") if (folder / "lineage.npz").is_file() else None
@@ -60,9 +60,9 @@ def run_trained(folder: Path, args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..examples import write_example  # noqa: PLC0415
-    from ..ply import read_ply  # noqa: PLC0415
-    from .info import describe  # noqa: PLC0415
+    from ..examples import write_example
+    from ..ply import read_ply
+    from .info import describe
 
     folder = trained_example()
     if folder is not None:

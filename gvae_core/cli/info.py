@@ -23,7 +23,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..ply import read_ply  # noqa: PLC0415
+    from ..ply import read_ply
 
     cloud = read_ply(args.file, sanitize=args.sanitize)
     print(describe(cloud, title=str(args.file)))

@@ -68,7 +68,7 @@ def cameras_from_transforms(path: Path) -> tuple[list[Camera], list[str]]:
         first = str(frames[0].get("file_path", ""))
         for cand in (path.parent / first, path.parent / (first + ".png")):
             if first and cand.is_file():
-                from PIL import Image  # noqa: PLC0415
+                from PIL import Image
 
                 with Image.open(cand) as im:
                     width, height = im.size
@@ -95,8 +95,8 @@ def run(args: argparse.Namespace) -> int:
     # Idle OpenMP threads should yield rather than spin: on a shared machine spinning threads
     # stall each other. Only effective when torch is not imported yet (the usual CLI case).
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    from ..ply import read_ply  # noqa: PLC0415
-    from ..rendering import render  # noqa: PLC0415
+    from ..ply import read_ply
+    from ..rendering import render
 
     background = _parse_background(args.background)
     if args.height is not None and args.height <= 0:
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
         cams = orbit_cameras(np.asarray(cloud.means, np.float64), 8 if args.orbit is None else args.orbit,
                              args.height or 400, args.elevation)
         names = [f"orbit_{i:03d}" for i in range(len(cams))]
-    from PIL import Image  # noqa: PLC0415
+    from PIL import Image
 
     args.out.mkdir(parents=True, exist_ok=True)
     width = max(3, len(str(len(cams) - 1)))

@@ -9,7 +9,7 @@ from pathlib import Path
 
 
 def register(subparsers) -> None:
-    from ..experiment import PROTOCOLS  # noqa: PLC0415
+    from ..experiment import PROTOCOLS
 
     p = subparsers.add_parser(
         "report", help="run the paper's experiment on the benchmark scenes and write the report",
@@ -31,8 +31,8 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..experiment import run_experiment  # noqa: PLC0415
-    from ..report import write_report  # noqa: PLC0415
+    from ..experiment import run_experiment
+    from ..report import write_report
 
     t0 = time.perf_counter()
     doc = run_experiment(args.profile, model=args.model, scenes=args.scenes, cache=args.cache_dir,

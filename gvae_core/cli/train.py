@@ -39,12 +39,12 @@ def register(subparsers) -> None:
 
 
 def _load_points(path: Path):
-    import numpy as np  # noqa: PLC0415
+    import numpy as np
 
     if not path.is_file():
         raise FileNotFoundError(f"{path}: initial points file not found")
     if path.suffix.lower() == ".ply":
-        from ..ply import read_ply  # noqa: PLC0415
+        from ..ply import read_ply
 
         return read_ply(path).means
     try:
@@ -54,7 +54,7 @@ def _load_points(path: Path):
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..train import TrainConfig, train_progressive  # noqa: PLC0415 - imports torch
+    from ..train import TrainConfig, train_progressive
 
     overrides = dict(resolutions=tuple(args.resolutions) if args.resolutions else None,
                      sh_degree=args.sh_degree, seed=args.seed, init=args.init, init_count=args.init_count,

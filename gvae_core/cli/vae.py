@@ -54,7 +54,7 @@ def register(subparsers) -> None:
 
 
 def run_fit(args: argparse.Namespace) -> int:
-    from ..vae import FitConfig, GaussianVAE, copy_parent_baseline, evaluate, fit, load_runs, synthetic_transitions  # noqa: PLC0415
+    from ..vae import FitConfig, GaussianVAE, copy_parent_baseline, evaluate, fit, load_runs, synthetic_transitions
 
     if not args.runs and args.synthetic <= 0:
         raise ValueError("fit-vae: give at least one RUN_DIR (or --synthetic N)")
@@ -74,7 +74,7 @@ def run_fit(args: argparse.Namespace) -> int:
     config = FitConfig(steps=args.steps, batch=args.batch, lr=args.lr, seed=args.seed)
     bar = None
     if not args.quiet:
-        from tqdm import tqdm  # noqa: PLC0415
+        from tqdm import tqdm
 
         bar = tqdm(total=config.steps, desc="fit-vae", unit="step")
 
@@ -118,7 +118,7 @@ def run_fit(args: argparse.Namespace) -> int:
 
 def _display(run: Path) -> str:
     """A run path for the model's record: relative to the scene/run cache when inside it."""
-    from ..scenes import cache_dir  # noqa: PLC0415
+    from ..scenes import cache_dir
 
     try:
         return "$GVAE_CACHE_DIR/" + str(Path(run).resolve().relative_to(cache_dir().resolve()))
@@ -132,10 +132,10 @@ def _scene_name(run: Path) -> str:
 
 
 def run_refine(args: argparse.Namespace) -> int:
-    from ..budget import parse_budget  # noqa: PLC0415
-    from ..lineage import Lineage  # noqa: PLC0415
-    from ..ply import read_ply, write_ply  # noqa: PLC0415
-    from ..refinement import refine  # noqa: PLC0415
+    from ..budget import parse_budget
+    from ..lineage import Lineage
+    from ..ply import read_ply, write_ply
+    from ..refinement import refine
 
     budget = parse_budget(args.budget)
     t0 = time.perf_counter()

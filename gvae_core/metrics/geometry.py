@@ -13,6 +13,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from plyfile import PlyData
+from scipy.spatial import cKDTree
 
 #: Nearest surface samples whose triangles are tested exactly for each point (see `MeshDistance`).
 DEFAULT_CANDIDATES = 8
@@ -95,8 +97,6 @@ class MeshDistance:
     a sample within `spacing` of the true closest point); in practice it is exact."""
 
     def __init__(self, verts, tris, spacing: float | None = None, seed: int = 0, max_samples: int = 2_000_000):
-        from scipy.spatial import cKDTree  # noqa: PLC0415
-
         self.verts = np.asarray(verts, np.float64).reshape(-1, 3)
         self.tris = np.asarray(tris, np.int64).reshape(-1, 3)
         if len(self.tris) == 0:
@@ -156,8 +156,6 @@ def chamfer(centres, surface_points, mesh: MeshDistance | tuple | None = None) -
     from `surface_points` (M,3), accuracy from `mesh` (a `MeshDistance` or `(verts, tris)`);
     without a mesh, accuracy is measured against the surface points too. Non-finite centres
     raise ValueError; an empty set of centres gives infinite distances."""
-    from scipy.spatial import cKDTree  # noqa: PLC0415
-
     c = np.asarray(centres, np.float64).reshape(-1, 3)
     s = np.asarray(surface_points, np.float64).reshape(-1, 3)
     if not np.isfinite(c).all():
@@ -178,8 +176,6 @@ def chamfer(centres, surface_points, mesh: MeshDistance | tuple | None = None) -
 
 def read_mesh_ply(path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (V,3) and triangles (F,3) of a triangle-mesh PLY (a benchmark scene's mesh.ply)."""
-    from plyfile import PlyData  # noqa: PLC0415
-
     path = Path(path)
     try:
         data = PlyData.read(str(path))

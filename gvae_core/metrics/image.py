@@ -8,6 +8,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from ..losses import psnr, ssim
+from ..rendering import render
+from .niqe import niqe
+
 
 @dataclass
 class ImageScores:
@@ -26,8 +30,6 @@ class ImageScores:
 
 def render_views(cloud, views, background=(1.0, 1.0, 1.0), sh_degree: int | None = None) -> np.ndarray:
     """(N,H,W,3) float32 renders of `cloud` from every camera of `views`, clamped to [0,1]."""
-    from ..rendering import render  # noqa: PLC0415
-
     c = cloud.to_torch() if not cloud.is_torch else cloud
     with torch.no_grad():
         return np.stack([render(c, cam, background=background, sh_degree=sh_degree).image.clamp(0, 1).numpy()
@@ -39,15 +41,11 @@ def image_scores(cloud, views, background=(1.0, 1.0, 1.0), *, no_reference: bool
     """PSNR and SSIM of the renders against `views` composited on `background`, and the mean NIQE
     of the renders (skipped, NaN, when `no_reference` is False or the images are under 193 px).
     `images`: renders made already (skips rendering)."""
-    from ..losses import psnr, ssim  # noqa: PLC0415
-
     pred = render_views(cloud, views, background) if images is None else np.asarray(images, np.float32)
     target = views.composite(background)
     p = [min(psnr(a, b), 100.0) for a, b in zip(pred, target)]
     s = [float(ssim(torch.from_numpy(a), torch.from_numpy(b))) for a, b in zip(pred, target)]
     nr = float("nan")
     if no_reference and min(pred.shape[1:3]) > 192:
-        from .niqe import niqe  # noqa: PLC0415
-
         nr = float(np.mean([niqe(a) for a in pred]))
     return ImageScores(float(np.mean(p)), float(np.mean(s)), nr, len(pred), int(pred.shape[1]))

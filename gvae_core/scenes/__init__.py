@@ -12,6 +12,7 @@ importing this package does not.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import os
 import shutil
@@ -22,6 +23,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from .blender import INSTALL_HINT, BlenderNotAvailable
+from .library import SCENES
 
 # Bump when the scenes, cameras or render settings change: it invalidates cached scenes.
 GENERATOR_VERSION = 1
@@ -51,15 +53,11 @@ PROFILES: dict[str, Profile] = {p.name: p for p in [
 
 def list_scenes() -> list[str]:
     """Names of the procedural scenes."""
-    from .library import SCENES
-
     return list(SCENES)
 
 
 def describe_scenes() -> dict[str, str]:
     """Scene name -> what it stresses."""
-    from .library import SCENES
-
     return {name: spec.stresses for name, spec in SCENES.items()}
 
 
@@ -128,8 +126,6 @@ def make_scene(name: str, out_dir: str | os.PathLike | None = None, *, profile: 
 
 def bpy_available() -> bool:
     """Whether the bpy module can be imported (without importing it)."""
-    import importlib.util
-
     return importlib.util.find_spec("bpy") is not None
 
 

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from plyfile import PlyData, PlyElement
 
 from ..camera import Camera
 from . import GENERATOR_VERSION, MARKER, PROFILES, blender, cameras, scene_key
@@ -47,14 +48,12 @@ def _frames(c2ws: np.ndarray, split: str) -> list[dict]:
 
 def write_mesh_ply(path: Path, verts: np.ndarray, tris: np.ndarray) -> None:
     """Binary little-endian PLY with float32 vertices and int32 triangle faces."""
-    from plyfile import PlyData, PlyElement
-
     v = np.empty(len(verts), [("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
     v["x"], v["y"], v["z"] = verts.T
     f = np.empty(len(tris), [("vertex_indices", "i4", (3,))])
     f["vertex_indices"] = tris
-    PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face", len_types={"vertex_indices": "u1"},
-                                                                   val_types={"vertex_indices": "i4"})]).write(str(path))
+    faces = PlyElement.describe(f, "face", len_types={"vertex_indices": "u1"}, val_types={"vertex_indices": "i4"})
+    PlyData([PlyElement.describe(v, "vertex"), faces]).write(str(path))
 
 
 def generate(name: str, out: Path, profile: str = "tiny", seed: int = 0, threads: int | None = None,

@@ -6,11 +6,12 @@ Builders need bpy (through `blender`), but this module imports without it."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
+from . import blender
 from . import geometry as g
 
 
@@ -21,14 +22,8 @@ class SceneSpec:
     build: Callable[[np.random.Generator], None]
 
 
-def _b():
-    from . import blender  # noqa: PLC0415 - keeps the bpy side out of plain imports
-
-    return blender
-
-
 def _default_lights():
-    b = _b()
+    b = blender
     b.studio_world(0.5)
     b.add_light("SUN", (3.0, -2.0, 5.0), energy=2.5, angle=math.radians(4.0))
     b.add_light("AREA", (-3.0, 2.5, 2.5), energy=150.0, size=2.0)
@@ -36,13 +31,13 @@ def _default_lights():
 
 # ---------------------------------------------------------------------------------- textures
 def _tex_coords(tree, kind="Object"):
-    b = _b()
+    b = blender
     return b.node(tree, "ShaderNodeTexCoord", (-1200, 0)).outputs[kind]
 
 
 def _wood(scale=6.0, dark=(0.25, 0.12, 0.05), light=(0.55, 0.32, 0.15)):
     def shader(tree, bsdf):
-        b = _b()
+        b = blender
         co = _tex_coords(tree)
         noise = b.node(tree, "ShaderNodeTexNoise", (-900, 200), Scale=3.0, Detail=4.0)
         tree.links.new(co, noise.inputs["Vector"])
@@ -58,7 +53,7 @@ def _wood(scale=6.0, dark=(0.25, 0.12, 0.05), light=(0.55, 0.32, 0.15)):
 def _bricks_texture(tree, bsdf):
     """Small bricks with mortar, each brick's colour jittered by a Voronoi cell pattern, and a
     fine checker overlay: detail from 1 to 20 pixels at 400 px."""
-    b = _b()
+    b = blender
     co = _tex_coords(tree)
     brick = b.node(tree, "ShaderNodeTexBrick", (-700, 200), Scale=6.0, **{
         "Color1": (0.55, 0.16, 0.08, 1.0), "Color2": (0.75, 0.45, 0.2, 1.0), "Mortar": (0.9, 0.88, 0.8, 1.0),
@@ -87,7 +82,7 @@ def _bricks_texture(tree, bsdf):
 
 def _magic_texture(tree, bsdf):
     """Blender's Magic texture: colourful interference patterns, with fine stripes on top."""
-    b = _b()
+    b = blender
     co = _tex_coords(tree)
     magic = b.node(tree, "ShaderNodeTexMagic", (-700, 0), Scale=9.0, Distortion=2.0, turbulence_depth=4)
     tree.links.new(co, magic.inputs["Vector"])
@@ -101,7 +96,7 @@ def _magic_texture(tree, bsdf):
 
 def _noise_rings(tree, bsdf):
     """Concentric rings and speckle noise on a sphere."""
-    b = _b()
+    b = blender
     co = _tex_coords(tree)
     noise = b.node(tree, "ShaderNodeTexNoise", (-700, -200), Scale=80.0, Detail=2.0)
     tree.links.new(co, noise.inputs["Vector"])
@@ -122,7 +117,7 @@ def _noise_rings(tree, bsdf):
 # ------------------------------------------------------------------------------------- scenes
 def build_plant(rng: np.random.Generator) -> None:
     """A potted plant: a main stem, branches a few pixels wide or less, ~100 thin leaves."""
-    b = _b()
+    b = blender
     _default_lights()
     clay = b.material("clay", (0.6, 0.28, 0.15), roughness=0.7)
     soil = b.material("soil", (0.09, 0.06, 0.04), roughness=1.0)
@@ -180,7 +175,7 @@ def build_plant(rng: np.random.Generator) -> None:
 def build_crate(rng: np.random.Generator) -> None:
     """High-frequency texture: a bevelled crate covered in tiny bricks and checker bands, a can
     with an interference pattern and a ball with rings and speckle."""
-    b = _b()
+    b = blender
     _default_lights()
     crate = g.transform(g.box((1.0, 1.0, 1.0)), g.translation((-0.28, 0.12, -0.45)) @ g.rotation((0, 0, 1), 0.35))
     b.add_mesh("crate", crate, b.material("bricks", roughness=0.8, shader=_bricks_texture), bevel=0.03)
@@ -194,7 +189,7 @@ def build_crate(rng: np.random.Generator) -> None:
 def build_materials(rng: np.random.Generator) -> None:
     """Glossy and specular: seven spheres (mirror chrome, gold, brushed copper, coated plastic,
     black lacquer, glazed ceramic, satin steel) on a matte disc, lit by area lights they reflect."""
-    b = _b()
+    b = blender
     b.studio_world(1.0)
     b.add_light("AREA", (2.5, -2.5, 3.0), energy=400.0, size=1.0)
     b.add_light("AREA", (-3.0, -0.5, 2.0), energy=250.0, size=0.6)
@@ -223,7 +218,7 @@ def build_materials(rng: np.random.Generator) -> None:
 
 def build_bricks(rng: np.random.Generator) -> None:
     """Fine repeated geometry: a baseplate with 16x16 studs and a small stack of studded bricks."""
-    b = _b()
+    b = blender
     _default_lights()
     pitch, stud_r, stud_h, plate_h, brick_h = 0.1, 0.03, 0.02, 0.04, 0.12
     top = -0.55
@@ -251,7 +246,8 @@ def build_bricks(rng: np.random.Generator) -> None:
                 span = 10 - 2 * layer
                 if w > span or d > span:
                     continue
-                i0, j0 = int(rng.integers(-span // 2, span // 2 - w + 1)), int(rng.integers(-span // 2, span // 2 - d + 1))
+                i0 = int(rng.integers(-span // 2, span // 2 - w + 1))
+                j0 = int(rng.integers(-span // 2, span // 2 - d + 1))
                 cells = {(layer, i, j) for i in range(i0, i0 + w) for j in range(j0, j0 + d)}
                 supported = layer == 0 or all((layer - 1, i, j) in occupancy for (_, i, j) in cells)
                 if supported and not cells & occupancy.keys():
@@ -270,7 +266,7 @@ def build_bricks(rng: np.random.Generator) -> None:
 
 def build_chair(rng: np.random.Generator) -> None:
     """A chair with thin splayed legs, thin stretchers, a backrest of thin spindles and a cushion."""
-    b = _b()
+    b = blender
     _default_lights()
     wood = b.material("wood", roughness=0.45, coat=0.3, shader=_wood())
     fabric = b.material("fabric", (0.55, 0.08, 0.1), roughness=0.9)
@@ -310,7 +306,7 @@ def build_tableware(rng: np.random.Generator) -> None:
     """Compound object with large smooth areas: a wide plate, a glazed mug with a handle, an
     orange and an egg-shaped lemon, finely tessellated and smooth-shaded. (No subdivision
     modifier: OpenSubdiv is very slow on the high-valence poles of revolved shapes.)"""
-    b = _b()
+    b = blender
     _default_lights()
     plate = [(0.0, -0.78), (0.4, -0.78), (0.65, -0.78), (0.68, -0.775), (0.70, -0.765), (0.85, -0.72),
              (1.02, -0.665), (1.08, -0.645), (1.12, -0.63), (1.12, -0.615), (1.10, -0.61), (1.06, -0.62),

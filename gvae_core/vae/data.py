@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -43,7 +43,7 @@ class TransitionData:
         self.densified = np.asarray(self.densified, bool).reshape(m)
 
     @classmethod
-    def from_transition(cls, tr: Transition, stage: int = 1, source: str = "") -> "TransitionData":
+    def from_transition(cls, tr: Transition, stage: int = 1, source: str = "") -> TransitionData:
         """From a `gvae_core.lineage.Transition`."""
         new_child = (np.asarray(tr.child_ids) != np.asarray(tr.history.ids)[:, None]) & np.asarray(tr.child_mask, bool)
         return cls(np.asarray(tr.history.geometry, np.float32), np.asarray(tr.history.appearance, np.float32),
@@ -53,7 +53,7 @@ class TransitionData:
     def __len__(self) -> int:
         return len(self.history_geometry)
 
-    def subset(self, index: np.ndarray) -> "TransitionData":
+    def subset(self, index: np.ndarray) -> TransitionData:
         return TransitionData(self.history_geometry[index], self.history_appearance[index],
                               self.child_geometry[index], self.child_appearance[index], self.child_mask[index],
                               self.stage, self.source, self.densified[index])

@@ -47,7 +47,7 @@ class ParentFrame:
     size: torch.Tensor     # (M,) exp(mean log-scale)
 
     @classmethod
-    def of(cls, last: torch.Tensor) -> "ParentFrame":
+    def of(cls, last: torch.Tensor) -> ParentFrame:
         quat = quaternions.canonical(last[:, GEO_QUAT])
         ls = last[:, GEO_LOG_SCALE].clamp(*FEATURE_LOG_SCALE_RANGE)
         return cls(pos=last[:, GEO_POSITION], quat=quat, rot=quaternions.to_rotmat(quat), log_scale=ls,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
@@ -41,7 +41,7 @@ class FitResult:
     seconds: float
 
 
-def fit(transitions: Sequence[TransitionData], config: FitConfig = FitConfig(), *,
+def fit(transitions: Sequence[TransitionData], config: FitConfig | None = None, *,
         model: GaussianVAE | None = None, progress: Callable[[int, int, dict], None] | None = None) -> FitResult:
     """Train both models on stage transitions by predicting each lineage's masked last stage.
     Coarse-to-fine: the first `coarse_fraction` of steps draws only from the lowest stage, then
@@ -50,6 +50,7 @@ def fit(transitions: Sequence[TransitionData], config: FitConfig = FitConfig(), 
     if not transitions:
         raise ValueError("fit: no transitions to train on (every lineage set is empty)")
     start = time.perf_counter()
+    config = config or FitConfig()
     model = model or GaussianVAE.create(seed=config.seed)
     params = list(model.geometry.parameters()) + list(model.appearance.parameters())
     opt = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)

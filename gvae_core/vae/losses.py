@@ -88,7 +88,7 @@ def appearance_error(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
 
 
 def transition_loss(geometry: LineageVAE, appearance: LineageVAE, batch: TransitionData, *, beta: float = 1.0,
-                    weights: LossWeights = LossWeights(), generator: torch.Generator | None = None,
+                    weights: LossWeights | None = None, generator: torch.Generator | None = None,
                     sample: bool = True) -> dict[str, torch.Tensor]:
     """Both models' losses on one batch of transitions. True children are matched to the
     geometry model's slots (centres and log-scales in the parent frame); the appearance model
@@ -99,7 +99,6 @@ def transition_loss(geometry: LineageVAE, appearance: LineageVAE, batch: Transit
     cg = clean_nodes(_pad_children(batch.child_geometry, slots))
     ca = clean_nodes(_pad_children(batch.child_appearance, slots))
     mask = _pad_children(batch.child_mask, slots).bool()
-    c = mask.shape[1]
     maskf = mask.float()
     n_child = maskf.sum().clamp(min=1.0)
 
@@ -151,7 +150,7 @@ def transition_loss(geometry: LineageVAE, appearance: LineageVAE, batch: Transit
     exist_a = F.binary_cross_entropy_with_logits(pa.exist_logit, target_exist)
     kl_a = appearance.kl(mu_a, lv_a, z_a).mean()
 
-    w = weights
+    w = weights or LossWeights()
     total = (w.kl * beta * (kl_g + kl_a) + w.mse * mse + w.chamfer * chamfer + w.exist * exist_g
              + w.geometry_state * state + w.appearance_exist * exist_a + w.densify * densify
              + w.offset_nll * offset_nll)

@@ -176,7 +176,8 @@ class LineageVAE(nn.Module):
             pos = frame.pos[:, None] + world
             delta = quaternions.normalize(raw[..., GEO_QUAT] + raw.new_tensor([1.0, 0.0, 0.0, 0.0]))
             quat = quaternions.canonical(quaternions.multiply(frame.quat[:, None], delta))
-            ls = frame.log_scale[:, None] + MAX_LOG_SCALE_CHANGE * torch.tanh(raw[..., GEO_LOG_SCALE] / MAX_LOG_SCALE_CHANGE)
+            change = MAX_LOG_SCALE_CHANGE * torch.tanh(raw[..., GEO_LOG_SCALE] / MAX_LOG_SCALE_CHANGE)
+            ls = frame.log_scale[:, None] + change
             children = torch.cat([pos, quat, ls, torch.sigmoid(logit)[..., None]], -1)
             return SlotPrediction(children, logit, world / frame.size[:, None, None], local_mean=d,
                                   local_spread=spread)
@@ -226,7 +227,7 @@ class GaussianVAE:
 
     @classmethod
     def create(cls, geometry: VAEConfig | None = None, appearance: VAEConfig | None = None,
-               seed: int = 0, **size) -> "GaussianVAE":
+               seed: int = 0, **size) -> GaussianVAE:
         """Untrained models. Configs not given are the bundled models' size (`DEFAULT_SIZE`),
         with `size` (VAEConfig fields, for both) overriding it."""
         torch.manual_seed(seed)
@@ -286,7 +287,7 @@ class GaussianVAE:
         return save_model(self, directory)
 
     @classmethod
-    def load(cls, directory) -> "GaussianVAE":
+    def load(cls, directory) -> GaussianVAE:
         """A model written by `save` (`persistence.load_model`)."""
         from .persistence import load_model  # noqa: PLC0415 - persistence imports this module
 

@@ -24,7 +24,7 @@ def setup(args: dict):
         sys.modules["torch"] = None  # as in a Blender without torch: `import torch` fails
     os.environ["HOME"] = home
     os.environ["BLENDER_USER_RESOURCES"] = os.path.join(home, "blender")
-    import bpy  # noqa: PLC0415
+    import bpy
 
     if args.get("install", True):
         result = bpy.ops.extensions.package_install_files(
@@ -57,7 +57,7 @@ def evaluated(bpy, obj) -> dict:
 
 def attributes(obj) -> dict:
     """Every point attribute of the object's mesh, as numpy arrays by name."""
-    import numpy as np  # noqa: PLC0415
+    import numpy as np
 
     out = {}
     me = obj.data
@@ -80,7 +80,7 @@ def failure(bpy, call) -> dict:
     try:
         call()
         error = None
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:
         error = str(exc)
     return {"error": error, "unchanged": counts(bpy) == before}
 
@@ -88,14 +88,14 @@ def failure(bpy, call) -> dict:
 # --------------------------------------------------------------------------------- scenarios
 
 def scenario_io(bpy, args: dict) -> dict:
-    import numpy as np  # noqa: PLC0415
+    import numpy as np
 
     res: dict = {}
-    import gvae_core  # noqa: PLC0415 - after install: must be the extension's copy
+    import gvae_core
 
     res["gvae_core_file"] = gvae_core.__file__
     res["addons"] = list(bpy.context.preferences.addons.keys())
-    from bl_ext.user_default.gaussian_vae.gvae_addon import runtime  # noqa: PLC0415
+    from bl_ext.user_default.gaussian_vae.gvae_addon import runtime
 
     res["refine_status"] = runtime.refine_status()
     before = counts(bpy)
@@ -147,15 +147,15 @@ def scenario_install(bpy, args: dict) -> dict:
     res = {"addons": list(bpy.context.preferences.addons.keys())}
     if args.get("model_dir"):
         try:
-            import gvae_core.refinement  # noqa: F401, PLC0415
-            from gvae_core.vae import GaussianVAE, load_default_model  # noqa: PLC0415
-        except Exception as exc:  # noqa: BLE001
+            import gvae_core.refinement  # noqa: F401
+            from gvae_core.vae import GaussianVAE, load_default_model
+        except Exception as exc:
             res.update(model=None, what=f"gvae_core.refinement is not importable: {exc}")
             return res
         try:
             load_default_model()
             res.update(model="", what="bundled model")
-        except Exception:  # noqa: BLE001 - no bundled model (yet)
+        except Exception:
             path = GaussianVAE.create(seed=0).save(args["model_dir"])
             res.update(model=str(path), what="untrained weights")
     return res
@@ -182,9 +182,9 @@ def _stand_in_module(fail: bool):
     """TEST-ONLY stand-in for gvae_core.refinement: NOT the model. It appends, per step, a shifted copy
     of the first quarter of the input, so the glue's bookkeeping (rows, parents, steps, extras,
     gvae_step) can be checked exactly."""
-    import types  # noqa: PLC0415
+    import types
 
-    import numpy as np  # noqa: PLC0415
+    import numpy as np
 
     calls = []
 
@@ -217,7 +217,7 @@ def _stand_in_module(fail: bool):
 def draw_panels(bpy) -> list[str]:
     """Call every panel's draw() with a recording layout (there is no UI in background mode);
     returns the labels it showed. Catches errors in the draw code itself."""
-    from unittest import mock  # noqa: PLC0415
+    from unittest import mock
 
     labels = []
     for name in ("GVAE_PT_main", "GVAE_PT_display", "GVAE_PT_refine"):
@@ -256,7 +256,7 @@ def scenario_refine_glue(bpy, args: dict) -> dict:
     res["bad_budget"] = failure(bpy, lambda: bpy.ops.gvae.refine(budget="lots"))
     bpy.ops.gvae.refine(steps=2, budget="0.5", seed=7)
     res["calls"] = list(stand_in.calls)
-    import numpy as np  # noqa: PLC0415
+    import numpy as np
 
     np.savez(args["out"] + ".first.npz", **attributes(obj))
     res["materials"] = [m.name for m in obj.data.materials]
@@ -274,7 +274,7 @@ def scenario_refine_glue(bpy, args: dict) -> dict:
 
 def scenario_install_package(bpy, args: dict) -> dict:
     """The preferences' install button with a local wheel instead of torch (no network)."""
-    from bl_ext.user_default.gaussian_vae.gvae_addon import runtime  # noqa: PLC0415
+    from bl_ext.user_default.gaussian_vae.gvae_addon import runtime
 
     target = runtime.torch_dir()
     result = bpy.ops.gvae.install_torch(requirement=args["requirement"], pip_args=args["pip_args"])
@@ -284,8 +284,8 @@ def scenario_install_package(bpy, args: dict) -> dict:
 
 def scenario_cycles(bpy, args: dict) -> dict:
     """Render the imported scene with Cycles from a given camera, as ellipsoids and as points."""
-    import numpy as np  # noqa: PLC0415
-    from mathutils import Matrix  # noqa: PLC0415
+    import numpy as np
+    from mathutils import Matrix
 
     for obj in list(bpy.data.objects):
         bpy.data.objects.remove(obj)
@@ -341,7 +341,7 @@ def main() -> int:
     bpy = setup(args)
     try:
         result = SCENARIOS[name](bpy, args)
-    except Exception:  # noqa: BLE001 - pytest shows this
+    except Exception:
         traceback.print_exc()
         return 3
     result["torch_imported"] = "torch" in sys.modules and sys.modules["torch"] is not None

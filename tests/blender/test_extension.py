@@ -6,17 +6,22 @@ Blender's state is global per process and other tests use bpy in the pytest proc
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import os
 import subprocess
 import sys
+import tomllib
 import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+from plyfile import PlyData
 
+from gvae_core import render
+from gvae_core.camera import Camera
 from gvae_core.cloud import GaussianCloud
 from gvae_core.ply import read_ply, write_ply
 from gvae_core.quaternions import normalize as normalize_quats
@@ -30,8 +35,6 @@ SCENARIOS = Path(__file__).with_name("_scenarios.py")
 
 
 def _blender_ext() -> Path:
-    import importlib.util
-
     origin = Path(importlib.util.find_spec("bpy").origin).parent
     return next(origin.glob("*/scripts/addons_core/bl_pkg/cli/blender_ext.py"))
 
@@ -84,8 +87,6 @@ def make_cloud(n: int, degree: int = 3, seed: int = 0, extras: bool = True) -> G
 
 def ply_columns(path: Path) -> dict:
     """Every vertex property of a PLY, read with plyfile (a reader independent of gvae_core)."""
-    from plyfile import PlyData
-
     v = PlyData.read(str(path))["vertex"].data
     return {name: np.asarray(v[name]) for name in v.dtype.names}
 
@@ -118,7 +119,6 @@ def test_offline_wheel_bundle_marks_the_platform(extension_zip, tmp_path):
          "--output-dir", str(tmp_path / "dist"), "--staging-dir", str(tmp_path / "stage"),
          "--wheel-cache", str(plyfile_wheel.parent)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    import tomllib
 
     with zipfile.ZipFile(proc.stdout.strip().splitlines()[-1]) as z:
         manifest = tomllib.loads(z.read("blender_manifest.toml").decode())
@@ -318,14 +318,6 @@ def test_batch_command_line(extension_zip, tmp_path):
     assert "Gaussian splat import failed" in proc.stderr and "missing.ply" in proc.stderr
 
 
-def _render_available() -> str | None:
-    try:
-        from gvae_core import render  # noqa: F401
-    except Exception as exc:  # noqa: BLE001
-        return f"gvae_core.render is not available: {exc}"
-    return None
-
-
 def agreement_scene(seed: int = 3) -> GaussianCloud:
     """Nine anisotropic, rotated, nearly opaque Gaussians of distinct colours on a 3x3 grid in the
     x-z plane (Blender's front view), SH degree 0."""
@@ -346,12 +338,6 @@ def test_cycles_render_agrees_with_gvae_core_render(extension_zip, tmp_path):
     """Axes, rotation order and colour conventions end to end: a Cycles render of the imported
     ellipsoids matches gvae_core.render from the same camera (silhouettes and colours). With the
     quaternion read as x,y,z,w instead of w,x,y,z the IoU drops from about 0.9 to 0.4."""
-    problem = _render_available()
-    if problem:
-        pytest.skip(problem)
-    from gvae_core import render
-    from gvae_core.camera import Camera
-
     cloud = agreement_scene()
     src = tmp_path / "scene.ply"
     write_ply(cloud, src)
