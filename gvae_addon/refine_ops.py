@@ -28,22 +28,13 @@ def refine_object(obj, *, steps: int = 1, budget="auto", model=None, seed: int =
     if n_in == 0:
         raise ValueError(f"object {obj.name!r} has no Gaussians to refine")
     result = refine(cloud, steps=steps, budget=budget, model=model, seed=seed, progress=progress)
-    out = result.cloud.numpy() if result.cloud.is_torch else result.cloud
-    added = np.asarray(result.added, np.int64).reshape(-1)
-    parents = np.asarray(result.parents, np.int64).reshape(-1)
-    step = np.asarray(result.step, np.int64).reshape(-1)
-    n_out = len(out)
-    if not (len(added) == len(parents) == len(step)) or n_out < n_in \
-            or (len(added) and (added.min() < n_in or added.max() >= n_out)) \
-            or (len(parents) and (parents.min() < 0 or parents.max() >= n_in)):
-        raise RuntimeError(f"refine returned an inconsistent result ({n_in} in, {n_out} out, "
-                           f"{len(added)} added)")
-    marks = np.zeros(n_out, np.int32)
+    out = result.cloud
+    marks = np.zeros(len(out), np.int32)
     base = 0
     if old_steps is not None:
         marks[:n_in] = old_steps
         base = int(old_steps.max(initial=0))
-    marks[added] = base + step
+    marks[result.added] = base + result.step
 
     old = obj.data
     new = convert.mesh_from_cloud(out, old.name, steps=marks)
@@ -52,8 +43,7 @@ def refine_object(obj, *, steps: int = 1, budget="auto", model=None, seed: int =
     obj.data = new
     if old.users == 0:
         bpy.data.meshes.remove(old)
-    timings = dict(getattr(result, "timings", {}) or {})
-    return {"before": n_in, "after": n_out, "added": len(added), "timings": timings}
+    return {"before": n_in, "after": len(out), "added": len(result.added), "timings": dict(result.timings)}
 
 
 class GVAE_OT_refine(Operator):

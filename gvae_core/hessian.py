@@ -50,6 +50,15 @@ def _prepare(cloud: GaussianCloud):
     return c.replace(means=means, scales=scales), means, scales
 
 
+def _gradient(output: torch.Tensor, means: torch.Tensor, scales: torch.Tensor, scale: float,
+              retain: bool) -> torch.Tensor:
+    """(N,6) float64 gradient of a scalar output: position (normalised frame), log-scale."""
+    gm, gs = torch.autograd.grad(output, [means, scales], retain_graph=retain, allow_unused=True)
+    gm = torch.zeros_like(means) if gm is None else gm
+    gs = torch.zeros_like(scales) if gs is None else gs
+    return torch.nan_to_num(torch.cat([gm * scale, gs], 1).double(), nan=0.0, posinf=0.0, neginf=0.0)
+
+
 def _render_image(cloud: GaussianCloud, camera: Camera, settings=None) -> torch.Tensor:
     return render(cloud, camera, settings=settings).image
 
@@ -79,11 +88,7 @@ def hessian_blocks(cloud: GaussianCloud, cameras: Sequence[Camera] | None = None
             continue
         for p in range(probes):
             v = torch.randint(0, 2, image.shape, generator=gen).to(image.dtype).mul_(2).sub_(1)
-            gm, gs = torch.autograd.grad((image * v).sum(), [means, scales], retain_graph=p < probes - 1,
-                                         allow_unused=True)
-            gm = torch.zeros_like(means) if gm is None else gm
-            gs = torch.zeros_like(scales) if gs is None else gs
-            g = torch.nan_to_num(torch.cat([gm * scale, gs], 1).double(), nan=0.0, posinf=0.0, neginf=0.0)
+            g = _gradient((image * v).sum(), means, scales, scale, retain=p < probes - 1)
             blocks += g[:, :, None] * g[:, None, :]
     return blocks / probes
 
@@ -99,10 +104,7 @@ def hessian_blocks_reference(cloud: GaussianCloud, cameras: Sequence[Camera], re
         for p in range(image.numel()):
             if not image[p].requires_grad:
                 continue
-            gm, gs = torch.autograd.grad(image[p], [means, scales], retain_graph=True, allow_unused=True)
-            gm = torch.zeros_like(means) if gm is None else gm
-            gs = torch.zeros_like(scales) if gs is None else gs
-            g = torch.cat([gm * scale, gs], 1).double()
+            g = _gradient(image[p], means, scales, scale, retain=True)
             blocks += g[:, :, None] * g[:, None, :]
     return blocks
 

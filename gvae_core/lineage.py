@@ -11,6 +11,7 @@ serves every scene. numpy only; torch is never imported here.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -114,20 +115,49 @@ class LineageBatch:
 
 @dataclass
 class Transition:
-    """Stage s-1 -> s. `history`: lineages (T = s nodes) of the Gaussians alive at s-1; their
-    children at s (itself first if it survived, then new Gaussians whose parent it is, by id),
-    padded to C slots: child_geometry (M,C,11), child_appearance (M,C,50), child_mask (M,C),
-    child_ids (M,C) (-1 in empty slots). `cap` is the slot limit asked for, `dropped` how many
-    children did not fit, `orphans` how many stage-s Gaussians have no parent at s-1."""
+    """Stage s-1 -> s, what the VAEs learn from: the lineages (T = s nodes) of the M Gaussians
+    alive at s-1, history_geometry (M,T,11) and history_appearance (M,T,50), and their children
+    at s (itself first if it survived, then new Gaussians whose parent it is, by id), padded to C
+    slots: child_geometry (M,C,11), child_appearance (M,C,50), child_mask (M,C). `densified`
+    (M,): the Gaussian spawned one that is not itself (default: two or more children). From a
+    training run, also the ids (`history_ids` (M,), `child_ids` (M,C), -1 in empty slots), how
+    many children did not fit in C slots (`dropped`) and how many stage-s Gaussians have no parent
+    at s-1 (`orphans`)."""
 
-    history: LineageBatch
+    history_geometry: np.ndarray
+    history_appearance: np.ndarray
     child_geometry: np.ndarray
     child_appearance: np.ndarray
     child_mask: np.ndarray
-    child_ids: np.ndarray
-    cap: int
-    dropped: int
-    orphans: int
+    stage: int = 1
+    source: str = ""
+    densified: np.ndarray | None = None
+    history_ids: np.ndarray | None = None
+    child_ids: np.ndarray | None = None
+    dropped: int = 0
+    orphans: int = 0
+
+    def __post_init__(self):
+        m, t = self.history_geometry.shape[:2]
+        geo, app = GEOMETRY_DIM, APPEARANCE_DIM
+        shapes = {"history_geometry": (m, t, geo), "history_appearance": (m, t, app),
+                  "child_geometry": (m, None, geo), "child_appearance": (m, None, app), "child_mask": (m, None)}
+        for name, shape in shapes.items():
+            got = getattr(self, name).shape
+            if len(got) != len(shape) or any(s is not None and s != g for s, g in zip(shape, got)):
+                raise ValueError(f"Transition.{name} has shape {got}, expected {shape} (None = any)")
+        if self.densified is None:
+            self.densified = self.child_mask.sum(1) >= 2
+        self.densified = np.asarray(self.densified, bool).reshape(m)
+
+    def __len__(self) -> int:
+        return len(self.history_geometry)
+
+    def subset(self, index) -> Transition:
+        """The lineages `index` (ids kept; `dropped` and `orphans` are of the whole step)."""
+        rows = ("history_geometry", "history_appearance", "child_geometry", "child_appearance", "child_mask",
+                "densified", "history_ids", "child_ids")
+        return dataclasses.replace(self, **{f: getattr(self, f)[index] for f in rows if getattr(self, f) is not None})
 
 
 @dataclass
@@ -252,7 +282,7 @@ class Lineage:
         if not first <= stage < self.n_stages:
             raise ValueError(f"stage {stage} out of range {first}..{self.n_stages - 1}")
 
-    def _rows_of(self, stage: int, ids: np.ndarray) -> np.ndarray:
+    def rows_of(self, stage: int, ids) -> np.ndarray:
         """Row of each id in the stage's snapshot, -1 where it is not alive there."""
         if stage not in self._index_cache:
             order = np.argsort(self.snapshots[stage].ids, kind="stable")
@@ -286,7 +316,7 @@ class Lineage:
             direct = src_stage[:, s] == s  # chain still inside snapshots (not repeating)
             parent_ids = np.full(m, -1, np.int64)
             parent_ids[direct] = self.snapshots[s].parents[src_row[direct, s]]
-            rows = self._rows_of(s - 1, parent_ids)
+            rows = self.rows_of(s - 1, parent_ids)
             ok = direct & (rows >= 0)
             src_stage[:, s - 1] = np.where(ok, s - 1, src_stage[:, s])
             src_row[:, s - 1] = np.where(ok, rows, src_row[:, s])
@@ -306,7 +336,7 @@ class Lineage:
         appearance[..., APP_EXIST] = exist
         return LineageBatch(geometry, appearance, ids.copy())
 
-    def transitions(self, stage: int, max_children: int = 8) -> Transition:
+    def transitions(self, stage: int, max_children: int = 8, source: str = "") -> Transition:
         """The step stage-1 -> stage: lineages of the Gaussians alive at stage-1 and their
         children at `stage`, at most `max_children` per parent (the rest are counted in
         `dropped`)."""
@@ -316,7 +346,7 @@ class Lineage:
         history = self.sequences(stage - 1)
         m = len(history)
         snap = self.snapshots[stage]
-        group = self._rows_of(stage - 1, snap.parents)
+        group = self.rows_of(stage - 1, snap.parents)
         has = group >= 0
         orphans = int((~has).sum())
         rows = np.flatnonzero(has)
@@ -340,8 +370,10 @@ class Lineage:
         child_appearance[g, rank] = app[rows]
         child_mask[g, rank] = True
         child_ids[g, rank] = snap.ids[rows]
-        return Transition(history, child_geometry, child_appearance, child_mask, child_ids,
-                          int(max_children), dropped, orphans)
+        not_self = (child_ids != history.ids[:, None]) & child_mask
+        return Transition(history.geometry, history.appearance, child_geometry, child_appearance, child_mask,
+                          stage=stage, source=source, densified=not_self.any(1), history_ids=history.ids,
+                          child_ids=child_ids, dropped=dropped, orphans=orphans)
 
     # ------------------------------------------------------------ files
     def save(self, path) -> Path:

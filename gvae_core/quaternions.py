@@ -72,32 +72,20 @@ def to_rotmat(q):
 
 
 def from_rotmat(m) -> np.ndarray:
-    """(..., 3, 3) rotation matrices to (..., 4) unit quaternions with w >= 0 (numpy, float64)."""
+    """(..., 3, 3) rotation matrices to (..., 4) unit quaternions with w >= 0 (numpy, float64).
+    Shepperd's method: column p of the symmetric matrix K = 4 q q^T follows from the matrix
+    entries, and the column of its largest diagonal entry gives q without cancellation."""
     m = np.asarray(m, np.float64)
-    flat = m.reshape(-1, 3, 3)
-    out = np.empty((flat.shape[0], 4))
-    tr = flat[:, 0, 0] + flat[:, 1, 1] + flat[:, 2, 2]
-    # Choose the numerically largest of w, x, y, z as the pivot (Shepperd's method).
-    cand = np.stack([tr, flat[:, 0, 0], flat[:, 1, 1], flat[:, 2, 2]], 1)
-    pivot = cand.argmax(1)
-    for p in range(4):
-        sel = pivot == p
-        if not sel.any():
-            continue
-        a = flat[sel]
-        if p == 0:
-            s = np.sqrt(np.maximum(1 + a[:, 0, 0] + a[:, 1, 1] + a[:, 2, 2], 1e-300)) * 2
-            q = [0.25 * s, (a[:, 2, 1] - a[:, 1, 2]) / s, (a[:, 0, 2] - a[:, 2, 0]) / s, (a[:, 1, 0] - a[:, 0, 1]) / s]
-        elif p == 1:
-            s = np.sqrt(np.maximum(1 + a[:, 0, 0] - a[:, 1, 1] - a[:, 2, 2], 1e-300)) * 2
-            q = [(a[:, 2, 1] - a[:, 1, 2]) / s, 0.25 * s, (a[:, 0, 1] + a[:, 1, 0]) / s, (a[:, 0, 2] + a[:, 2, 0]) / s]
-        elif p == 2:
-            s = np.sqrt(np.maximum(1 - a[:, 0, 0] + a[:, 1, 1] - a[:, 2, 2], 1e-300)) * 2
-            q = [(a[:, 0, 2] - a[:, 2, 0]) / s, (a[:, 0, 1] + a[:, 1, 0]) / s, 0.25 * s, (a[:, 1, 2] + a[:, 2, 1]) / s]
-        else:
-            s = np.sqrt(np.maximum(1 - a[:, 0, 0] - a[:, 1, 1] + a[:, 2, 2], 1e-300)) * 2
-            q = [(a[:, 1, 0] - a[:, 0, 1]) / s, (a[:, 0, 2] + a[:, 2, 0]) / s, (a[:, 1, 2] + a[:, 2, 1]) / s, 0.25 * s]
-        out[sel] = np.stack(q, 1)
+    a00, a01, a02, a10, a11, a12, a20, a21, a22 = m.reshape(-1, 9).T
+    k = np.array([[1 + a00 + a11 + a22, a21 - a12, a02 - a20, a10 - a01],
+                  [a21 - a12, 1 + a00 - a11 - a22, a01 + a10, a02 + a20],
+                  [a02 - a20, a01 + a10, 1 - a00 + a11 - a22, a12 + a21],
+                  [a10 - a01, a02 + a20, a12 + a21, 1 - a00 - a11 + a22]]).transpose(2, 0, 1)
+    rows = np.arange(len(k))
+    pivot = np.stack([a00 + a11 + a22, a00, a11, a22], 1).argmax(1)
+    s = np.sqrt(np.maximum(k[rows, pivot, pivot], 1e-300)) * 2
+    out = k[rows, pivot] / s[:, None]
+    out[rows, pivot] = 0.25 * s
     out *= np.where(out[:, :1] < 0, -1.0, 1.0)
     out /= np.linalg.norm(out, axis=1, keepdims=True)
     return out.reshape(m.shape[:-2] + (4,))

@@ -68,13 +68,11 @@ def _initial_history(cloud: GaussianCloud, lineage: Lineage | None, selected: np
     geo = geometry_features(sub, center, scale)[:, None]
     app = appearance_features(sub)[:, None]
     if lineage is not None and lineage.n_stages > 1:
-        seq = lineage.sequences(lineage.n_stages - 1)
+        last = lineage.n_stages - 1
+        seq = lineage.sequences(last)
         ids = cloud.extra.get("gvae_id")
         if ids is not None and len(ids) == len(cloud):
-            order = np.argsort(seq.ids, kind="stable")
-            ids = np.asarray(ids).astype(np.int64)
-            at = np.clip(np.searchsorted(seq.ids[order], ids), 0, max(len(order) - 1, 0))
-            rows = np.where(seq.ids[order][at] == ids, order[at], -1) if len(order) else np.full(len(ids), -1)
+            rows = lineage.rows_of(last, ids)  # sequences() keeps the snapshot's order
             if (rows < 0).any():
                 raise ValueError(f"refine: {int((rows < 0).sum())} Gaussian id(s) of the cloud are not alive at the "
                                  f"lineage's last stage")

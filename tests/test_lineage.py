@@ -97,7 +97,7 @@ def test_transitions_group_children_by_parent():
     for k in range(1, lin.n_stages):
         tr = lin.transitions(k, max_children=64)
         prev, cur = lin.snapshots[k - 1], lin.snapshots[k]
-        assert len(tr.history) == len(prev) and tr.history.geometry.shape[1] == k
+        assert len(tr) == len(prev) and tr.history_geometry.shape[1] == k
         assert tr.dropped == 0 and tr.orphans == 0
         assert tr.child_mask.sum() == len(cur)  # every stage-k Gaussian is someone's child
         geo_k = geometry_features(cur.cloud, lin.center, lin.scale)
@@ -119,7 +119,7 @@ def test_transitions_cap_reports_dropped_children():
     lin.add_stage(random_cloud(2, np.random.default_rng(2)), [0, 1], [-1, -1], 10)
     lin.add_stage(random_cloud(6, np.random.default_rng(3)), [0, 2, 3, 4, 5, 1], [0, 0, 0, 0, 0, 1], 20)
     tr = lin.transitions(1, max_children=3)
-    assert tr.child_mask.shape == (2, 3) and tr.cap == 3
+    assert tr.child_mask.shape == (2, 3)
     assert tr.dropped == 2
     assert tr.child_ids[0].tolist() == [0, 2, 3] and tr.child_ids[1].tolist() == [1, -1, -1]
     with pytest.raises(ValueError):

@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from gvae_core import GaussianCloud
-from gvae_core.lineage import Lineage
+from gvae_core.lineage import Lineage, Transition
 from gvae_core.quaternions import from_rotmat as rotmat_to_quat
 from gvae_core.quaternions import multiply as quat_multiply
 from gvae_core.quaternions import to_rotmat as quat_to_rotmat
-from gvae_core.vae import (EncoderBlock, FitConfig, FlowPrior, GaussianVAE, LineageVAE, ParentFrame, TransitionData,
+from gvae_core.vae import (EncoderBlock, FitConfig, FlowPrior, GaussianVAE, LineageVAE, ParentFrame,
                            VAEConfig, copy_parent_baseline, cyclic_beta, default_model_dir, evaluate, fit,
                            lineage_transitions, match_slots, match_slots_reference, synthetic_transitions)
 
@@ -161,7 +161,7 @@ def test_transitions_from_a_real_lineage_train():
     data = lineage_transitions(lin, max_children=4)
     assert len(data) == 1 and data[0].history_geometry.shape == (20, 1, 11)
     assert data[0].child_mask.sum() == 30
-    assert isinstance(data[0], TransitionData)
+    assert isinstance(data[0], Transition)
     result = fit(data, FitConfig(steps=3, batch=16))
     assert all(math.isfinite(r["total"]) for r in result.history)
 

@@ -6,7 +6,7 @@ and a synthetic generator), `losses` (slot matching and the training objective),
 and evaluation), `persistence` (safetensors + JSON, the bundled model).
 """
 
-from .data import TransitionData, lineage_transitions, load_runs, synthetic_transitions
+from .data import lineage_transitions, load_runs, synthetic_transitions
 from .features import ParentFrame, clean_nodes, encoder_inputs
 from .fit import FitConfig, FitResult, copy_parent_baseline, evaluate, fit
 from .losses import LossWeights, match_slots, match_slots_reference, transition_loss
@@ -15,7 +15,7 @@ from .persistence import default_model_dir, load_default_model, load_model, save
 from .prior import FlowPrior, cyclic_beta
 
 __all__ = ["DEFAULT_SIZE", "EncoderBlock", "FitConfig", "FitResult", "FlowPrior", "GaussianVAE", "LineageVAE",
-           "LossWeights", "ParentFrame", "SlotPrediction", "TransitionData", "VAEConfig", "clean_nodes",
+           "LossWeights", "ParentFrame", "SlotPrediction", "VAEConfig", "clean_nodes",
            "copy_parent_baseline", "cyclic_beta", "default_model_dir", "encoder_inputs", "evaluate", "fit",
            "lineage_transitions", "load_default_model", "load_model", "load_runs", "match_slots",
            "match_slots_reference", "model_bytes", "save_model", "synthetic_transitions", "transition_loss"]

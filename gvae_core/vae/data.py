@@ -1,9 +1,9 @@
-"""Training data of the models: stage transitions (a lineage and its children one stage later),
-from progressive training runs or from a synthetic generator that densifies like 3DGS."""
+"""Training data of the models: stage transitions (`gvae_core.lineage.Transition`: lineages and
+their children one stage later), from progressive training runs or from a synthetic generator
+that densifies like 3DGS."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from collections.abc import Sequence
 
@@ -15,52 +15,8 @@ from ..lineage import (APP_EXIST, APP_OPACITY, APP_SH_DC, APP_SH_REST, APPEARANC
                        GEO_POSITION, GEO_QUAT, GEOMETRY_DIM, Lineage, Transition)
 
 
-@dataclass
-class TransitionData:
-    """One stage transition as plain arrays (the fields of `gvae_core.lineage.Transition`), plus
-    whether each Gaussian densified (spawned a Gaussian that is not itself)."""
-
-    history_geometry: np.ndarray    # (M,T,11)
-    history_appearance: np.ndarray  # (M,T,50)
-    child_geometry: np.ndarray      # (M,C,11)
-    child_appearance: np.ndarray    # (M,C,50)
-    child_mask: np.ndarray          # (M,C) bool
-    stage: int = 1
-    source: str = ""
-    densified: np.ndarray | None = None  # (M,) bool; default: two or more children
-
-    def __post_init__(self):
-        m, t = self.history_geometry.shape[:2]
-        g, a = GEOMETRY_DIM, APPEARANCE_DIM
-        shapes = {"history_geometry": (m, t, g), "history_appearance": (m, t, a),
-                  "child_geometry": (m, None, g), "child_appearance": (m, None, a), "child_mask": (m, None)}
-        for name, shape in shapes.items():
-            got = getattr(self, name).shape
-            if len(got) != len(shape) or any(s is not None and s != g for s, g in zip(shape, got)):
-                raise ValueError(f"TransitionData.{name} has shape {got}, expected {shape} (None = any)")
-        if self.densified is None:
-            self.densified = self.child_mask.sum(1) >= 2
-        self.densified = np.asarray(self.densified, bool).reshape(m)
-
-    @classmethod
-    def from_transition(cls, tr: Transition, stage: int = 1, source: str = "") -> TransitionData:
-        """From a `gvae_core.lineage.Transition`."""
-        new_child = (np.asarray(tr.child_ids) != np.asarray(tr.history.ids)[:, None]) & np.asarray(tr.child_mask, bool)
-        return cls(np.asarray(tr.history.geometry, np.float32), np.asarray(tr.history.appearance, np.float32),
-                   np.asarray(tr.child_geometry, np.float32), np.asarray(tr.child_appearance, np.float32),
-                   np.asarray(tr.child_mask, bool), stage, source, new_child.any(1))
-
-    def __len__(self) -> int:
-        return len(self.history_geometry)
-
-    def subset(self, index: np.ndarray) -> TransitionData:
-        return TransitionData(self.history_geometry[index], self.history_appearance[index],
-                              self.child_geometry[index], self.child_appearance[index], self.child_mask[index],
-                              self.stage, self.source, self.densified[index])
-
-
 def synthetic_transitions(n: int = 512, stages: int = 3, *, seed: int = 0,
-                          split_prob: float = 0.35, clone_prob: float = 0.15) -> list[TransitionData]:
+                          split_prob: float = 0.35, clone_prob: float = 0.15) -> list[Transition]:
     """Synthetic lineages that densify like 3DGS: per stage each Gaussian survives with jitter,
     splits into two children (the 3DGS split rule, `densify.split_children`) or clones itself
     (the parent stays, a copy appears next to it). Features as in DESIGN.md, normalised frame."""
@@ -101,7 +57,7 @@ def synthetic_transitions(n: int = 512, stages: int = 3, *, seed: int = 0,
             ca[:, c, APP_OPACITY] += np.where(split, -0.3, 0.1)
         mask[:, 0] = True
         mask[:, 1] = split | clone
-        out.append(TransitionData(hist_g, hist_a, cg, ca, mask, stage, "synthetic", split | clone))
+        out.append(Transition(hist_g, hist_a, cg, ca, mask, stage, "synthetic", split | clone))
         # Next stage's lineages: every child, its history the parent's (exist = 0 for new ones).
         parent = np.concatenate([np.arange(m), np.flatnonzero(mask[:, 1])])
         slot = np.concatenate([np.zeros(m, int), np.ones(int(mask[:, 1].sum()), int)])
@@ -113,16 +69,15 @@ def synthetic_transitions(n: int = 512, stages: int = 3, *, seed: int = 0,
     return out
 
 
-def lineage_transitions(lineage: Lineage, source: str = "", max_children: int = 4) -> list[TransitionData]:
+def lineage_transitions(lineage: Lineage, source: str = "", max_children: int = 4) -> list[Transition]:
     """Every stage transition of a `gvae_core.lineage.Lineage` (children beyond `max_children`
     per parent are dropped, as `Lineage.transitions` reports)."""
-    return [TransitionData.from_transition(lineage.transitions(s, max_children=max_children), s, source)
-            for s in range(1, lineage.n_stages)]
+    return [lineage.transitions(s, max_children, source) for s in range(1, lineage.n_stages)]
 
 
 
 
-def load_runs(runs: Sequence[Path], slots: int = 4) -> list[TransitionData]:
+def load_runs(runs: Sequence[Path], slots: int = 4) -> list[Transition]:
     """The transitions of training runs (folders holding the lineage.npz that `gvae train` writes,
     or .npz paths), each tagged with its run."""
     out = []

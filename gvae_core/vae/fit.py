@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from ..lineage import APP_OPACITY, APP_SH_REST, GEO_POSITION
-from .data import TransitionData
+from ..lineage import Transition
 from .features import FEATURE_OPACITY_RANGE, SH_REST_LIMIT, ParentFrame, clean_nodes
 from .losses import LossWeights, appearance_error, transition_loss
 from .model import GaussianVAE
@@ -41,7 +41,7 @@ class FitResult:
     seconds: float
 
 
-def fit(transitions: Sequence[TransitionData], config: FitConfig | None = None, *,
+def fit(transitions: Sequence[Transition], config: FitConfig | None = None, *,
         model: GaussianVAE | None = None, progress: Callable[[int, int, dict], None] | None = None) -> FitResult:
     """Train both models on stage transitions by predicting each lineage's masked last stage.
     Coarse-to-fine: the first `coarse_fraction` of steps draws only from the lowest stage, then
@@ -91,7 +91,7 @@ def fit(transitions: Sequence[TransitionData], config: FitConfig | None = None, 
 
 
 @torch.no_grad()
-def evaluate(model: GaussianVAE, transitions: Sequence[TransitionData], *, seed: int = 0,
+def evaluate(model: GaussianVAE, transitions: Sequence[Transition], *, seed: int = 0,
              batch: int = 4096) -> dict[str, float]:
     """Reconstruction error on transitions (posterior means, no sampling), averaged by lineage:
     matched child-centre RMSE (parent sizes), existence accuracy, child-count error, appearance MSE,
@@ -108,7 +108,7 @@ def evaluate(model: GaussianVAE, transitions: Sequence[TransitionData], *, seed:
     return {k: v / max(count, 1) for k, v in totals.items()}
 
 
-def copy_parent_baseline(transitions: Sequence[TransitionData]) -> dict[str, float]:
+def copy_parent_baseline(transitions: Sequence[Transition]) -> dict[str, float]:
     """The yardstick for `evaluate`: predict one child equal to the parent. Child-centre RMSE
     (parent sizes; every true child against the parent), appearance MSE (same terms as the
     loss), child-count error."""

@@ -16,7 +16,7 @@ from .. import quaternions
 from ..conventions import SH_C0
 from ..lineage import (APP_OPACITY, APP_SH_DC, APP_SH_REST, APPEARANCE_DIM, GEO_LOG_SCALE, GEO_POSITION, GEO_QUAT,
                        GEOMETRY_DIM)
-from .data import TransitionData
+from ..lineage import Transition
 from .features import FEATURE_LOG_SCALE_RANGE, FEATURE_OPACITY_RANGE, SH_REST_LIMIT, ParentFrame, clean_nodes
 from .model import LineageVAE
 
@@ -87,7 +87,7 @@ def appearance_error(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
     return colour + sh + opacity
 
 
-def transition_loss(geometry: LineageVAE, appearance: LineageVAE, batch: TransitionData, *, beta: float = 1.0,
+def transition_loss(geometry: LineageVAE, appearance: LineageVAE, batch: Transition, *, beta: float = 1.0,
                     weights: LossWeights | None = None, generator: torch.Generator | None = None,
                     sample: bool = True) -> dict[str, torch.Tensor]:
     """Both models' losses on one batch of transitions. True children are matched to the
