@@ -6,8 +6,6 @@ Blender's state is global per process and other tests use bpy in the pytest proc
 
 from __future__ import annotations
 
-import importlib.util
-import json
 import math
 import os
 import subprocess
@@ -17,7 +15,6 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-import pytest
 from plyfile import PlyData
 
 from gvae_core import render
@@ -26,43 +23,10 @@ from gvae_core.cloud import GaussianCloud
 from gvae_core.ply import read_ply, write_ply
 from gvae_core.quaternions import normalize as normalize_quats
 from gvae_core.quaternions import to_rotmat as quat_to_rotmat
+from tests.blender.conftest import ROOT, blender_ext, run_scenario
 from tests.conftest import requires_bpy
 
 pytestmark = requires_bpy
-
-ROOT = Path(__file__).resolve().parents[2]
-SCENARIOS = Path(__file__).with_name("_scenarios.py")
-
-
-def _blender_ext() -> Path:
-    origin = Path(importlib.util.find_spec("bpy").origin).parent
-    return next(origin.glob("*/scripts/addons_core/bl_pkg/cli/blender_ext.py"))
-
-
-@pytest.fixture(scope="module")
-def extension_zip(tmp_path_factory) -> Path:
-    """The extension built by the same script as `make extension`, into a temporary dist/."""
-    base = tmp_path_factory.mktemp("ext")
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "tools" / "build_extension.py"), "--output-dir", str(base / "dist"),
-         "--staging-dir", str(base / "stage"), "--wheel-cache", str(ROOT / "build" / "wheels")],
-        capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    return Path(proc.stdout.strip().splitlines()[-1])
-
-
-def run_scenario(name: str, tmp_path: Path, zip_path: Path | None, **args) -> dict:
-    args = {"home": str(tmp_path / "home"), "zip": str(zip_path), "out": str(tmp_path / f"{name}.json"),
-            **args}
-    args_path = tmp_path / f"{name}.args.json"
-    args_path.write_text(json.dumps(args))
-    proc = subprocess.run([sys.executable, str(SCENARIOS), name, str(args_path)],
-                          capture_output=True, text=True, timeout=150, cwd=tmp_path)
-    assert proc.returncode == 0, f"scenario {name} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
-    res = json.loads(Path(args["out"]).read_text())
-    res["_output"] = proc.stdout + proc.stderr
-    return res
-
 
 def make_cloud(n: int, degree: int = 3, seed: int = 0, extras: bool = True) -> GaussianCloud:
     rng = np.random.default_rng(seed)
@@ -100,7 +64,7 @@ def test_zip_contents_and_validation(extension_zip):
                      "wheels/plyfile-1.0.3-py3-none-any.whl"):
         assert required in names, required
     assert not any("__pycache__" in n for n in names)
-    proc = subprocess.run([sys.executable, str(_blender_ext()), "validate", str(extension_zip)],
+    proc = subprocess.run([sys.executable, str(blender_ext()), "validate", str(extension_zip)],
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
