@@ -94,6 +94,12 @@ def test_keys_and_bad_arguments():
     assert len(scenes.list_scenes()) >= 6
 
 
+def test_splits_partition_the_library():
+    named = [name for split in scenes.SPLITS.values() for name in split]
+    assert sorted(named) == sorted(scenes.list_scenes())  # every scene in exactly one split
+    assert len(scenes.SPLITS["test"]) >= 4 and scenes.SPLITS["validation"] and scenes.SPLITS["train"]
+
+
 def _fake_cached(cache, name="plant", profile="tiny", seed=0):
     key = scenes.scene_key(name, profile, seed)
     folder = cache / "scenes" / f"{name}-{profile}-s{seed}-{key}"

@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from .blender import INSTALL_HINT, BlenderNotAvailable
-from .library import SCENES
+from .library import SCENES, SPLITS
 
 # Bump when the scenes, cameras or render settings change: it invalidates cached scenes.
 GENERATOR_VERSION = 1
@@ -174,5 +174,5 @@ def _export(cached: Path, out: Path, key: str) -> Path:
     return out
 
 
-__all__ = ["GENERATOR_VERSION", "PROFILES", "Profile", "BlenderNotAvailable", "list_scenes", "describe_scenes",
+__all__ = ["GENERATOR_VERSION", "PROFILES", "SPLITS", "Profile", "BlenderNotAvailable", "list_scenes", "describe_scenes",
            "make_scene", "scene_key", "cache_dir"]

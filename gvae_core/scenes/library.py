@@ -330,6 +330,144 @@ def build_tableware(rng: np.random.Generator) -> None:
                b.material("lemon", (0.95, 0.85, 0.1), roughness=0.4), smooth=True)
 
 
+def _circle(radius: float, n: int, z: float = 0.0, arc: float = 2 * math.pi, start: float = 0.0) -> np.ndarray:
+    """(n,3) points on a circle (or an arc) in the xy plane at height z; a full circle repeats
+    its first point at the end so that a tube along it closes."""
+    t = start + arc * np.arange(n + 1) / n
+    return np.stack([radius * np.cos(t), radius * np.sin(t), np.full_like(t, z)], 1)
+
+
+def _stripes(tree, bsdf):
+    """Book spines: colour bands along the spine and fine, text-like ticks across it."""
+    b = blender
+    co = _tex_coords(tree)
+    bands = b.node(tree, "ShaderNodeTexWave", (-700, 200), Scale=3.0, wave_type="BANDS", bands_direction="Z",
+                   Distortion=0.0)
+    tree.links.new(co, bands.inputs["Vector"])
+    ticks = b.node(tree, "ShaderNodeTexChecker", (-700, -150), Scale=90.0)
+    tree.links.new(co, ticks.inputs["Vector"])
+    ramp = b.node(tree, "ShaderNodeValToRGB", (-450, 200))
+    ramp.color_ramp.interpolation = "CONSTANT"
+    ramp.color_ramp.elements[0].color = (0.9, 0.82, 0.55, 1.0)
+    ramp.color_ramp.elements[1].position = 0.7
+    ramp.color_ramp.elements[1].color = (0.05, 0.05, 0.06, 1.0)
+    tree.links.new(bands.outputs["Fac"], ramp.inputs["Fac"])
+    mix = b.node(tree, "ShaderNodeMix", (-200, 0), data_type="RGBA", blend_type="MULTIPLY", Factor=0.35)
+    tree.links.new(ramp.outputs["Color"], mix.inputs["A"])
+    tree.links.new(ticks.outputs["Color"], mix.inputs["B"])
+    base = b.node(tree, "ShaderNodeMix", (0, 0), data_type="RGBA", blend_type="MULTIPLY", Factor=1.0)
+    base.inputs["A"].default_value = bsdf.inputs["Base Color"].default_value
+    tree.links.new(mix.outputs["Result"], base.inputs["B"])
+    tree.links.new(base.outputs["Result"], bsdf.inputs["Base Color"])
+
+
+def build_wheel(rng: np.random.Generator) -> None:
+    """A bicycle wheel standing upright: tyre, rim, hub and 32 crossed spokes a pixel wide."""
+    b = blender
+    _default_lights()
+    upright = g.rotation((1, 0, 0), math.pi / 2) @ g.rotation((0, 0, 1), rng.uniform(0, 0.3))
+    tyre = g.tube(_circle(0.9, 96), 0.065, 12, caps=False)
+    rim = g.tube(_circle(0.83, 96), 0.028, 8, caps=False)
+    hub = g.cylinder(0.05, -0.11, 0.11, (0, 0), 24)
+    spokes = []
+    for k in range(32):
+        side = 1.0 if k % 2 else -1.0
+        a = 2 * math.pi * k / 32
+        lace = a + side * 3 * 2 * math.pi / 32 * (1 if k % 4 < 2 else -1)  # three-cross lacing
+        start = np.array([0.05 * math.cos(lace), 0.05 * math.sin(lace), side * 0.08])
+        end = np.array([0.81 * math.cos(a), 0.81 * math.sin(a), 0.0])
+        spokes.append(g.tube(np.linspace(start, end, 3), 0.006, 6))
+    b.add_mesh("tyre", g.transform(tyre, upright), b.material("rubber", (0.04, 0.04, 0.04), roughness=0.85),
+               smooth=True)
+    b.add_mesh("rim", g.transform(rim, upright), b.material("alloy", (0.8, 0.8, 0.82), roughness=0.2, metallic=1.0),
+               smooth=True)
+    steel = b.material("spokes", (0.7, 0.7, 0.72), roughness=0.3, metallic=1.0)
+    b.add_mesh("hub", g.transform(hub, upright), steel, smooth=math.radians(40))
+    b.add_mesh("spokes", g.transform(g.merge(*spokes), upright), steel, smooth=True)
+    stand = g.box((0.5, 0.3, 0.04), (0, 0, -1.0))
+    b.add_mesh("stand", stand, b.material("stand", (0.3, 0.32, 0.35), roughness=0.6), bevel=0.01)
+
+
+def build_lamp(rng: np.random.Generator) -> None:
+    """A desk lamp: a heavy round base, two thin arms with ball joints, a glossy conical shade,
+    and a coiled cable: thin parts and specular highlights together."""
+    b = blender
+    _default_lights()
+    metal = b.material("lamp_red", (0.75, 0.06, 0.05), roughness=0.15, coat=0.8)
+    chrome = b.material("chrome", (0.9, 0.9, 0.92), roughness=0.05, metallic=1.0)
+    base = g.lathe([(0.0, -1.0), (0.42, -1.0), (0.44, -0.97), (0.42, -0.92), (0.12, -0.88), (0.0, -0.88)], 64)
+    b.add_mesh("base", base, metal, smooth=math.radians(40))
+    lean = rng.uniform(-0.1, 0.1)
+    elbow = np.array([0.25 + lean, 0.0, 0.15])
+    head = np.array([-0.35, 0.05, 0.55 + lean])
+    arms = [g.tube(np.linspace([0, 0, -0.9], elbow, 8), 0.02, 10), g.tube(np.linspace(elbow, head, 8), 0.017, 10)]
+    joints = [g.uv_sphere(0.04, elbow, 12, 24), g.uv_sphere(0.035, head, 12, 24)]
+    b.add_mesh("arms", g.merge(*arms, *joints), chrome, smooth=True)
+    shade = g.lathe([(0.0, 0.12), (0.06, 0.12), (0.09, 0.05), (0.32, -0.25), (0.31, -0.26), (0.08, 0.04),
+                     (0.0, 0.1)], 64)
+    aim = g.rotation((0, 1, 0), -0.6)
+    b.add_mesh("shade", g.transform(shade, g.translation(head) @ aim), metal, smooth=math.radians(35))
+    t = np.linspace(0, 1, 120)
+    coil = np.stack([0.05 + 0.5 * t + 0.04 * np.cos(40 * t), -0.35 + 0.04 * np.sin(40 * t),
+                     np.full_like(t, -0.97) + 0.02 * np.sin(40 * t)], 1)
+    b.add_mesh("cable", g.tube(coil, 0.008, 6), b.material("cable", (0.05, 0.05, 0.05), roughness=0.5),
+               smooth=True)
+
+
+def build_books(rng: np.random.Generator) -> None:
+    """A shelf board with a row of books (striped, text-like spines) and two lying flat: large
+    flat areas beside fine printed detail."""
+    b = blender
+    _default_lights()
+    board = g.box((2.0, 0.6, 0.06), (0, 0, -0.75))
+    b.add_mesh("board", board, b.material("board", roughness=0.5, shader=_wood()), bevel=0.01)
+    x = -0.9
+    palette = [(0.55, 0.08, 0.08), (0.08, 0.2, 0.45), (0.1, 0.35, 0.15), (0.6, 0.45, 0.1), (0.3, 0.1, 0.35)]
+    for k in range(10):
+        width = rng.uniform(0.07, 0.16)
+        height = rng.uniform(0.55, 0.85)
+        depth = rng.uniform(0.36, 0.48)
+        tilt = g.rotation((0, 1, 0), rng.uniform(-0.05, 0.05))
+        book = g.transform(g.box((width, depth, height)), g.translation((x + width / 2, 0, -0.72 + height / 2)) @ tilt)
+        color = palette[int(rng.integers(len(palette)))]
+        b.add_mesh(f"book{k}", book, b.material(f"book{k}", color, roughness=0.6, shader=_stripes), bevel=0.006)
+        x += width + 0.005
+    for k, z in enumerate((-0.69, -0.63)):
+        flat = g.box((0.55, 0.42, 0.06), (0.62, 0.02 + 0.03 * k, z))
+        b.add_mesh(f"flat{k}", g.transform(flat, g.rotation((0, 0, 1), rng.uniform(-0.2, 0.2))),
+                   b.material(f"flat{k}", palette[(k + 2) % len(palette)], roughness=0.6, shader=_stripes),
+                   bevel=0.006)
+
+
+def build_mic(rng: np.random.Generator) -> None:
+    """A studio microphone: a wire-mesh grille of thin rings and meridians over a dark capsule,
+    a glossy body and a thin tripod stand."""
+    b = blender
+    _default_lights()
+    wire = b.material("grille", (0.75, 0.75, 0.78), roughness=0.25, metallic=1.0)
+    r, top = 0.3, 0.55
+    rings = [g.tube(_circle(r * math.cos(phi), 64, top + r * math.sin(phi)), 0.006, 6, caps=False)
+             for phi in np.linspace(-1.2, 1.35, 14)]
+    meridians = []
+    for k in range(24):
+        a = 2 * math.pi * k / 24
+        phi = np.linspace(-1.2, 1.45, 24)
+        path = np.stack([r * np.cos(phi) * math.cos(a), r * np.cos(phi) * math.sin(a), top + r * np.sin(phi)], 1)
+        meridians.append(g.tube(path, 0.005, 6))
+    b.add_mesh("grille", g.merge(*rings, *meridians), wire, smooth=True)
+    b.add_mesh("capsule", g.uv_sphere(0.26, (0, 0, top), 24, 48),
+               b.material("capsule", (0.04, 0.04, 0.05), roughness=0.7), smooth=True)
+    body = g.lathe([(0.0, -0.35), (0.16, -0.35), (0.2, -0.2), (0.24, 0.2), (0.26, 0.3), (0.0, 0.3)], 64)
+    b.add_mesh("body", body, b.material("body", (0.12, 0.12, 0.14), roughness=0.1, metallic=0.8, coat=1.0),
+               smooth=math.radians(40))
+    legs = [g.tube(np.linspace([0, 0, -0.35], [0, 0, -0.75], 4), 0.02, 10)]
+    for k in range(3):
+        a = 2 * math.pi * k / 3 + rng.uniform(-0.2, 0.2)
+        legs.append(g.tube(np.linspace([0, 0, -0.75], [0.6 * math.cos(a), 0.6 * math.sin(a), -1.05], 6), 0.014, 8))
+    b.add_mesh("stand", g.merge(*legs), b.material("stand_metal", (0.2, 0.2, 0.22), roughness=0.3, metallic=1.0),
+               smooth=True)
+
+
 SCENES: dict[str, SceneSpec] = {s.name: s for s in [
     SceneSpec("plant", "thin structures: stems a pixel wide, many thin leaves", build_plant),
     SceneSpec("crate", "high-frequency procedural texture (bricks, checker, interference, speckle)", build_crate),
@@ -337,4 +475,17 @@ SCENES: dict[str, SceneSpec] = {s.name: s for s in [
     SceneSpec("bricks", "fine repeated geometry: hundreds of studs on plates and bricks", build_bricks),
     SceneSpec("chair", "thin legs, stretchers and spindles; wood texture; a soft cushion", build_chair),
     SceneSpec("tableware", "compound object with large smooth surfaces (plate, mug, fruit)", build_tableware),
+    SceneSpec("wheel", "thin crossed spokes at every angle around a glossy rim and a dark tyre", build_wheel),
+    SceneSpec("lamp", "thin arms and a coiled cable beside a glossy shade and chrome joints", build_lamp),
+    SceneSpec("books", "flat board and covers beside fine striped, text-like spines", build_books),
+    SceneSpec("mic", "a wire-mesh grille over a dark capsule; glossy body; thin tripod legs", build_mic),
 ]}
+
+#: Which scenes each part of the work may look at. The bundled model learns from `train` scenes;
+#: every choice (model size, flags, thresholds, budgets, the global scale knob) is made on
+#: `validation`; `test` scenes are looked at once, for the report, and never to choose anything.
+SPLITS: dict[str, tuple[str, ...]] = {
+    "train": ("plant", "crate", "materials", "bricks"),
+    "validation": ("chair", "tableware"),
+    "test": ("wheel", "lamp", "books", "mic"),
+}
