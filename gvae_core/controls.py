@@ -1,59 +1,118 @@
-"""Controls of the experiment: what refinement is compared with at the same cost.
+"""Controls of the experiment: what refinement is compared with at the same cost, the same
+number of Gaussians out.
 
-`plain_split` is the reference 3DGS split without any model, applied to chosen Gaussians.
+Each control takes the Gaussian counts a refinement added after each step (`targets`, cumulative)
+and adds exactly as many, so that every comparison is at equal output count:
+- `split_control`: the reference 3DGS split (`densify.split_children`) of as many Gaussians as
+  the count needs: first of the ones already split (their lineages, as refinement extends its
+  own), in random order, then of the untouched ones with the highest scores;
+- `duplicate_control`: the same choice, but each chosen Gaussian gets an exact copy of itself and
+  both share its opacity (1 - (1 - o')² = o), so the render hardly changes: what the count alone
+  buys;
+- `thin_added`: a refinement's added Gaussians thinned at random to a count (random selection
+  with the model is refinement with random scores, oversupplied, then thinned).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
 from . import quaternions
 from .cloud import GaussianCloud
+from .conventions import activate_opacities
 from .densify import split_children
 from .refinement import RefineResult
 
+#: An operation on the chosen Gaussians: (chosen (numpy cloud), generator) -> (their new values,
+#: the Gaussians to append, one per chosen row).
+Operation = Callable[[GaussianCloud, np.random.Generator], tuple[GaussianCloud, GaussianCloud]]
 
-def plain_split(cloud: GaussianCloud, rows, *, steps: int = 1, seed: int = 0,
-                every_step: bool = True) -> Iterator[RefineResult]:
-    """Control without a model: the reference 3DGS split applied to `rows` and then, step after
-    step, to all their descendants: each Gaussian becomes two (`densify.split_children`, other
-    parameters copied); the first child takes the parent's row. Yields a `RefineResult` after
-    every step (or only the last)."""
+
+def _split(chosen: GaussianCloud, rng: np.random.Generator) -> tuple[GaussianCloud, GaussianCloud]:
+    means, log_scales = chosen.means.astype(np.float64), chosen.scales.astype(np.float64)
+    rot = chosen.rotation_matrices().astype(np.float64)
+    out = []
+    for _ in range(2):
+        centres, scales = split_children(means, log_scales, rot, rng.standard_normal(means.shape))
+        out.append(chosen.replace(means=centres.astype(np.float32), scales=scales.astype(np.float32),
+                                  quats=quaternions.normalize(chosen.quats).astype(np.float32)))
+    return out[0], out[1].replace(extra={})
+
+
+def _duplicate(chosen: GaussianCloud, rng: np.random.Generator) -> tuple[GaussianCloud, GaussianCloud]:
+    shared = 1.0 - np.sqrt(1.0 - activate_opacities(chosen.opacities.astype(np.float64)))
+    shared = np.clip(shared, 1e-12, 1.0 - 1e-12)
+    logits = np.log(shared / (1.0 - shared)).astype(np.float32)
+    both = chosen.replace(opacities=logits)
+    return both, both.replace(extra={})
+
+
+def _grow(cloud: GaussianCloud, scores, targets: Sequence[int], seed: int, operate: Operation,
+          every_step: bool) -> Iterator[RefineResult]:
     t_start = time.perf_counter()
     src = cloud.numpy()
     n = len(src)
-    selected = np.unique(np.asarray(rows, np.int64))
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    if len(scores) != n:
+        raise ValueError(f"control: {len(scores)} scores for {n} Gaussians")
+    order = np.argsort(-scores, kind="stable")  # untouched Gaussians, best score first
     rng = np.random.default_rng(seed)
     out = src.copy()
-    active = selected.copy()
-    roots = selected.copy()
-    parents, step_of = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
-    for k in range(1, steps + 1):
-        sub = out.select(active)
-        means, log_scales = sub.means.astype(np.float64), sub.scales.astype(np.float64)
-        rot = sub.rotation_matrices().astype(np.float64)
-        children = sub.copy()
-        children.quats = quaternions.normalize(sub.quats).astype(np.float32)
-        second = children.copy()
-        for child in (children, second):
-            centres, scales = split_children(means, log_scales, rot, rng.standard_normal(means.shape))
-            child.means, child.scales = centres.astype(np.float32), scales.astype(np.float32)
-        for name in ("means", "scales", "quats"):
-            getattr(out, name)[active] = getattr(children, name)
-        new_rows = len(out) + np.arange(len(active))
-        out = GaussianCloud.concat([out, second.replace(extra={})])
-        parents.append(roots.copy())
-        step_of.append(np.full(len(active), k, np.int64))
-        active = np.concatenate([active, new_rows])
-        roots = np.concatenate([roots, roots])
-        if every_step or k == steps:
+    active = np.zeros(0, np.int64)       # rows of `out` already operated on, or born from one
+    root = np.arange(n, dtype=np.int64)  # each row's ancestor among the input rows
+    fresh_used = 0
+    parents, steps, done = [], [], 0
+    for k, target in enumerate(targets, 1):
+        need = max(int(target) - done, 0)
+        again = rng.permutation(active)[:need]
+        fresh = order[fresh_used:fresh_used + need - len(again)]
+        fresh_used += len(fresh)
+        chosen = np.concatenate([again, fresh]).astype(np.int64)
+        updated, children = operate(out.select(chosen), rng)
+        for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
+            getattr(out, name)[chosen] = getattr(updated, name)
+        new_rows = len(out) + np.arange(len(chosen))
+        out = out.append_children(children, chosen)
+        root = np.concatenate([root, root[chosen]])
+        active = np.concatenate([active, fresh, new_rows])
+        parents.append(root[chosen])
+        steps.append(np.full(len(chosen), k, np.int64))
+        done += len(chosen)
+        if every_step or k == len(targets):
             result = RefineResult(cloud=out.copy(), added=np.arange(n, len(out), dtype=np.int64),
-                                  parents=np.concatenate(parents), step=np.concatenate(step_of),
-                                  scores=np.zeros(n, np.float32), selected=selected,
+                                  parents=np.concatenate(parents), step=np.concatenate(steps),
+                                  scores=scores.astype(np.float32), selected=np.unique(np.concatenate(parents)),
                                   timings={"hessian": 0.0, "model": 0.0, "total": time.perf_counter() - t_start})
             suspended = time.perf_counter()
             yield result
             t_start += time.perf_counter() - suspended
+
+
+def split_control(cloud: GaussianCloud, scores, targets: Sequence[int], *, seed: int = 0,
+                  every_step: bool = True) -> Iterator[RefineResult]:
+    """The plain 3DGS split at equal output count: after step k exactly `targets[k-1]` Gaussians
+    have been added (see the module docstring for which ones split). Yields a `RefineResult`
+    after every step (or only the last)."""
+    return _grow(cloud, scores, targets, seed, _split, every_step)
+
+
+def duplicate_control(cloud: GaussianCloud, scores, targets: Sequence[int], *, seed: int = 0,
+                      every_step: bool = True) -> Iterator[RefineResult]:
+    """Duplicate-in-place at equal output count: the chosen Gaussians get an exact copy, the
+    pair sharing the opacity so that the render hardly changes."""
+    return _grow(cloud, scores, targets, seed, _duplicate, every_step)
+
+
+def thin_added(result: RefineResult, target: int, *, seed: int = 0) -> RefineResult:
+    """`result` with its added Gaussians thinned at random to `target` (all of them when it
+    added fewer); the input rows and their order are kept."""
+    n = result.n_input
+    rng = np.random.default_rng(seed)
+    keep_added = np.sort(rng.permutation(len(result.added))[:max(int(target), 0)])
+    keep = np.concatenate([np.arange(n), n + keep_added])
+    return RefineResult(cloud=result.cloud.select(keep), added=np.arange(n, len(keep), dtype=np.int64),
+                        parents=result.parents[keep_added], step=result.step[keep_added], scores=result.scores,
+                        selected=result.selected, timings=result.timings)

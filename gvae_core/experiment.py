@@ -30,14 +30,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from .controls import plain_split
+from .controls import split_control
 from .datasets import load_nerf_synthetic
 from .hessian import hessian_scores
 from .lineage import Lineage
 from .metrics.geometry import MeshDistance, chamfer, read_mesh_ply
 from .metrics.image import image_scores
 from .ply import read_ply
-from .refinement import refine_steps
+from .refinement import RefineResult, refine_steps
 from .rendering import render
 from .rendering.reference import render_reference
 from .scenes import cache_dir, make_scene
@@ -244,25 +244,25 @@ def run_scene(run: SceneRun, model, *, say: Callable[[str], None] = print) -> li
 
     largest = base
 
-    def refined(method: str, results, budget) -> np.ndarray:
+    def refined(method: str, results, budget) -> list[RefineResult]:
         nonlocal largest
-        selected = None
+        out = []
         for step, r in enumerate(results, 1):
-            selected = r.selected
+            out.append(r)
             largest = r.cloud if len(r.cloud) > len(largest) else largest
             add(method, step, r.cloud, budget=str(budget), selected=len(r.selected), added=len(r.added),
                 refine_s=r.timings["total"] - r.timings.get("hessian", 0.0) - r.timings.get("load", 0.0),
                 hessian_s=hessian_s if method != OURS else 0.0)
-        return selected
+        return out
 
     refined(OURS, refine_steps(base, budget="all", **common), "all")
-    chosen = refined(OURS_H, refine_steps(base, budget=p.budget, scores=scores, **common), p.budget)
+    ours_h = refined(OURS_H, refine_steps(base, budget=p.budget, scores=scores, **common), p.budget)
+    count = len(ours_h[0].selected)
     refined(OURS_H_MODEL_APP, refine_steps(base, budget=p.budget, scores=scores, carry_appearance=False, **common),
             p.budget)
-    count = len(chosen)
     noise = np.random.default_rng(p.seed + 1).random(len(base)).astype(np.float32)
     refined(RANDOM, refine_steps(base, budget=count, scores=noise, **common), count)
-    refined(SPLIT, plain_split(base, chosen, steps=p.steps, seed=p.seed), count)
+    refined(SPLIT, split_control(base, scores, [len(r.added) for r in ours_h], seed=p.seed), count)
     for b in p.sweep:
         sweep = refine_steps(base, budget=b, scores=scores, **{**common, "steps": min(p.steps, p.sweep_steps)})
         for step, r in enumerate(sweep, 1):

@@ -109,8 +109,9 @@ def test_controls_use_the_hessian_budget(experiment):
     def pick(method, step):
         return next(r for r in rows if r["method"] == method and r["step"] == step)
     n = pick(OURS_H, 1)["selected"]
-    assert pick(RANDOM, 1)["selected"] == n and pick(SPLIT, 1)["selected"] == n
-    assert pick(SPLIT, 1)["added"] == n and pick(SPLIT, 2)["added"] == 3 * n  # 2 then 4 children per root
+    assert pick(RANDOM, 1)["selected"] == n
+    for k in (1, 2):  # the split control adds as many Gaussians as Ours-∇² did
+        assert pick(SPLIT, k)["added"] == pick(OURS_H, k)["added"]
     base = next(r for r in rows if r["method"] == BASELINE and r["scale"] == "1x")
     assert pick(OURS, 1)["selected"] == base["n_gaussians"]
 

@@ -89,6 +89,11 @@ def test_chamfer_on_a_plane():
     # a far floater raises accuracy by its distance / N
     floater = chamfer(np.r_[lifted, [[0.5, 0.5, 1.0]]], surface, (verts, tris))
     assert floater.accuracy == pytest.approx((0.02 * 100 + 1.0) / 101, abs=1e-12)
+    assert floater.weighted_accuracy == pytest.approx(floater.accuracy, abs=1e-12)  # no weights: the same
+    # weighted by opacity, a nearly transparent floater hardly counts
+    faint = chamfer(np.r_[lifted, [[0.5, 0.5, 1.0]]], surface, (verts, tris), weights=np.r_[np.ones(100), 0.01])
+    assert faint.weighted_accuracy == pytest.approx((0.02 * 100 + 0.01) / 100.01, abs=1e-12)
+    assert faint.accuracy == floater.accuracy
     # without a mesh, accuracy is measured against the surface points
     assert chamfer(surface, surface).chamfer == 0.0
 
@@ -100,6 +105,9 @@ def test_chamfer_bad_and_empty_inputs():
     with pytest.raises(ValueError, match="surface"):
         chamfer(np.zeros((2, 3)), np.zeros((0, 3)))
     assert math.isinf(chamfer(np.zeros((0, 3)), surface).chamfer)
+    for bad in (np.ones(3), np.array([1.0, np.nan]), np.array([1.0, -1.0])):
+        with pytest.raises(ValueError, match="weights"):
+            chamfer(np.zeros((2, 3)), surface, weights=bad)
     with pytest.raises(ValueError, match="no triangles"):
         MeshDistance(np.zeros((3, 3)), np.zeros((0, 3), int))
 

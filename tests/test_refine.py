@@ -8,7 +8,6 @@ import torch
 
 from gvae_core import GaussianCloud, refinement
 from gvae_core.cli import main as gvae
-from gvae_core.controls import plain_split
 from gvae_core.lineage import Lineage
 from gvae_core.ply import read_ply, write_ply
 from gvae_core.refinement import RefineResult, refine, refine_steps
@@ -244,20 +243,6 @@ def test_the_callers_time_between_steps_is_not_refine_time(monkeypatch):
         totals.append(r.timings["total"])
         day[0] += 1
     assert len(totals) == 3 and totals[0] < totals[1] < totals[2] < 86400
-
-
-def test_plain_split_control():
-    cloud = _cloud(n=20)
-    rows = np.array([2, 5, 7])
-    out = list(plain_split(cloud, rows, steps=3, seed=1))
-    assert [len(r.added) for r in out] == [3, 9, 21]   # every descendant splits in two each step
-    for r in out:
-        _check_result(cloud, r, 3)
-    first = out[0].cloud
-    np.testing.assert_allclose(first.scales[rows], cloud.scales[rows] - math.log(1.6), atol=1e-6)
-    np.testing.assert_allclose(first.scales[20:], cloud.scales[rows] - math.log(1.6), atol=1e-6)
-    np.testing.assert_array_equal(first.sh_dc[20:], cloud.sh_dc[rows])
-    assert not np.allclose(first.means[rows], cloud.means[rows])
 
 
 def test_budget_forces_densification_at_the_first_step_only():
