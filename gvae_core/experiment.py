@@ -1,15 +1,20 @@
-"""The paper's experiment on the project's benchmark scenes (the refinement benchmark of issue 6
-and `gvae report`).
+"""The experiment behind `gvae report`: refinement against the strongest simple alternatives at
+the same cost, on scenes no choice was made on, over several seeds.
 
-Per scene: progressive 3DGS with lineage up to the training resolution, continued with the real
-higher-resolution images (the 1.5x and 2x baselines, the paper's 700p/800p columns); then, from
-the training-resolution stage and its lineage only, refinement +1..+4 by Ours (every Gaussian),
-Ours-∇² (the Hessian budget) and two controls at Ours-∇²'s budget: random selection, and the
-plain 3DGS split of the selected Gaussians without the model; Ours-∇² with the model's appearance
-at every step (the ablation of `carry_appearance`); and a Hessian budget sweep. Each
-cloud is scored by Chamfer distance to the ground-truth mesh, PSNR/SSIM against ground-truth
-test views at 1x, 1.5x and 2x the training resolution, NIQE of its 2x renders, its Gaussian
-count and refine time. Scenes and training runs are cached and reused.
+Per (scene, seed): progressive 3DGS with lineage up to the training resolution, continued with
+the real 1.5x and 2x images (the upper bound, the paper's 700p/800p columns). From the
+training-resolution stage and its lineage only:
+- baselines: the unrefined cloud (`BASELINE`); the same with one global scale factor chosen on
+  the training scenes only (`KNOB`); 3DGS trained on the real 1.5x and 2x images (`REAL`);
+- Ours (the models refine every Gaussian) and Ours-∇² (the Hessian budget) at +1..+steps;
+- controls at Ours-∇²'s output count, step by step (`gvae_core.controls`): the plain 3DGS split,
+  random selection with the model, and duplicate-in-place.
+Every cloud is scored by Chamfer distance of its centres to the ground-truth mesh (accuracy plain
+and weighted by opacity, completeness), PSNR/SSIM against the ground-truth test views at 1x, 1.5x
+and 2x the training resolution with the anti-aliasing mode the protocol names (the primary
+columns) and with the classic render beside it, NIQE of the 2x renders, its Gaussian count and
+time. The clouds carry the 3D filter of the cameras they were trained with (`antialias`).
+Scenes and training runs are cached and reused; runs resume.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ import multiprocessing
 import os
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -30,7 +35,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from .controls import split_control
+from .antialias import with_filter_3d
+from .controls import duplicate_control, split_control, thin_added
 from .datasets import load_nerf_synthetic
 from .hessian import hessian_scores
 from .lineage import Lineage
@@ -38,44 +44,51 @@ from .metrics.geometry import MeshDistance, chamfer, read_mesh_ply
 from .metrics.image import image_scores
 from .ply import read_ply
 from .refinement import RefineResult, refine_steps
-from .rendering import render
+from .rendering import RenderSettings, render
 from .rendering.reference import render_reference
-from .scenes import cache_dir, make_scene
+from .scenes import SPLITS, cache_dir, make_scene
 from .train import TrainConfig, train_progressive
 from .vae import GaussianVAE, default_model_dir
 
-#: Methods in results rows: the 3DGS baselines, the model, and the controls.
-BASELINE, OURS, OURS_H, RANDOM, SPLIT, SWEEP = "3dgs", "ours", "ours_h", "random", "split", "sweep"
-OURS_H_MODEL_APP = "ours_h_app"  # ablation: the model's appearance at every step (`carry_appearance=False`)
+#: Methods in result rows.
+BASELINE, KNOB, REAL = "3dgs", "3dgs_knob", "3dgs_real"
+OURS, OURS_H = "ours", "ours_h"
+SPLIT, RANDOM, DUPLICATE = "split", "random", "duplicate"
+CONTROLS = (SPLIT, RANDOM, DUPLICATE)
 SCALES = ("1x", "1.5x", "2x")
+#: Random selection with the model chooses this many times Ours-∇²'s count of Gaussians, then its
+#: children are thinned to Ours-∇²'s count (the model decides how many children each gets).
+RANDOM_OVERSUPPLY = 1.5
 
 
 @dataclass(frozen=True)
 class Protocol:
-    """One experiment profile: which scenes at which render profile, the training stages (the
-    last is the training resolution) and the real-image stages above it (1.5x and 2x), how far
-    to refine and what to evaluate."""
+    """One experiment profile: scenes (by default the test split) at a render profile, seeds,
+    the training stages (the last is the training resolution) and the real-image stages above it
+    (1.5x and 2x), how far to refine, how to render, and where the global scale knob is tuned."""
 
     name: str
     scene_profile: str
-    scenes: tuple[str, ...]
     resolutions: tuple[int, ...]
     iterations: tuple[int, ...]
     higher: tuple[int, ...]
     higher_iterations: tuple[int, ...]
     train_overrides: dict = field(default_factory=dict)
-    steps: int = 4
+    scenes: tuple[str, ...] = SPLITS["test"]
+    seeds: tuple[int, ...] = (0, 1, 2)
+    steps: int = 2
     budget: Any = "auto"
-    sweep: tuple[float, ...] = (0.01, 0.03, 0.1, 0.3)
-    sweep_steps: int = 2
+    antialias: str = "mip"
     test_views: int | None = None
     hessian_views: int = 8
     hessian_probes: int = 4
-    seed: int = 0
+    knob_scenes: tuple[str, ...] = SPLITS["train"]
+    knob_factors: tuple[float, ...] = (0.8, 0.9, 1.0, 1.1, 1.2, 1.3)
+    scene_seed: int = 0
 
-    def train_config(self):
+    def train_config(self, seed: int = 0) -> TrainConfig:
         return TrainConfig.profile("default", resolutions=self.resolutions + self.higher,
-                                   iterations=self.iterations + self.higher_iterations, seed=self.seed,
+                                   iterations=self.iterations + self.higher_iterations, seed=seed,
                                    **self.train_overrides)
 
     @property
@@ -83,23 +96,25 @@ class Protocol:
         """Index of the training-resolution stage in the run."""
         return len(self.resolutions) - 1
 
-    def run_key(self) -> str:
-        """Hash of what a scene's training run depends on."""
-        blob = json.dumps({"scene_profile": self.scene_profile, "config": self.train_config().to_dict()},
+    def run_key(self, seed: int = 0) -> str:
+        """Hash of what a scene's training run with 3DGS seed `seed` depends on."""
+        blob = json.dumps({"scene_profile": self.scene_profile, "config": self.train_config(seed).to_dict()},
                           sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
 PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
-    # Within 20 minutes on 2 cores from nothing (5.3 min measured): the two held-out scenes, small renders.
-    Protocol("quick", scene_profile="small", scenes=("chair", "tableware"),
-             resolutions=(50, 75, 100), iterations=(300, 200, 200), higher=(150, 200),
-             higher_iterations=(200, 200),
+    # Within 25 minutes on 2 cores from nothing: the test scenes, three seeds, small renders.
+    Protocol("quick", scene_profile="small", resolutions=(50, 75, 100), iterations=(300, 200, 200),
+             higher=(150, 200), higher_iterations=(200, 200),
              train_overrides=dict(init_count=4000, max_gaussians=20_000), test_views=8),
-    # All six scenes at the benchmark profile (hours on 2 cores).
-    Protocol("full", scene_profile="default", scenes=("plant", "crate", "materials", "bricks", "chair", "tableware"),
-             resolutions=(100, 150, 200), iterations=(600, 400, 400), higher=(300, 400),
-             higher_iterations=(400, 400), test_views=10),
+    # The benchmark profile (hours on 2 cores; runs resume).
+    Protocol("full", scene_profile="default", resolutions=(100, 150, 200), iterations=(600, 400, 400),
+             higher=(300, 400), higher_iterations=(400, 400), steps=4, test_views=10),
+    # Paper scale, for a machine with a GPU (`--device cuda`): training at 400 px, 800 px renders.
+    Protocol("paper", scene_profile="full", resolutions=(100, 200, 400), iterations=(7000, 7000, 7000),
+             higher=(600, 800), higher_iterations=(7000, 7000), steps=4, test_views=20,
+             train_overrides=dict(init="random", init_count=100_000, max_gaussians=None)),
 ]}
 
 
@@ -107,21 +122,25 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
 
 @dataclass
 class SceneRun:
-    """A scene prepared for the experiment: its folder, its training run (all stages), and what
+    """A scene prepared for the experiment: its folder, one training run (all stages) and what
     evaluation needs."""
 
     name: str
+    seed: int
     scene_dir: Path
     run_dir: Path
     protocol: Protocol
     seconds: dict[str, float]
 
-    def lineage(self, stages: int | None = None):
+    def lineage(self, stages: int | None = None) -> Lineage:
         lin = Lineage.load(self.run_dir / "lineage.npz")
         return lin if stages is None else lin.prefix(stages)
 
     def stage_cloud(self, stage: int):
-        return read_ply(self.run_dir / f"stage_{stage}.ply")
+        """A stage's cloud with the 3D filter of the cameras (and resolution) it was trained with."""
+        cloud = read_ply(self.run_dir / f"stage_{stage}.ply")
+        cams = load_nerf_synthetic(self.scene_dir, "train", resolution=self.log()[stage]["resolution"]).cameras
+        return with_filter_3d(cloud, cams)
 
     def log(self) -> list[dict]:
         return json.loads((self.run_dir / "log.json").read_text())
@@ -131,42 +150,51 @@ def runs_dir(cache=None) -> Path:
     return cache_dir(cache) / "runs"
 
 
-def prepare_scene(name: str, protocol: Protocol, *, cache=None, threads: int = 1,
+def run_dir(name: str, protocol: Protocol, seed: int = 0, cache=None) -> Path:
+    return runs_dir(cache) / f"{protocol.name}-{protocol.run_key(seed)}" / name
+
+
+def prepare_scene(name: str, protocol: Protocol, *, seed: int = 0, cache=None, threads: int = 1,
                   say: Callable[[str], None] = print) -> SceneRun:
-    """Render the scene (cached) and train its run through every stage (cached, resumable)."""
+    """Render the scene (cached) and train its run with 3DGS seed `seed` through every stage
+    (cached, resumable)."""
     t0 = time.perf_counter()
-    scene_dir = make_scene(name, profile=protocol.scene_profile, seed=protocol.seed, cache=cache)
+    scene_dir = make_scene(name, profile=protocol.scene_profile, seed=protocol.scene_seed, cache=cache)
     t1 = time.perf_counter()
-    run_dir = runs_dir(cache) / f"{protocol.name}-{protocol.run_key()}" / name
-    config = protocol.train_config()
-    done = _stages_done(run_dir)
+    out = run_dir(name, protocol, seed, cache)
+    config = protocol.train_config(seed)
+    done = _stages_done(out)
     if done < len(config.resolutions):
-        say(f"[{name}] training {len(config.resolutions)} stages {config.resolutions} px "
-            f"({done} done) into {run_dir}")
-        train_progressive(scene_dir, config, out_dir=run_dir, progress=False, threads=threads)
-    return SceneRun(name, scene_dir, run_dir, protocol,
-                    {"scene": t1 - t0, "train": time.perf_counter() - t1})
+        say(f"[{name} s{seed}] training {len(config.resolutions)} stages {config.resolutions} px "
+            f"({done} done) into {out}")
+        train_progressive(scene_dir, config, out_dir=out, progress=False, threads=threads)
+    return SceneRun(name, seed, scene_dir, out, protocol, {"scene": t1 - t0, "train": time.perf_counter() - t1})
 
 
-def _stages_done(run_dir: Path) -> int:
+def _stages_done(path: Path) -> int:
     try:
-        return int(json.loads((run_dir / "run.json").read_text())["stages_done"])
+        return int(json.loads((path / "run.json").read_text())["stages_done"])
     except (OSError, ValueError, KeyError):
         return 0
 
 
+def scene_split(name: str) -> str:
+    return next((split for split, names in SPLITS.items() if name in names), "other")
+
+
 class Evaluator:
-    """Scores clouds of one scene: Chamfer against its mesh, PSNR/SSIM against its test views
-    at each scale, NIQE of the 2x renders."""
+    """Scores clouds of one scene: Chamfer against its mesh (plain and opacity-weighted
+    accuracy), PSNR/SSIM against its test views at each scale with the protocol's anti-aliasing
+    mode and with the classic render, NIQE of the 2x renders."""
 
     def __init__(self, run: SceneRun, background=(1.0, 1.0, 1.0)):
         p = run.protocol
         self.background = background
+        self.modes = {"": p.antialias, "_classic": "classic"}
         self.mesh = MeshDistance(*read_mesh_ply(run.scene_dir / "mesh.ply"))
         self.surface = np.load(run.scene_dir / "gt_points.npy")
-        heights = (p.resolutions[-1],) + tuple(p.higher)
         self.views = {}
-        for label, h in zip(SCALES, heights):
+        for label, h in zip(SCALES, (p.resolutions[-1],) + tuple(p.higher)):
             v = load_nerf_synthetic(run.scene_dir, "test", resolution=h)
             if p.test_views is not None and p.test_views < len(v):
                 pick = np.linspace(0, len(v) - 1, p.test_views).round().astype(int)
@@ -174,17 +202,18 @@ class Evaluator:
                             [v.names[i] for i in pick])
             self.views[label] = v
 
-    def __call__(self, cloud, *, scales=SCALES, no_reference: bool = True) -> dict[str, float]:
-        c = chamfer(cloud.means, self.surface, self.mesh)
-        row = {"chamfer": c.chamfer, "accuracy": c.accuracy, "completeness": c.completeness,
-               "n_gaussians": len(cloud)}
+    def __call__(self, cloud, *, scales=SCALES) -> dict[str, float]:
+        c = chamfer(cloud.means, self.surface, self.mesh, weights=cloud.activated_opacities())
+        row = {"chamfer": c.chamfer, "accuracy": c.accuracy, "weighted_accuracy": c.weighted_accuracy,
+               "completeness": c.completeness, "n_gaussians": len(cloud)}
         for label in scales:
-            s = image_scores(cloud, self.views[label], self.background,
-                             no_reference=no_reference and label == SCALES[-1])
-            row[f"psnr_{label}"] = s.psnr
-            row[f"ssim_{label}"] = s.ssim
-            if label == SCALES[-1] and no_reference:
-                row["niqe"] = s.niqe
+            for suffix, mode in self.modes.items():
+                niqe = not suffix and label == SCALES[-1]
+                s = image_scores(cloud, self.views[label], self.background, no_reference=niqe, antialias=mode)
+                row[f"psnr_{label}{suffix}"] = s.psnr
+                row[f"ssim_{label}{suffix}"] = s.ssim
+                if niqe:
+                    row["niqe"] = s.niqe
         return row
 
 
@@ -195,145 +224,181 @@ def hessian_cameras(run: SceneRun, count: int):
     return [views.cameras[i] for i in pick]
 
 
-def render_timing(cloud, camera, repeats: int = 3, samples: int = 64, seed: int = 0) -> dict:
+def scaled(cloud, factor: float):
+    """The cloud with every Gaussian's scale multiplied by `factor` (the global knob)."""
+    return cloud.replace(scales=(cloud.scales + np.float32(math.log(factor))).astype(np.float32))
+
+
+def render_timing(cloud, camera, antialias: str, repeats: int = 3, samples: int = 64, seed: int = 0) -> dict:
     """Seconds per forward render (median of `repeats`) and the largest difference from the
     float64 reference renderer on `samples` random pixels of the same image."""
     tc = cloud.to_torch()
+    settings = RenderSettings(antialias=antialias)
     times = []
     with torch.no_grad():
-        render(tc, camera, background=(1.0, 1.0, 1.0))  # warm-up: first-call costs are not the renderer's
+        render(tc, camera, background=(1.0, 1.0, 1.0), settings=settings)  # warm-up
         for _ in range(repeats):
             t0 = time.perf_counter()
-            image = render(tc, camera, background=(1.0, 1.0, 1.0)).image.numpy()
+            image = render(tc, camera, background=(1.0, 1.0, 1.0), settings=settings).image.numpy()
             times.append(time.perf_counter() - t0)
     rng = np.random.default_rng(seed)
     pix = np.stack([rng.integers(0, camera.height, samples), rng.integers(0, camera.width, samples)], 1)
-    ref = render_reference(cloud, camera, background=(1.0, 1.0, 1.0), pixels=pix)[0]
+    ref = render_reference(cloud, camera, background=(1.0, 1.0, 1.0), pixels=pix, antialias=antialias)[0]
     error = float(np.abs(image[pix[:, 0], pix[:, 1]] - ref).max())
     return {"render_s": statistics.median(times), "render_error": error, "n_gaussians": len(cloud),
             "height": camera.height}
 
 
-def run_scene(run: SceneRun, model, *, say: Callable[[str], None] = print) -> list[dict]:
-    """Every method and step on one prepared scene; one row per (method, step, budget)."""
+def run_scene(run: SceneRun, model, knob: float = 1.0, *,
+              say: Callable[[str], None] = print) -> list[dict]:
+    """Every method and step on one prepared (scene, seed); one row per (method, step)."""
     p = run.protocol
     k = p.train_stage
     evaluate = Evaluator(run)
     lineage = run.lineage(k + 1)
     base = run.stage_cloud(k)
     rows: list[dict] = []
+    tag = {"scene": run.name, "seed": run.seed, "split": scene_split(run.name)}
 
     def add(method: str, step: int, cloud, **info) -> None:
         t0 = time.perf_counter()
-        row = {"scene": run.name, "method": method, "step": step, **info, **evaluate(cloud)}
+        row = {**tag, "method": method, "step": step, **info, **evaluate(cloud)}
         row["eval_s"] = time.perf_counter() - t0
         rows.append(row)
-        say(f"[{run.name}] {method:7s} {'+' + str(step) if step else '':3s} {_brief(row)}")
+        say(f"[{run.name} s{run.seed}] {method:9s} {'+' + str(step) if step else '':3s} {_brief(row)}")
 
     log = run.log()
-    for i, label in enumerate(SCALES):
-        entry = log[k + i]
-        add(BASELINE, 0, run.stage_cloud(k + i), resolution=entry["resolution"], scale=label,
+    add(BASELINE, 0, base, resolution=log[k]["resolution"], train_s=sum(e["seconds"] for e in log[:k + 1]))
+    add(KNOB, 0, scaled(base, knob), factor=knob)
+    for i, label in enumerate(SCALES[1:], 1):
+        add(REAL, 0, run.stage_cloud(k + i), scale=label, resolution=log[k + i]["resolution"],
             train_s=sum(e["seconds"] for e in log[:k + i + 1]))
 
     t0 = time.perf_counter()
     scores = hessian_scores(base, hessian_cameras(run, p.hessian_views), probes=p.hessian_probes,
-                            seed=p.seed).numpy()
+                            seed=run.seed).numpy()
     hessian_s = time.perf_counter() - t0
-    common = dict(steps=p.steps, model=model, lineage=lineage, seed=p.seed)
+    common = dict(steps=p.steps, model=model, lineage=lineage, seed=run.seed)
 
-    largest = base
-
-    def refined(method: str, results, budget) -> list[RefineResult]:
-        nonlocal largest
+    def refined(method: str, results, **info) -> list[RefineResult]:
         out = []
         for step, r in enumerate(results, 1):
             out.append(r)
-            largest = r.cloud if len(r.cloud) > len(largest) else largest
-            add(method, step, r.cloud, budget=str(budget), selected=len(r.selected), added=len(r.added),
-                refine_s=r.timings["total"] - r.timings.get("hessian", 0.0) - r.timings.get("load", 0.0),
-                hessian_s=hessian_s if method != OURS else 0.0)
+            add(method, step, r.cloud, selected=len(r.selected), added=len(r.added),
+                refine_s=r.timings["total"] - r.timings.get("hessian", 0.0) - r.timings.get("load", 0.0), **info)
         return out
 
-    refined(OURS, refine_steps(base, budget="all", **common), "all")
-    ours_h = refined(OURS_H, refine_steps(base, budget=p.budget, scores=scores, **common), p.budget)
-    count = len(ours_h[0].selected)
-    refined(OURS_H_MODEL_APP, refine_steps(base, budget=p.budget, scores=scores, carry_appearance=False, **common),
-            p.budget)
-    noise = np.random.default_rng(p.seed + 1).random(len(base)).astype(np.float32)
-    refined(RANDOM, refine_steps(base, budget=count, scores=noise, **common), count)
-    refined(SPLIT, split_control(base, scores, [len(r.added) for r in ours_h], seed=p.seed), count)
-    for b in p.sweep:
-        sweep = refine_steps(base, budget=b, scores=scores, **{**common, "steps": min(p.steps, p.sweep_steps)})
-        for step, r in enumerate(sweep, 1):
-            t0 = time.perf_counter()
-            row = {"scene": run.name, "method": SWEEP, "step": step, "budget": str(b), "selected": len(r.selected),
-                   "added": len(r.added), "refine_s": r.timings["total"] - r.timings["hessian"] - r.timings["load"],
-                   "hessian_s": hessian_s, **evaluate(r.cloud, scales=(SCALES[-1],), no_reference=False)}
-            row["eval_s"] = time.perf_counter() - t0
-            rows.append(row)
-        say(f"[{run.name}] sweep   {b}: {_brief(rows[-1])}")
-    for cloud, of in ((base, BASELINE), (largest, "largest refined")):
-        for label in SCALES:
-            rows.append({"scene": run.name, "method": "render", "of": of, "scale": label,
-                         **render_timing(cloud, evaluate.views[label].cameras[0])})
+    refined(OURS, refine_steps(base, budget="all", **common))
+    ours_h = refined(OURS_H, refine_steps(base, budget=p.budget, scores=scores, **common), hessian_s=hessian_s)
+    targets = [len(r.added) for r in ours_h]
+    refined(SPLIT, split_control(base, scores, targets, seed=run.seed))
+    refined(DUPLICATE, duplicate_control(base, scores, targets, seed=run.seed))
+    count = math.ceil(RANDOM_OVERSUPPLY * len(ours_h[0].selected))
+    noise = np.random.default_rng(run.seed + 1).random(len(base)).astype(np.float32)
+    randoms = refine_steps(base, budget=count, scores=noise, **common)
+    refined(RANDOM, (thin_added(r, t, seed=run.seed) for r, t in zip(randoms, targets)))
+    for label in SCALES:
+        rows.append({**tag, "method": "render", "scale": label,
+                     **render_timing(base, evaluate.views[label].cameras[0], evaluate.modes[""])})
     return rows
 
 
 def _brief(row: dict) -> str:
-    parts = [f"n={row['n_gaussians']}", f"CD={row['chamfer']:.5f}"]
-    parts += [f"PSNR{s}={row[f'psnr_{s}']:.2f}" for s in SCALES if f"psnr_{s}" in row]
-    if "niqe" in row and row["niqe"] == row["niqe"]:
-        parts.append(f"NIQE={row['niqe']:.2f}")
+    parts = [f"n={row['n_gaussians']}", f"CD={row['chamfer']:.5f}", f"wAcc={row['weighted_accuracy']:.5f}"]
+    parts += [f"PSNR{s}={row[f'psnr_{s}']:.2f}/{row[f'psnr_{s}_classic']:.2f}" for s in SCALES]
     return " ".join(parts)
 
 
-def run_experiment(protocol: Protocol | str, *, model=None, scenes=None, cache=None, jobs: int | None = None,
-                   say: Callable[[str], None] = print) -> dict:
-    """The whole experiment: every scene prepared and evaluated, `jobs` scenes at a time in
-    worker processes of one torch thread each (default: one per core); returns the results
-    document (protocol, model, per-scene run logs and timings, rows)."""
+# ----------------------------------------------------------------------------- the global knob
+
+def tune_knob(runs: Sequence[SceneRun], factors: Sequence[float]) -> dict:
+    """The one global scale factor, chosen on `runs` (the training scenes): the factor whose
+    unrefined clouds score the best mean PSNR at 2x with the protocol's render. Returns the
+    factor and the table it was chosen from."""
+    table = {f"{f:g}": [] for f in factors}
+    for run in runs:
+        evaluate = Evaluator(run)
+        base = run.stage_cloud(run.protocol.train_stage)
+        for f in factors:
+            s = image_scores(scaled(base, f), evaluate.views["2x"], evaluate.background, no_reference=False,
+                             antialias=evaluate.modes[""])
+            table[f"{f:g}"].append(s.psnr)
+    means = {f: float(np.mean(v)) for f, v in table.items()}
+    best = max(means, key=means.get)
+    return {"factor": float(best), "psnr_2x": means, "scenes": [r.name for r in runs]}
+
+
+# ----------------------------------------------------------------------------- the whole experiment
+
+def run_experiment(protocol: Protocol | str, *, model=None, scenes=None, seeds=None, cache=None,
+                   jobs: int | None = None, say: Callable[[str], None] = print) -> dict:
+    """The whole experiment: the knob's training-scene runs and every (scene, seed) prepared,
+    the knob tuned, every (scene, seed) evaluated, `jobs` at a time in worker processes of one
+    torch thread each (default: one per core); returns the results document (protocol, model,
+    knob, per-run logs and timings, rows)."""
     p = PROTOCOLS[protocol] if isinstance(protocol, str) else protocol
     model_dir = Path(model) if model is not None else default_model_dir()
     loaded = GaussianVAE.load(model_dir)
-    names = list(scenes or p.scenes)
-    jobs = _job_count(jobs, len(names))
+    pairs = [(name, seed) for name in (scenes or p.scenes) for seed in (seeds or p.seeds)]
+    knob_pairs = [(name, p.seeds[0]) for name in p.knob_scenes]
     started = time.time()
     t0 = time.perf_counter()
+    jobs = _job_count(jobs, len(pairs))
+    prepared = _map(prepare_job, [(n, s, p, cache) for n, s in dict.fromkeys(knob_pairs + pairs)], jobs, say)
+    runs = dict(zip(dict.fromkeys(knob_pairs + pairs), prepared))
+    say(f"tuning the global scale knob on {', '.join(p.knob_scenes)}")
+    knob = tune_knob([runs[pair] for pair in knob_pairs], p.knob_factors)
+    say(f"knob: x{knob['factor']:g} (mean PSNR 2x by factor: "
+        + ", ".join(f"{f}: {v:.2f}" for f, v in knob["psnr_2x"].items()) + ")")
+    results = _map(evaluate_job, [(runs[pair], model_dir, knob["factor"]) for pair in pairs], jobs, say)
     doc = {"protocol": {**asdict(p), "train_config": p.train_config().to_dict()},
            "model": {"dir": str(model_dir), "sizes": loaded.sizes(),
                      "train_scenes": loaded.meta.get("train_scenes", []),
                      "held_out_scenes": loaded.meta.get("held_out_scenes", [])},
-           "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(started)), "scenes": {}, "rows": [],
-           "jobs": jobs}
-    if jobs == 1:
-        results = [scene_job(name, p, model_dir, cache, say) for name in names]
-    else:
-        with _pool(jobs) as pool:
-            futures = [pool.submit(scene_job, name, p, model_dir, cache, None) for name in names]
-            results = [f.result() for f in futures]
-    for name, (rows, info) in zip(names, results):
+           "knob": knob, "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(started)), "runs": {},
+           "rows": [], "jobs": jobs, "split": _common_split(name for name, _ in pairs)}
+    for (name, seed), rows in zip(pairs, results):
+        run = runs[(name, seed)]
         doc["rows"] += rows
-        doc["scenes"][name] = info
+        doc["runs"][f"{name}/s{seed}"] = {"scene": name, "seed": seed, "split": scene_split(name),
+                                          "scene_dir": str(run.scene_dir), "run_dir": str(run.run_dir),
+                                          "log": run.log(), "seconds": run.seconds}
     doc["seconds"] = time.perf_counter() - t0
     return _finite(doc)
 
 
-def prepare_scenes(names, protocol: Protocol, *, cache=None, jobs: int | None = None,
+def _common_split(names) -> str:
+    splits = {scene_split(n) for n in names}
+    return splits.pop() if len(splits) == 1 else "mixed"
+
+
+def prepare_job(name: str, seed: int, protocol: Protocol, cache=None, say=None) -> SceneRun:
+    return prepare_scene(name, protocol, seed=seed, cache=cache, threads=1, say=say or _print)
+
+
+def evaluate_job(run: SceneRun, model_dir, knob: float, say=None) -> list[dict]:
+    return run_scene(run, GaussianVAE.load(model_dir), knob, say=say or _print)
+
+
+def prepare_scenes(names, protocol: Protocol, *, seed: int = 0, cache=None, jobs: int | None = None,
                    say: Callable[[str], None] = print) -> dict[str, SceneRun]:
-    """`prepare_scene` for several scenes, `jobs` at a time in worker processes of one torch
-    thread each (default: one per core)."""
+    """`prepare_scene` for several scenes (one 3DGS seed), `jobs` at a time."""
     names = list(names)
-    jobs = _job_count(jobs, len(names))
+    runs = _map(prepare_job, [(n, seed, protocol, cache) for n in names], _job_count(jobs, len(names)), say)
+    return dict(zip(names, runs))
+
+
+def _map(fn, arg_lists: list[tuple], jobs: int, say: Callable[[str], None]) -> list:
+    """fn(*args, say=...) for every args tuple, in `jobs` worker processes (in order)."""
     if jobs == 1:
-        return {name: prepare_scene(name, protocol, cache=cache, say=say) for name in names}
+        return [fn(*args, say=say) for args in arg_lists]
     with _pool(jobs) as pool:
-        futures = {name: pool.submit(prepare_scene, name, protocol, cache=cache, say=_print) for name in names}
-        return {name: f.result() for name, f in futures.items()}
+        futures = [pool.submit(fn, *args) for args in arg_lists]
+        return [f.result() for f in futures]
 
 
 def _job_count(jobs: int | None, tasks: int) -> int:
-    """Worker processes for `tasks` scenes: `jobs`, or one per core, and no more than the tasks."""
+    """Worker processes for `tasks` jobs: `jobs`, or one per core, and no more than the tasks."""
     return max(1, min(jobs or os.cpu_count() or 1, tasks))
 
 
@@ -348,16 +413,6 @@ def _print(msg: str) -> None:
 
 def _one_thread() -> None:
     torch.set_num_threads(1)
-
-
-def scene_job(name: str, protocol: Protocol, model_dir, cache=None, say: Callable[[str], None] | None = None):
-    """One scene from start to end (a worker process's job): rows and the scene's record."""
-    say = say or _print
-    run = prepare_scene(name, protocol, cache=cache, threads=1, say=say)
-    t1 = time.perf_counter()
-    rows = run_scene(run, GaussianVAE.load(model_dir), say=say)
-    return rows, {"scene_dir": str(run.scene_dir), "run_dir": str(run.run_dir), "log": run.log(),
-                  "seconds": {**run.seconds, "evaluate": time.perf_counter() - t1}}
 
 
 def _finite(obj):

@@ -1,6 +1,6 @@
 """The experiment and the report, end to end on a tiny scene rendered by our own renderer (no
-Blender): every method and step is evaluated, the baselines come from the real higher-resolution
-stages, the controls use Ours-∇²'s budget, and the report has its tables and plots."""
+Blender): every method and step is evaluated, the controls match Ours-∇²'s count, the knob is the
+best factor, and the report's tables show the numbers of a known input."""
 
 import json
 import math
@@ -11,10 +11,10 @@ from PIL import Image
 
 from gvae_core import GaussianCloud
 from gvae_core.camera import orbit
-from gvae_core.experiment import (BASELINE, OURS, OURS_H, OURS_H_MODEL_APP, RANDOM, SCALES, SPLIT, SWEEP, Protocol,
-                                  SceneRun, run_scene)
+from gvae_core.experiment import (BASELINE, CONTROLS, DUPLICATE, KNOB, OURS, OURS_H, RANDOM, REAL, SCALES, SPLIT,
+                                  Protocol, SceneRun, run_scene, tune_knob)
 from gvae_core.rendering import render
-from gvae_core.report import ablation_table, losses, paper_table, write_report
+from gvae_core.report import Results, headline_table, losses, mean_ci, methods_table, write_report
 from gvae_core.scenes.build import write_mesh_ply
 from gvae_core.train import train_progressive
 from gvae_core.vae import GaussianVAE
@@ -64,101 +64,121 @@ def _scene(root, size=48):
 def experiment(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("experiment")
     scene = _scene(tmp / "ball")
-    protocol = Protocol("test", scene_profile="none", scenes=("ball",), resolutions=(16, 24), iterations=(40, 30),
-                        higher=(36, 48), higher_iterations=(20, 20),
-                        train_overrides=dict(init_count=300, max_gaussians=3000, sh_degree=1), steps=2,
-                        sweep=(0.1, 1.0), test_views=2, hessian_views=2, hessian_probes=1)
+    protocol = Protocol("test", scene_profile="none", resolutions=(16, 24), iterations=(40, 30), higher=(36, 48),
+                        higher_iterations=(20, 20), scenes=("ball",), seeds=(0,), steps=2,
+                        train_overrides=dict(init_count=300, max_gaussians=3000, sh_degree=1), test_views=2,
+                        hessian_views=2, hessian_probes=1, knob_factors=(0.5, 1.0))
     run_dir = tmp / "run"
-    train_progressive(scene, protocol.train_config(), out_dir=run_dir, progress=False)
-    run = SceneRun("ball", scene, run_dir, protocol, {"scene": 0.0, "train": 0.0})
+    train_progressive(scene, protocol.train_config(0), out_dir=run_dir, progress=False)
+    run = SceneRun("ball", 0, scene, run_dir, protocol, {"scene": 0.0, "train": 0.0})
     model = GaussianVAE.create(seed=0)
-    model.meta = {"train_scenes": ["other"], "held_out_scenes": ["ball"]}
-    rows = run_scene(run, model, say=lambda msg: None)
-    doc = {"protocol": {"name": "test", "resolutions": [16, 24], "higher": [36, 48], "steps": 2, "budget": "auto",
-                        "scene_profile": "none"},
-           "model": {"dir": None, "sizes": model.sizes(), "train_scenes": ["other"], "held_out_scenes": ["ball"]},
-           "started": "now", "seconds": 1.0, "rows": rows,
-           "scenes": {"ball": {"log": run.log(), "seconds": {}}}}
-    return run, rows, doc, tmp
+    rows = run_scene(run, model, 1.1, say=lambda msg: None)
+    return run, rows
+
+
+def _pick(rows, method, step=0, scale=None):
+    return next(r for r in rows if r["method"] == method and r.get("step") == step and r.get("scale") == scale)
 
 
 def test_every_method_and_step_is_scored(experiment):
-    run, rows, _, _ = experiment
-    by = {(r["method"], r.get("step"), r.get("scale"), r.get("budget")) for r in rows}
-    for s in SCALES:
-        assert (BASELINE, 0, s, None) in by
-    for method in (OURS, OURS_H, OURS_H_MODEL_APP, RANDOM, SPLIT):
-        assert {k for m, k, _, _ in by if m == method} == {1, 2}
-    assert {b for m, _, _, b in by if m == SWEEP} == {"0.1", "1.0"}
+    run, rows = experiment
+    for method in (OURS, OURS_H, *CONTROLS):
+        assert sorted(r["step"] for r in rows if r["method"] == method) == [1, 2]
     for r in rows:
         if r["method"] == "render":
             assert r["render_error"] < 1e-4 and r["render_s"] > 0
             continue
+        assert r["scene"] == "ball" and r["seed"] == 0
         assert np.isfinite(r["chamfer"]) and r["chamfer"] == pytest.approx(0.5 * (r["accuracy"] + r["completeness"]))
-        assert np.isfinite(r["psnr_2x"]) and 0 < r["ssim_2x"] <= 1
-    # the baselines are the real training stages at 1x, 1.5x and 2x
+        assert np.isfinite(r["weighted_accuracy"])
+        for s in SCALES:
+            assert np.isfinite(r[f"psnr_{s}"]) and np.isfinite(r[f"psnr_{s}_classic"]) and 0 < r[f"ssim_{s}"] <= 1
+    # the real higher-resolution stages are the REAL rows; the knob scales the unrefined cloud
     log = run.log()
-    for i, s in enumerate(SCALES):
-        r = next(r for r in rows if r["method"] == BASELINE and r["scale"] == s)
-        assert r["resolution"] == log[1 + i]["resolution"] and r["n_gaussians"] == log[1 + i]["n_gaussians"]
+    for i, s in enumerate(SCALES[1:], 2):
+        r = _pick(rows, REAL, scale=s)
+        assert r["resolution"] == log[i]["resolution"] and r["n_gaussians"] == log[i]["n_gaussians"]
+    knob = _pick(rows, KNOB)
+    assert knob["factor"] == 1.1 and knob["n_gaussians"] == _pick(rows, BASELINE)["n_gaussians"]
 
 
-def test_controls_use_the_hessian_budget(experiment):
-    _, rows, _, _ = experiment
+def test_controls_match_ours_h_count(experiment):
+    _, rows = experiment
+    for k in (1, 2):
+        target = _pick(rows, OURS_H, k)["added"]
+        for method in CONTROLS:
+            assert _pick(rows, method, k)["added"] == target, method
+        assert _pick(rows, SPLIT, k)["n_gaussians"] == _pick(rows, OURS_H, k)["n_gaussians"]
+    assert _pick(rows, OURS, 1)["selected"] == _pick(rows, BASELINE)["n_gaussians"]
 
-    def pick(method, step):
-        return next(r for r in rows if r["method"] == method and r["step"] == step)
-    n = pick(OURS_H, 1)["selected"]
-    assert pick(RANDOM, 1)["selected"] == n
-    for k in (1, 2):  # the split control adds as many Gaussians as Ours-∇² did
-        assert pick(SPLIT, k)["added"] == pick(OURS_H, k)["added"]
-    base = next(r for r in rows if r["method"] == BASELINE and r["scale"] == "1x")
-    assert pick(OURS, 1)["selected"] == base["n_gaussians"]
+
+def test_knob_is_the_best_factor_on_its_scenes(experiment):
+    run, _ = experiment
+    knob = tune_knob([run], (0.5, 1.0))
+    assert knob["factor"] == 1.0 and knob["scenes"] == ["ball"]
+    assert knob["psnr_2x"]["1"] > knob["psnr_2x"]["0.5"]  # halving every Gaussian leaves holes
 
 
 def _known_doc() -> dict:
-    """Two scenes with round numbers: Ours-∇² improves Chamfer by 25% at +1 on both, and loses
-    10% on scene b at +2 (and 0.5 dB of PSNR at 2x)."""
+    """Two scenes x two seeds with round numbers: at +1 Ours-∇² lowers Chamfer by 25% and the split
+    by 10%; on scene b seed 1 the split wins PSNR 2x by 0.5 dB."""
     rows = []
     for scene in ("a", "b"):
-        base = dict(scene=scene, method=BASELINE, chamfer=2.0, accuracy=1.0, completeness=3.0, niqe=5.0,
-                    n_gaussians=100, **{f"psnr_{s}": 30.0 for s in SCALES}, **{f"ssim_{s}": 0.9 for s in SCALES})
-        rows += [{**base, "scale": s, "step": 0} for s in SCALES]
-        for k, chamfer in ((1, 1.5), (2, 2.2 if scene == "b" else 1.0)):
-            psnr = 29.5 if (scene, k) == ("b", 2) else 31.0
-            rows.append({**base, "method": OURS_H, "step": k, "chamfer": chamfer, "accuracy": chamfer / 2,
-                         "completeness": 1.5 * chamfer, "psnr_2x": psnr, "added": 10 * k, "refine_s": 0.01})
-            rows.append({**base, "method": OURS, "step": k, "chamfer": 1.8, "added": 100, "refine_s": 0.02})
-    return {"protocol": {"name": "known", "resolutions": [10, 20], "higher": [30, 40], "steps": 2,
-                         "budget": "auto", "scene_profile": "none"},
-            "model": {"dir": None, "sizes": {"geometry": 1000, "appearance": 2000}, "train_scenes": ["a"],
-                      "held_out_scenes": ["b"]},
+        for seed in (0, 1):
+            base = dict(scene=scene, seed=seed, split="test", chamfer=2.0, accuracy=1.0, weighted_accuracy=1.0,
+                        completeness=3.0, n_gaussians=100, **{f"psnr_{s}": 30.0 for s in SCALES},
+                        **{f"psnr_{s}_classic": 29.0 for s in SCALES}, **{f"ssim_{s}": 0.9 for s in SCALES})
+            rows += [{**base, "method": BASELINE, "step": 0}, {**base, "method": KNOB, "step": 0, "psnr_2x": 30.2}]
+            rows += [{**base, "method": REAL, "step": 0, "scale": s, "psnr_2x": 33.0, "n_gaussians": 200}
+                     for s in ("1.5x", "2x")]
+            for k in (1, 2):
+                ours_psnr = 30.0 if (scene, seed) == ("b", 1) else 31.0
+                rows.append({**base, "method": OURS_H, "step": k, "chamfer": 1.5, "weighted_accuracy": 0.8,
+                             "psnr_2x": ours_psnr, "n_gaussians": 110, "added": 10})
+                rows.append({**base, "method": SPLIT, "step": k, "chamfer": 1.8, "psnr_2x": 30.5, "n_gaussians": 110,
+                             "added": 10})
+                for method in (OURS, RANDOM, DUPLICATE):
+                    rows.append({**base, "method": method, "step": k, "chamfer": 2.2, "n_gaussians": 110, "added": 10})
+    return {"protocol": {"name": "known", "resolutions": [10, 20], "higher": [30, 40], "steps": 2, "seeds": [0, 1],
+                         "budget": "auto", "scene_profile": "none", "antialias": "mip"},
+            "model": {"dir": None, "sizes": {"geometry": 1000, "appearance": 2000}, "train_scenes": ["t"]},
+            "knob": {"factor": 1.1, "psnr_2x": {"1": 29.0, "1.1": 29.4}, "scenes": ["t"]}, "split": "test",
             "started": "now", "seconds": 60.0, "rows": rows,
-            "scenes": {s: {"log": [{"resolution": 10, "peak_rss_mb": 100.0, "n_gaussians": 50, "seconds": 1.0,
-                                    "test_psnr": 25.0}], "seconds": {}} for s in ("a", "b")}}
+            "runs": {f"{s}/s{d}": {"scene": s, "seed": d, "log": [{"resolution": 10, "peak_rss_mb": 100.0,
+                                                                  "n_gaussians": 50, "seconds": 1.0,
+                                                                  "test_psnr": 25.0}]}
+                     for s in ("a", "b") for d in (0, 1)}}
+
+
+def test_mean_ci_is_the_t_interval():
+    m, h = mean_ci([1.0, 2.0, 3.0, float("nan")])
+    assert m == 2.0 and h == pytest.approx(4.302652729911275 * 1.0 / math.sqrt(3))
+    assert math.isnan(mean_ci([5.0])[1]) and math.isnan(mean_ci([])[0])
 
 
 def test_report_tables_show_the_numbers_of_a_known_input():
+    res = Results(_known_doc())
+    assert res.pairs == [("a", 0), ("a", 1), ("b", 0), ("b", 1)]
+    head = {line.split(" | ")[1].split(" (")[0] + line.split(" | ")[0]: line for line in headline_table(res)[2:]}
+    # Chamfer at +1: Ours-∇² -25% on every pair; the best alternative is the split at -10%
+    assert head["Chamfer| +1"] == ("| +1 | Chamfer (%, lower is better) | -25.00 ± 0.00 | -10.00 ± 0.00 "
+                                   "(plain split) | -15.00 ± 0.00 | 4/4 |")
+    # PSNR 2x at +1: +1 dB on three pairs, 0 on one; the split's +0.5 is the best alternative everywhere
+    psnr = head["PSNR 2x| +1"].split(" | ")
+    assert psnr[2].startswith("+0.75 ± ") and psnr[3].startswith("+0.50 ± 0.00") and psnr[5] == "3/4 |"
+    methods = {line.split(" | ")[0][2:] + line.split(" | ")[1]: line for line in methods_table(res)[2:]}
+    assert methods["Ours-∇²+2"].split(" | ")[2:4] == ["110", "-25.00 ± 0.00"]
+    assert losses(res) == ["- b, seed 1, +1: PSNR 2x -0.50 dB against plain split",
+                           "- b, seed 1, +2: PSNR 2x -0.50 dB against plain split"]
+
+
+def test_report_is_written_with_its_results(tmp_path):
     doc = _known_doc()
-    table = paper_table(doc, "chamfer", 3, lower_is_better=True)
-    # scene | 3DGS 1x 1.5x 2x | Ours +1 +2 | Ours-∇² +1 +2 | % best | % mean
-    assert table[2] == "| a (train) | 2.000 | 2.000 | 2.000 | 1.800 | 1.800 | 1.500 | 1.000 | 50.0 | 37.5 |"
-    assert table[3] == "| b | 2.000 | 2.000 | 2.000 | 1.800 | 1.800 | 1.500 | 2.200 | 25.0 | 7.5 |"
-    assert table[4] == "| **mean** | 2.000 | 2.000 | 2.000 | 1.800 | 1.800 | 1.500 | 1.600 | 37.5 | 22.5 |"
-    ablation = {line.split(" | ")[1]: line for line in ablation_table(doc)[2:] if line.startswith("| Ours-∇² |")}
-    assert ablation["+1"] == "| Ours-∇² | +1 | +25.00 | +25.00 | +25.00 | +1.000 | +0.0000 | 10 | 10 |"
-    assert ablation["+2"] == "| Ours-∇² | +2 | +20.00 | +20.00 | +20.00 | +0.250 | +0.0000 | 20 | 10 |"
-    assert losses(doc) == ["- b Ours-∇² +2: Chamfer -10.00%, PSNR 2x -0.500 dB"]
-
-
-def test_report_is_written_with_its_results(experiment, tmp_path):
-    _, _, doc, _ = experiment
     path = write_report(doc, tmp_path, command="gvae report --profile test")
     text = path.read_text()
-    assert "\n".join(paper_table(doc, "chamfer", 5, lower_is_better=True)) in text
-    assert "\n".join(losses(doc)) in text and "gvae report --profile test" in text
-    for png in ("refine_time_vs_chamfer.png", "render_time.png", "train_time_vs_psnr.png", "memory_vs_resolution.png"):
+    assert "\n".join(headline_table(Results(doc))) in text and "\n".join(losses(Results(doc))) in text
+    assert "gvae report --profile test" in text and "x1.1" in text
+    for png in ("geometry_vs_count.png", "training.png"):
         assert png in text and Image.open(tmp_path / png).size[0] > 100
     data = json.loads((tmp_path / "results.json").read_text())
-    assert [(r["method"], r.get("step"), r.get("chamfer")) for r in data["rows"]] == [
-        (r["method"], r.get("step"), r.get("chamfer")) for r in doc["rows"]]
+    assert len(data["rows"]) == len(doc["rows"])

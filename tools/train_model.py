@@ -17,16 +17,17 @@ from pathlib import Path
 
 from gvae_core.cli import main as gvae
 from gvae_core.experiment import PROTOCOLS, prepare_scenes
-
-DEFAULT_HOLDOUT = ("chair", "tableware")
-
+from gvae_core.scenes import SPLITS
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="tools/train_model.py", description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=Path("models"), help="model directory (default: models)")
     p.add_argument("--protocol", default="full", choices=list(PROTOCOLS),
                    help="scenes and training runs to learn from (default: full)")
-    p.add_argument("--holdout", nargs="*", default=list(DEFAULT_HOLDOUT), help="scenes kept out of training")
+    p.add_argument("--train", nargs="*", default=list(SPLITS["train"]), help="scenes to learn from "
+                   "(default: the training split)")
+    p.add_argument("--holdout", nargs="*", default=list(SPLITS["validation"]),
+                   help="scenes kept out of training and evaluated (default: the validation split)")
     p.add_argument("--steps", type=int, default=6000, help="VAE optimiser steps (default: 6000)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cache-dir", type=Path, default=None, help="scene and run cache (default: $GVAE_CACHE_DIR)")
@@ -34,12 +35,11 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     protocol = PROTOCOLS[args.protocol]
-    scenes = list(protocol.scenes)
-    held = [s for s in scenes if s in args.holdout]
-    train = [s for s in scenes if s not in args.holdout]
-    if len(held) < 2 or not train:
-        raise SystemExit(f"need at least two held-out scenes and one training scene, got held out {held}, "
-                         f"training {train}")
+    train, held = list(args.train), list(args.holdout)
+    scenes = train + held
+    if not held or not train or set(train) & set(held) or set(scenes) & set(SPLITS["test"]):
+        raise SystemExit(f"need training and held-out scenes apart from each other and from the test split, got "
+                         f"training {train}, held out {held}")
     start = time.perf_counter()
     prepared = prepare_scenes(scenes, protocol, cache=args.cache_dir, jobs=args.jobs,
                               say=lambda m: print(f"[train-model] {m}", flush=True))

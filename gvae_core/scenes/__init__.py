@@ -174,5 +174,5 @@ def _export(cached: Path, out: Path, key: str) -> Path:
     return out
 
 
-__all__ = ["GENERATOR_VERSION", "PROFILES", "SPLITS", "Profile", "BlenderNotAvailable", "list_scenes", "describe_scenes",
-           "make_scene", "scene_key", "cache_dir"]
+__all__ = ["GENERATOR_VERSION", "PROFILES", "SPLITS", "Profile", "BlenderNotAvailable", "list_scenes",
+           "describe_scenes", "make_scene", "scene_key", "cache_dir"]
