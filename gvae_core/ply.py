@@ -75,6 +75,11 @@ class _Header:
     data_offset: int              # bytes from the file start to the first data byte
     dtype_comments: dict[str, str]
 
+    @property
+    def byte_order(self) -> str | None:
+        """"<" or ">" for binary files, None for ascii."""
+        return _FORMATS[self.fmt]
+
 
 def _parse_header(raw: bytes, where: str) -> _Header:
     """Parse the header at the start of `raw` (which holds at least the whole header)."""
@@ -151,6 +156,12 @@ def _read_header_bytes(f, where: str) -> bytes:
             return buf  # _parse_header reports what is wrong
 
 
+def read_header(f, where: str) -> _Header:
+    """The parsed header of the PLY file `f` (open in binary mode at its start): its format, its
+    elements with their scalar properties, and where the data start. PlyError if malformed."""
+    return _parse_header(_read_header_bytes(f, where), where)
+
+
 # ------------------------------------------------------------------------------------ read
 
 def read_ply(path, *, sanitize: bool = False) -> GaussianCloud:
@@ -180,17 +191,23 @@ def read_ply(path, *, sanitize: bool = False) -> GaussianCloud:
             f.seek(header.data_offset + skip_bytes)
             chunks = _file_chunks(f, dtype, n, where)
         cloud, finite = _cloud_from_records(chunks, dtype, n, header.dtype_comments)
+    return drop_nonfinite(cloud, finite, where, sanitize, stacklevel=3)
 
-    if not finite.all():
-        bad = np.flatnonzero(~finite)
-        if not sanitize:
-            head = ", ".join(str(i) for i in bad[:5]) + (", ..." if len(bad) > 5 else "")
-            raise PlyError(f"{where}: {len(bad)} Gaussian(s) with non-finite (NaN or infinite) "
-                           f"parameters, rows [{head}]; read with sanitize=True to drop them")
-        cloud = cloud.select(finite)
-        warnings.warn(f"{where}: dropped {len(bad)} of {n} Gaussians with non-finite parameters",
-                      stacklevel=2)
-    return cloud
+
+def drop_nonfinite(cloud: GaussianCloud, finite: np.ndarray, where: str, sanitize: bool, *,
+                   stacklevel: int = 2) -> GaussianCloud:
+    """The reading policy for rows with non-finite parameters (`finite` is False for them): a
+    PlyError naming them, or with `sanitize` the cloud without them and a warning saying how many."""
+    if finite.all():
+        return cloud
+    bad = np.flatnonzero(~finite)
+    if not sanitize:
+        head = ", ".join(str(i) for i in bad[:5]) + (", ..." if len(bad) > 5 else "")
+        raise PlyError(f"{where}: {len(bad)} Gaussian(s) with non-finite (NaN or infinite) "
+                       f"parameters, rows [{head}]; read with sanitize=True to drop them")
+    warnings.warn(f"{where}: dropped {len(bad)} of {len(finite)} Gaussians with non-finite parameters",
+                  stacklevel=stacklevel)
+    return cloud.select(finite)
 
 
 def _locate_vertex(header: _Header, where: str) -> tuple[_Element, int, int]:
@@ -223,6 +240,9 @@ def _check_properties(names: list[str], where: str) -> None:
     if dup:
         raise PlyError(f"{where}: bad header: duplicate vertex properties {dup}")
     missing = [n for n in _REQUIRED if n not in names]
+    if missing and "packed_position" in names:
+        raise PlyError(f"{where}: a compressed (SuperSplat) PLY, not the reference layout: read it with "
+                       "gvae_core.read_splat_file")
     if missing:
         raise PlyError(f"{where}: missing required vertex properties: {', '.join(missing)}")
     rest = [n for n in names if n.startswith("f_rest_") and n[7:].isdigit()]

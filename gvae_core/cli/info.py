@@ -1,4 +1,4 @@
-"""`gvae info FILE.ply`: what a 3DGS PLY holds and whether it is sound."""
+"""`gvae info FILE`: what a splat file (3DGS or compressed PLY, .splat, .spz) holds and whether it is sound."""
 
 from __future__ import annotations
 
@@ -12,21 +12,23 @@ from ..conventions import SH_REST_COUNTS
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("info", help="summarise a 3DGS PLY file and validate it",
-                              description="Print the Gaussian count, SH degree, bounding box, "
+    p = subparsers.add_parser("info", help="summarise a splat file (.ply, .splat, .spz) and validate it",
+                              description="Print the format, Gaussian count, SH degree, bounding box, "
                               "opacity and scale statistics, extra properties and the validation "
-                              "report of a 3DGS PLY file.")
-    p.add_argument("file", type=Path, help="the .ply file")
+                              "report of a 3DGS PLY, a compressed (SuperSplat) PLY, a .splat or an .spz "
+                              "file (the format is found from the content).")
+    p.add_argument("file", type=Path, help="the .ply, .splat or .spz file")
     p.add_argument("--sanitize", action="store_true",
                    help="drop Gaussians with non-finite values instead of failing on them")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..ply import read_ply
+    from ..formats import FORMATS, detect_format, read_splat_file
 
-    cloud = read_ply(args.file, sanitize=args.sanitize)
-    print(describe(cloud, title=str(args.file)))
+    fmt = detect_format(args.file)
+    cloud = read_splat_file(args.file, sanitize=args.sanitize)
+    print(describe(cloud, title=f"{args.file} ({FORMATS[fmt]})"))
     return 0
 
 
