@@ -27,6 +27,8 @@ SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
 SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
          -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
 
+#: Near plane: Gaussians whose camera depth is <= NEAR_PLANE are culled before any division (DESIGN.md).
+NEAR_PLANE = 0.01
 #: Log-scales are clamped to this range before `exp`. exp(-30) ~ 1e-13 is far below the
 #: resolution of any float32 position, so smaller Gaussians are points anyway; exp(20) ~ 5e8 scene
 #: units is larger than any scene, and its square (a covariance entry) times a pixel-scale
@@ -35,6 +37,16 @@ LOG_SCALE_RANGE = (-30.0, 20.0)
 #: Opacity logits are clamped to this range before the sigmoid: sigmoid(-50) ~ 2e-22 is still a
 #: positive float32 (the rasteriser takes its log), exp(50) does not overflow float32.
 OPACITY_LOGIT_RANGE = (-50.0, 50.0)
+#: Compositing (DESIGN.md, Rendering semantics): a Gaussian's alpha is capped at ALPHA_MAX and a
+#: contribution below ALPHA_MIN is skipped, so no Gaussian with opacity below ALPHA_MIN is drawn.
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.99
+#: Variance (px²) of Mip-Splatting's 2D filter, the screen-space part of the `mip` anti-aliasing
+#: mode (gvae_core.antialias); the renderer's copy is gvae_core.rendering.projection's.
+MIP_2D_VARIANCE = 0.1
+#: The sRGB EOTF (display-referred value -> linear; DESIGN.md, Colour in Blender):
+#: c / 12.92 below 0.04045, else ((c + 0.055) / 1.055) ** 2.4: (threshold, slope, offset, scale, gamma).
+SRGB_EOTF = (0.04045, 12.92, 0.055, 1.055, 2.4)
 
 
 def is_torch(x: Any) -> bool:
@@ -73,3 +85,24 @@ def dc_to_rgb(sh_dc):
 def rgb_to_dc(rgb):
     """The SH DC term whose colour is `rgb` (the inverse of `dc_to_rgb` above 0)."""
     return (rgb - 0.5) / SH_C0
+
+
+def footprint_sigmas(opacity):
+    """How many standard deviations from its centre a Gaussian of (activated) opacity o can still
+    reach alpha ALPHA_MIN: sqrt(2 ln(o / ALPHA_MIN)), 0 for o <= ALPHA_MIN (numpy)."""
+    return np.sqrt(2.0 * np.log(np.maximum(np.asarray(opacity, np.float64) / ALPHA_MIN, 1.0)))
+
+
+def srgb_to_linear(c):
+    """The sRGB EOTF (numpy), extended above 1 by its power law: what a Blender material emits
+    for a display-referred colour c >= 0 so that the Standard view transform shows c."""
+    thr, slope, off, scale, gamma = SRGB_EOTF
+    c = np.asarray(c, np.float64)
+    return np.where(c < thr, c / slope, ((np.maximum(c, 0.0) + off) / scale) ** gamma)
+
+
+def linear_to_srgb(x):
+    """The inverse of `srgb_to_linear` (numpy): the Standard view transform's encoding."""
+    thr, slope, off, scale, gamma = SRGB_EOTF
+    x = np.asarray(x, np.float64)
+    return np.where(x < thr / slope, x * slope, scale * np.maximum(x, 0.0) ** (1.0 / gamma) - off)

@@ -9,7 +9,9 @@ oversized ones, reset opacities periodically). Every Gaussian carries a persiste
 of its nearest ancestor alive at the previous stage boundary; at each boundary every live
 Gaussian is snapshotted into a `Lineage`.
 
-Output directory: stage_<s>.ply (with int64 extras `gvae_id`, `gvae_parent`), lineage.npz,
+Output directory: stage_<s>.ply (with int64 extras `gvae_id`, `gvae_parent` and the float32
+anti-aliasing size of the stage's training cameras, `gvae_dilation_3D` or, trained with the Mip
+filters, `filter_3D`: `gvae_core.antialias`), lineage.npz,
 log.json (one object per stage) and run.json (configuration and resume state). A run that was
 interrupted resumes after its last finished stage; stages are seeded independently, so a resumed
 run gives the same result as an uninterrupted one.
@@ -33,6 +35,7 @@ import torch
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
+from .antialias import DILATION_KEY, FILTER_KEY, dilation_3d, filter_3d
 from .atomic import atomic_write_text
 from .camera import Camera
 from .cloud import GaussianCloud
@@ -41,8 +44,8 @@ from .datasets import Views, load_nerf_synthetic
 from .densify import DensifyStrategy, GaussianModel
 from .lineage import Lineage
 from .losses import photometric_loss, psnr
-from .ply import write_ply
-from .rendering import render
+from .ply import read_ply, write_ply
+from .rendering import RenderSettings, render
 
 #: Profiles: overrides of the `TrainConfig` defaults. `default` is the benchmark profile.
 PROFILES: dict[str, dict[str, Any]] = {
@@ -63,7 +66,12 @@ class TrainConfig:
     the scene bounds, grey) or "hull" (uniform random points kept only inside the visual hull of
     the training alpha masks, coloured from the images: the default, as CPU budgets are small).
     `max_screen_fraction` (None) would prune Gaussians whose radius exceeds that fraction of the
-    image height; the reference code's screen-size test never fires, so it is off by default."""
+    image height; the reference code's screen-size test never fires, so it is off by default.
+    `antialias`: how stages render while they train: "classic" (the reference 3DGS) or "mip"
+    (Mip-Splatting: the 3D filter of the stage's training cameras, recomputed every densification
+    interval, and the 2D Mip filter). Every stage's snapshot PLY carries the size its render mode
+    needs above the stage's resolution, from the stage's training cameras (`gvae_core.antialias`):
+    `gvae_dilation_3D` for "classic" (rendered "matched"), `filter_3D` for "mip"."""
 
     resolutions: tuple[int, ...] = (100, 150, 200)
     iterations: tuple[int, ...] = (600, 400, 400)
@@ -102,6 +110,7 @@ class TrainConfig:
     train_eval_views: int = 10
     test_eval_views: int | None = None
     seed: int = 0
+    antialias: str = "classic"
 
     def __post_init__(self):
         self.resolutions = tuple(int(r) for r in np.atleast_1d(self.resolutions))
@@ -121,6 +130,8 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.init must be 'random' or 'hull', got {self.init!r}")
         if len(self.background) != 3:
             raise ValueError(f"TrainConfig.background must be 3 values, got {self.background}")
+        if self.antialias not in ("classic", "mip"):
+            raise ValueError(f"TrainConfig.antialias must be 'classic' or 'mip', got {self.antialias!r}")
 
     @classmethod
     def profile(cls, name: str = "default", **overrides) -> TrainConfig:
@@ -141,7 +152,15 @@ class TrainConfig:
                                max_screen_fraction=self.max_screen_fraction, max_gaussians=self.max_gaussians)
 
     def to_dict(self) -> dict[str, Any]:
-        return json.loads(json.dumps(dataclasses.asdict(self)))
+        """The configuration as JSON values. Fields added after run directories and experiment
+        cache keys were first derived from this (`ADDED_FIELDS`) appear only when they differ from
+        their default, so that existing runs keep their keys and still resume."""
+        d = json.loads(json.dumps(dataclasses.asdict(self)))
+        defaults = {f.name: f.default for f in dataclasses.fields(self)}
+        for name in ADDED_FIELDS:
+            if getattr(self, name) == defaults[name]:
+                del d[name]
+        return d
 
     def sh_degree_at(self, iteration: int) -> int:
         """Active SH degree at an iteration of the whole run: one more every `sh_interval`
@@ -165,10 +184,15 @@ class TrainConfig:
         )
 
 
+#: `TrainConfig` fields that `to_dict` writes only when they are not at their default.
+ADDED_FIELDS = ("antialias",)
+
+
 @dataclass
 class TrainResult:
-    """The final cloud (numpy, with int64 extras `gvae_id`, `gvae_parent`), the lineage of every
-    stage, the per-stage log, and where things were written (None without `out_dir`)."""
+    """The final cloud (numpy, with int64 extras `gvae_id`, `gvae_parent` and the float32
+    anti-aliasing size of the last stage's training cameras), the lineage of every stage,
+    the per-stage log, and where things were written (None without `out_dir`)."""
 
     cloud: GaussianCloud
     lineage: Lineage
@@ -357,7 +381,8 @@ def _targets(views, background) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(views.composite(background)))
 
 
-def evaluate_psnr(cloud: GaussianCloud, views, background, sh_degree: int, max_views: int | None = None) -> float:
+def evaluate_psnr(cloud: GaussianCloud, views, background, sh_degree: int, max_views: int | None = None,
+                  settings: RenderSettings | None = None) -> float:
     """Mean PSNR over (up to `max_views` evenly spaced) views, images composited on background."""
     if views is None or len(views) == 0:
         return float("nan")
@@ -367,7 +392,7 @@ def evaluate_psnr(cloud: GaussianCloud, views, background, sh_degree: int, max_v
     values = []
     with torch.no_grad():
         for i in pick:
-            out = render(cloud, views.cameras[i], background=background, sh_degree=sh_degree)
+            out = render(cloud, views.cameras[i], background=background, sh_degree=sh_degree, settings=settings)
             values.append(min(psnr(out.image.clamp(0, 1), targets[i]), 100.0))
     return float(np.mean(values))
 
@@ -440,6 +465,11 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
     bg = config.background
     model: GaussianModel | None = None
     strategy = config.densify_strategy()
+    settings = RenderSettings(antialias=config.antialias)
+    # What every snapshot stores for rendering above its resolution (`gvae_core.antialias`): the
+    # Mip filter of a run trained with it, else the classic dilation in world units.
+    size_key, size_fn = (FILTER_KEY, filter_3d) if config.antialias == "mip" else (DILATION_KEY, dilation_3d)
+    final_size = None
     global_iter = sum(config.iterations[:first_stage])
 
     for s in range(first_stage, len(config.resolutions)):
@@ -471,14 +501,16 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         rss_start = _current_rss_mb()
         order: list[int] = []
         bar = _progress_bar(n_iter, f"stage {s + 1}/{len(config.resolutions)} {height}px", progress)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
+        filt = _model_filter(model, cams) if config.antialias == "mip" else None
         for it in range(1, n_iter + 1):
             model.set_lr("means", position_lr(config, extent, it - 1, n_iter))
             degree = config.sh_degree_at(global_iter)
             if not order:
                 order = list(rng.permutation(len(cams)))
             v = int(order.pop())
-            result = render(model.cloud(), cams[v], background=bg, sh_degree=degree)
+            current = model.cloud() if filt is None else model.cloud().replace(extra={FILTER_KEY: filt})
+            result = render(current, cams[v], background=bg, sh_degree=degree, settings=settings)
             means2d = result.means2d
             if means2d.requires_grad:
                 means2d.retain_grad()
@@ -497,28 +529,33 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
                             counts[k] += done[k]
                     if it % sched["opacity_reset_every"] == 0 and it < sched["densify_until"]:
                         model.reset_opacity(config.reset_opacity_value)
+                if filt is not None and (it % sched["densify_every"] == 0 or len(filt) != len(model)):
+                    filt = _model_filter(model, cams)  # after densification, and as the centres move
             global_iter += 1
             if bar is not None and (it % 10 == 0 or it == n_iter):
                 bar.set_postfix(loss=f"{float(loss):.4f}", psnr=f"{psnr(result.image, targets[v]):.2f}",
                                 n=len(model))
                 bar.update(10 if it % 10 == 0 else it % 10)
-        seconds = time.perf_counter() - t0
+        seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
         if bar is not None:
             bar.close()
         peak = _peak_rss_mb() if reset_ok else max(_peak_rss_mb(), rss_before)
 
         snap_cloud = model.snapshot()
         ids_np, parents_np = snap_cloud.extra["gvae_id"], snap_cloud.extra["gvae_parent"]
+        final_size = size_fn(snap_cloud.means, cams)  # the stage's training cameras
+        snap_cloud = snap_cloud.replace(extra={**snap_cloud.extra, size_key: final_size})
         lineage.add_stage(snap_cloud.replace(extra={}), ids_np, parents_np, height)
         lineage.set_normalization(*snap_cloud.normalization())
         next_id = model.next_id
         degree = config.sh_degree_at(global_iter)
-        torch_cloud = snap_cloud.replace(extra={}).to_torch()
+        torch_cloud = snap_cloud.replace(extra={size_key: final_size}).to_torch()
         t1 = time.perf_counter()
-        train_psnr = evaluate_psnr(torch_cloud, train_views, bg, degree, config.train_eval_views)
-        test_psnr = evaluate_psnr(torch_cloud, source("test", height), bg, degree, config.test_eval_views)
+        train_psnr = evaluate_psnr(torch_cloud, train_views, bg, degree, config.train_eval_views, settings)
+        test_psnr = evaluate_psnr(torch_cloud, source("test", height), bg, degree, config.test_eval_views, settings)
         entry = {"stage": s, "resolution": height, "iterations": n_iter, "seconds": round(seconds, 3),
                  "seconds_per_iteration": round(seconds / max(n_iter, 1), 5),
+                 "cpu_seconds": round(cpu_seconds, 3),
                  "n_gaussians": len(snap_cloud), "train_psnr": round(train_psnr, 4),
                  "test_psnr": None if math.isnan(test_psnr) else round(test_psnr, 4),
                  "peak_rss_mb": round(peak, 1), "rss_start_mb": round(rss_start, 1), "peak_rss_exact": reset_ok,
@@ -533,7 +570,26 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
                                            "next_id": next_id})
 
     final = lineage.stage_cloud(lineage.n_stages - 1)
+    if final_size is None:  # every stage was done already: the size is in the last stage's PLY
+        final_size = _stage_size(out, lineage.n_stages - 1, final, source, config.resolutions[-1], size_key,
+                                   size_fn)
+    final = final.replace(extra={**final.extra, size_key: final_size})
     return TrainResult(final, lineage, log, out, stage_paths)
+
+
+def _model_filter(model: GaussianModel, cameras: list[Camera]) -> torch.Tensor:
+    return torch.from_numpy(filter_3d(model.params["means"].detach().numpy(), cameras))
+
+
+def _stage_size(out: Path | None, stage: int, cloud: GaussianCloud, source, height: int, key: str,
+                size_fn) -> np.ndarray:
+    """The anti-aliasing size of a finished stage: from its PLY, or (a run from before the size
+    was stored) from the stage's training cameras."""
+    if out is not None and (out / f"stage_{stage}.ply").is_file():
+        saved = read_ply(out / f"stage_{stage}.ply")
+        if key in saved.extra and len(saved) == len(cloud):
+            return np.asarray(saved.extra[key], np.float32)
+    return size_fn(cloud.means, source("train", height).cameras)
 
 
 def _progress_bar(total: int, desc: str, enabled: bool):

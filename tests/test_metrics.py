@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial import ConvexHull
 
 from gvae_core import Camera, GaussianCloud
+from gvae_core.antialias import with_filter_3d
 from gvae_core.datasets import Views
 from gvae_core.metrics.geometry import (MeshDistance, chamfer, closest_point_on_triangles,
                                         point_mesh_distance_reference, read_mesh_ply)
@@ -139,3 +140,17 @@ def test_image_scores_of_a_cloud_against_its_own_renders():
     shifted = cloud.replace(means=cloud.means + np.float32(0.05))
     worse = image_scores(shifted, views)
     assert worse.psnr < 40 and worse.ssim < 1.0
+
+
+def test_image_scores_take_the_antialias_mode():
+    rng = np.random.default_rng(1)
+    n = 150
+    cams = [Camera.look_at((0, -3, 1), width=40, height=40, fov_x=0.8)]
+    cloud = GaussianCloud(means=rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32),
+                          scales=np.full((n, 3), math.log(0.01), np.float32),
+                          quats=np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
+                          opacities=np.full(n, 2.0, np.float32), sh_dc=rng.normal(size=(n, 3)).astype(np.float32))
+    cloud = with_filter_3d(cloud, cams, resolution=20)
+    views = Views(cams, render_views(cloud, Views(cams, np.zeros((1, 40, 40, 3))), antialias="mip"))
+    assert image_scores(cloud, views, antialias="mip").psnr == 100.0
+    assert image_scores(cloud, views, antialias="classic").psnr < 40.0

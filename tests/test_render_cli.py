@@ -6,12 +6,14 @@ import json
 import math
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from gvae_core import Camera, GaussianCloud
+from gvae_core.antialias import with_dilation_3d, with_filter_3d
 from gvae_core.cli import main
 from gvae_core.ply import write_ply
-from gvae_core.rendering import render
+from gvae_core.rendering import RenderSettings, render
 
 
 def _cloud(n=40, seed=0) -> GaussianCloud:
@@ -59,3 +61,40 @@ def test_render_cli_errors(tmp_path, capsys):
     assert "t.json" in capsys.readouterr().err
     assert main(["render", str(ply), "--out", str(tmp_path / "o"), "--background", "red"]) == 2
     assert not (tmp_path / "o").exists()  # nothing written on bad input
+
+
+def test_render_with_training_cameras_or_resolution(tmp_path, capsys):
+    """A PLY without stored sizes: --train-cameras / --train-resolution give it the size of its
+    training cameras that --trained calls for, which the auto mode then uses."""
+    cloud = _cloud(seed=2)
+    ply = write_ply(cloud, tmp_path / "c.ply")
+    cam = Camera.look_at((2.0, 0.5, 1.0), (0, 0, 0), width=32, height=32, fov_x=math.radians(50))
+    train = Camera.look_at((1.0, 1.5, 0.5), (0, 0, 0), width=16, height=16, fov_x=math.radians(50))
+    for name, c in (("transforms_test.json", cam), ("transforms_train.json", train)):
+        meta = {"camera_angle_x": math.radians(50), "w": c.width, "h": c.height,
+                "frames": [{"file_path": "./x/r_0", "transform_matrix": c.to_blender_c2w().tolist()}]}
+        (tmp_path / name).write_text(json.dumps(meta))
+    auto = RenderSettings(antialias="auto")
+    cases = {  # extra arguments -> the cloud the PNG must show in the auto mode, and the key it has
+        "cams": (["--train-cameras", str(tmp_path / "transforms_train.json")], with_dilation_3d(cloud, [train])),
+        "cams_res": (["--train-cameras", str(tmp_path / "transforms_train.json"), "--train-resolution", "8"],
+                     with_dilation_3d(cloud, [train], resolution=8)),
+        "res": (["--train-resolution", "16"], with_dilation_3d(cloud, [cam], resolution=16)),
+        "mip": (["--train-resolution", "16", "--trained", "mip"], with_filter_3d(cloud, [cam], resolution=16)),
+    }
+    for tag, (extra, want_cloud) in cases.items():
+        assert main(["render", str(ply), "--out", str(tmp_path / tag), "--transforms",
+                     str(tmp_path / "transforms_test.json"), "--antialias", "auto", *extra]) == 0
+        (key,) = set(want_cloud.extra)
+        assert f"{key} from 1 training camera" in capsys.readouterr().out
+        (png,) = (tmp_path / tag).glob("*.png")
+        got = np.asarray(Image.open(png)).astype(np.float64) / 255
+        want = render(want_cloud, cam, settings=auto).image.clamp(0, 1).numpy()
+        assert np.abs(got - want).max() <= 1 / 255 + 1e-6, tag
+    # the filter matters here: the classic render differs
+    classic = render(cloud, cam).image.clamp(0, 1).numpy()
+    assert np.abs(got - classic).max() > 3 / 255
+    assert main(["render", str(ply), "--out", str(tmp_path / "o"), "--train-resolution", "0"]) == 2
+    assert "--train-resolution" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["render", str(ply), "--out", str(tmp_path / "o"), "--antialias", "msaa"])

@@ -12,15 +12,16 @@ import torch
 from PIL import Image
 from scipy.spatial import cKDTree
 
+from gvae_core.antialias import DILATION_KEY, FILTER_KEY, dilation_3d, filter_3d
 from gvae_core.camera import orbit
 from gvae_core.cli import main
 from gvae_core.cloud import GaussianCloud
 from gvae_core.datasets import Views
 from gvae_core.lineage import Lineage
 from gvae_core.ply import read_ply
-from gvae_core.rendering import render
-from gvae_core.train import (TrainConfig, hull_points, initial_bounds, initial_cloud, position_lr, scene_extent,
-                             train_progressive)
+from gvae_core.rendering import RenderSettings, render
+from gvae_core.train import (TrainConfig, evaluate_psnr, hull_points, initial_bounds, initial_cloud, position_lr,
+                             scene_extent, train_progressive)
 
 
 def test_schedules_scale_with_the_budget():
@@ -164,6 +165,15 @@ def test_run_outputs(tiny_run):
         np.testing.assert_array_equal(cloud.extra["gvae_id"], snap.ids)
         np.testing.assert_array_equal(cloud.extra["gvae_parent"], snap.parents)
         np.testing.assert_array_equal(cloud.means, snap.cloud.means)
+        # the world dilation of the stage's own training cameras (not stored in the lineage)
+        assert cloud.extra[DILATION_KEY].dtype == np.float32 and FILTER_KEY not in cloud.extra
+        assert DILATION_KEY not in snap.cloud.extra
+        np.testing.assert_array_equal(cloud.extra[DILATION_KEY],
+                                      dilation_3d(cloud.means, synthetic_views("train", [12, 18, 24][s]).cameras))
+    assert (read_ply(out / "stage_0.ply").extra[DILATION_KEY].mean()
+            > 1.4 * read_ply(out / "stage_2.ply").extra[DILATION_KEY].mean())  # finer stages, smaller sizes
+    np.testing.assert_array_equal(result.cloud.extra[DILATION_KEY],
+                                  read_ply(out / "stage_2.ply").extra[DILATION_KEY])
     back = Lineage.load(out / "lineage.npz")
     np.testing.assert_array_equal(back.sequences(2).geometry, result.lineage.sequences(2).geometry)
 
@@ -186,9 +196,10 @@ def test_same_seed_same_result_and_resume(tiny_run, tmp_path):
         np.testing.assert_array_equal(a.parents, b.parents)
         for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
             np.testing.assert_array_equal(getattr(a.cloud, name), getattr(b.cloud, name))
-    # a finished run resumes to nothing; another configuration is refused
+    # a finished run resumes to nothing (its size from the last stage's PLY); another configuration is refused
     again = train_progressive(synthetic_views, TrainConfig(**TINY), out_dir=run_dir, progress=False)
     assert again.log == resumed.log
+    np.testing.assert_array_equal(again.cloud.extra[DILATION_KEY], result.cloud.extra[DILATION_KEY])
     with pytest.raises(ValueError, match="different configuration"):
         train_progressive(synthetic_views, TrainConfig(**{**TINY, "seed": 1}), out_dir=run_dir, progress=False)
 
@@ -201,6 +212,33 @@ def test_same_seed_same_result_from_scratch():
     np.testing.assert_array_equal(a.cloud.means, b.cloud.means)
     np.testing.assert_array_equal(a.cloud.extra["gvae_id"], b.cloud.extra["gvae_id"])
     assert len(a.cloud) != len(c.cloud) or not np.array_equal(a.cloud.means, c.cloud.means)
+
+
+def test_added_config_fields_keep_existing_run_keys():
+    """`antialias` at its default is left out of to_dict (run directories and experiment cache keys
+    of existing runs stay valid); any other value is written and so changes the key."""
+    default = TrainConfig.profile("default")
+    assert "antialias" not in default.to_dict() and "seed" in default.to_dict()
+    mip = TrainConfig.profile("default", antialias="mip")
+    assert mip.to_dict() == {**default.to_dict(), "antialias": "mip"}
+    with pytest.raises(ValueError, match="antialias"):
+        TrainConfig(antialias="auto")
+
+
+def test_training_with_the_filters():
+    """Mip-Splatting training: the filter follows the Gaussians while they densify, the run learns
+    the scene, and renders in the mip mode (its stored filter) better than in the classic one."""
+    pytest.importorskip("gvae_core.rendering")
+    cfg = TrainConfig(**{**TINY, "resolutions": (12, 24), "iterations": (150, 150), "antialias": "mip"})
+    result = train_progressive(synthetic_views, cfg, progress=False, threads=1)
+    cloud = result.cloud
+    np.testing.assert_array_equal(cloud.extra[FILTER_KEY], filter_3d(cloud.means, synthetic_views("train", 24).cameras))
+    assert DILATION_KEY not in cloud.extra
+    assert result.log[-1]["test_psnr"] > 21.0 and result.log[-1]["cloned"] + result.log[-1]["split"] > 0
+    test = synthetic_views("test", 24)
+    mip = evaluate_psnr(cloud, test, TINY["background"], 1, settings=RenderSettings(antialias="mip"))
+    classic = evaluate_psnr(cloud, test, TINY["background"], 1, settings=RenderSettings(antialias="classic"))
+    assert mip == pytest.approx(result.log[-1]["test_psnr"], abs=1e-3) and mip > classic
 
 
 def test_hull_initialisation_lies_inside_the_object():

@@ -1,6 +1,12 @@
 """Renderer benchmark: forward and forward+backward time against Gaussian count and resolution,
 with the error against the float64 reference on sampled pixels, pixel-Gaussian evaluations per
 second and peak memory. Each configuration runs in a fresh subprocess (clean peak-memory figures).
+
+`--modes` (`python -m gvae_core.benchmarks.render --modes`): every anti-aliasing mode on the same
+scene in the same process, repeats interleaved (classic, mip, matched, classic, ...) so that load
+from other work hits all modes alike; the cloud carries both anti-aliasing sizes of the benchmark
+camera (a cloud trained at the rendered resolution), and each mode's error is against the
+reference in that mode.
 """
 
 from __future__ import annotations
@@ -15,9 +21,10 @@ import time
 import numpy as np
 import torch
 
+from ..antialias import with_dilation_3d, with_filter_3d
 from ..camera import Camera
 from ..cloud import GaussianCloud
-from ..rendering import render
+from ..rendering import RenderSettings, render
 from ..rendering.reference import render_reference
 
 #: (Gaussians, image height, torch threads). The 2-core machine is shared: with other work on it,
@@ -26,6 +33,9 @@ from ..rendering.reference import render_reference
 SIZES_FULL = tuple((n, h, 1) for n in (10_000, 100_000, 1_000_000) for h in (200, 400, 800)) + (
     (100_000, 800, 2), (1_000_000, 800, 2))
 SIZES_QUICK = ((10_000, 200, 1), (10_000, 400, 1), (100_000, 400, 1), (100_000, 400, 2))
+#: The sizes of the anti-aliasing comparison (issue 14's goal: filtered modes <= 10% over classic).
+SIZES_MODES = ((100_000, 800, 1), (1_000_000, 800, 1))
+MODES = ("classic", "mip", "matched")
 
 
 def benchmark_scene(n: int, seed: int = 0):
@@ -105,6 +115,75 @@ def _one(n: int, height: int, threads: int, repeats: int, samples: int, queue) -
                    finite=finite, threads=torch.get_num_threads()))
 
 
+def _modes(n: int, height: int, threads: int, repeats: int, samples: int, queue) -> None:
+    """Every mode of MODES on one scene, repeats interleaved; one result per mode."""
+    torch.set_num_threads(threads)
+    cam = benchmark_camera(height)
+    cloud = with_dilation_3d(with_filter_3d(benchmark_scene(n), [cam]), [cam])
+    tc = cloud.to_torch()
+    names = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
+    params = [getattr(tc, f).requires_grad_() for f in names]
+    weights = torch.rand(height, height, 3, generator=torch.Generator().manual_seed(0))
+    times = {m: {"fwd": [], "both": [], "fwd_cpu": [], "both_cpu": []} for m in MODES}
+    images, info = {}, {}
+    for _ in range(repeats):
+        for mode in MODES:
+            settings = RenderSettings(antialias=mode)
+            with torch.no_grad():
+                t, c = time.perf_counter(), time.process_time()
+                out = render(tc, cam, background=(0.2, 0.3, 0.4), settings=settings)
+                times[mode]["fwd"].append(time.perf_counter() - t)
+                times[mode]["fwd_cpu"].append(time.process_time() - c)
+            images[mode] = out.image.numpy()
+            info[mode] = dict(pairs=out.num_pairs, evals=out.num_evaluations,
+                              coverage=float((out.alpha > 0.5).float().mean()))
+            for p in params:
+                p.grad = None
+            t, c = time.perf_counter(), time.process_time()
+            out = render(tc, cam, background=(0.2, 0.3, 0.4), settings=settings)
+            (out.image * weights).sum().backward()
+            times[mode]["both"].append(time.perf_counter() - t)
+            times[mode]["both_cpu"].append(time.process_time() - c)
+            info[mode]["finite"] = all(bool(torch.isfinite(p.grad).all()) for p in params)
+    rng = np.random.default_rng(1)
+    pix = np.stack([rng.integers(0, height, samples), rng.integers(0, height, samples)], 1)
+    rows = []
+    for mode in MODES:
+        ref, _, _ = render_reference(cloud, cam, background=(0.2, 0.3, 0.4), pixels=pix, antialias=mode)
+        err = np.abs(images[mode][pix[:, 0], pix[:, 1]] - ref)
+        rows.append(dict(mode=mode, n=n, height=height, threads=threads, err_max=float(err.max()),
+                         **{k: statistics.median(v) for k, v in times[mode].items()}, **info[mode]))
+    queue.put(rows)
+
+
+def run_modes(repeats: int = 5) -> None:
+    """The anti-aliasing comparison (SIZES_MODES, one fresh process per size)."""
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    print("anti-aliasing modes on the same scene and camera, repeats interleaved; times are medians of "
+          f"{repeats}, wall-clock and process CPU; ratio = the mode's median / classic's; err = |fast - float64 "
+          "reference in the same mode| on sampled pixels; load = 1-min load average at the start of the row")
+    print("| Gaussians | image | threads | mode | fwd s | fwd+bwd s | fwd CPU s | fwd+bwd CPU s | fwd ratio | "
+          "fwd+bwd ratio | CPU ratios | tile pairs | alpha>0.5 | max err | load |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    ctx = mp.get_context("spawn")
+    for n, h, threads in SIZES_MODES:
+        queue = ctx.Queue()
+        load = os.getloadavg()[0]
+        proc = ctx.Process(target=_modes, args=(n, h, threads, repeats, 64 if n >= 1_000_000 else 200, queue))
+        proc.start()
+        rows = queue.get()
+        proc.join()
+        base = rows[0]
+        for r in rows:
+            print(f"| {n:,} | {h}x{h} | {threads} | {r['mode']} | {r['fwd']:.3f} | {r['both']:.3f} | "
+                  f"{r['fwd_cpu']:.3f} | {r['both_cpu']:.3f} | {r['fwd'] / base['fwd']:.3f} | "
+                  f"{r['both'] / base['both']:.3f} | {r['fwd_cpu'] / base['fwd_cpu']:.3f} / "
+                  f"{r['both_cpu'] / base['both_cpu']:.3f} | {r['pairs']:,} | {r['coverage']:.0%} | "
+                  f"{r['err_max']:.2g} | {load:.1f} |", flush=True)
+            if not r["finite"]:
+                print("  WARNING: non-finite gradient")
+
+
 def run(args) -> None:
     sizes = SIZES_QUICK if getattr(args, "quick", False) else SIZES_FULL
     # Idle OpenMP threads must yield, not spin: on a shared 2-core machine spinning threads
@@ -132,3 +211,20 @@ def run(args) -> None:
               f"{r['err_frac']:.2%} | {r['peak_fwd']:.0f} | {r['peak_both']:.0f} | {load:.1f} |", flush=True)
         if not r["finite"]:
             print("  WARNING: non-finite gradient")
+    if not getattr(args, "quick", False):
+        print()
+        run_modes()
+
+
+if __name__ == "__main__":
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m gvae_core.benchmarks.render")
+    parser.add_argument("--quick", action="store_true", help="smaller sizes")
+    parser.add_argument("--modes", action="store_true", help="the anti-aliasing comparison only")
+    parser.add_argument("--repeats", type=int, default=5, help="--modes: repeats per mode")
+    cli = parser.parse_args()
+    if cli.modes:
+        run_modes(cli.repeats)
+    else:
+        run(cli)

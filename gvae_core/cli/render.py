@@ -1,4 +1,5 @@
-"""`gvae render FILE.ply --out DIR [--transforms transforms.json | --orbit K] [--height H]`:
+"""`gvae render FILE.ply --out DIR [--transforms transforms.json | --orbit K] [--height H]
+[--antialias MODE] [--train-cameras transforms_train.json] [--train-resolution H] [--trained classic|mip]`:
 render a 3DGS PLY on the CPU and write one PNG per camera."""
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..antialias import (ANTIALIAS_MODES, DEFAULT_ANTIALIAS, DILATION_KEY, FILTER_KEY, cameras_at_height,
+                         with_training_cameras)
 from ..atomic import atomic_write
 from ..camera import Camera, orbit
 
@@ -33,6 +36,20 @@ def register(subparsers) -> None:
     p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), help="SH bands to use (default: all)")
     p.add_argument("--elevation", type=float, default=30.0, help="--orbit elevation in degrees (default 30)")
     p.add_argument("--sanitize", action="store_true", help="drop Gaussians with non-finite values")
+    p.add_argument("--antialias", choices=ANTIALIAS_MODES, default=None,
+                   help="classic: +0.3 px² in the rendered image's pixels (the reference 3DGS); matched: that "
+                   "dilation held in world units at the training sampling (the PLY's gvae_dilation_3D); mip: "
+                   "Mip-Splatting's 3D filter (the PLY's filter_3D) and 2D Mip filter; auto: mip with filter_3D, "
+                   f"else matched with gvae_dilation_3D, else classic (default: {DEFAULT_ANTIALIAS})")
+    p.add_argument("--train-cameras", type=Path, metavar="JSON",
+                   help="transforms JSON of the cameras the cloud was trained with: sets the size --trained "
+                   "calls for (replacing one in the file), for a PLY from a tool that does not store it")
+    p.add_argument("--train-resolution", type=int, metavar="H",
+                   help="the image height the cloud was trained at: the --train-cameras scaled to it, or "
+                   "without --train-cameras the rendering cameras at that height stand in for the training ones")
+    p.add_argument("--trained", choices=("classic", "mip"), default="classic",
+                   help="with --train-cameras/--train-resolution: how the cloud was trained, classic (the "
+                   "reference 3DGS: sets gvae_dilation_3D) or mip (Mip-Splatting: sets filter_3D); default classic")
     p.set_defaults(func=run)
 
 
@@ -96,11 +113,14 @@ def run(args: argparse.Namespace) -> int:
     # stall each other. Only effective when torch is not imported yet (the usual CLI case).
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from ..ply import read_ply
-    from ..rendering import render
+    from ..rendering import RenderSettings, render
 
     background = _parse_background(args.background)
     if args.height is not None and args.height <= 0:
         raise ValueError(f"--height must be positive, got {args.height}")
+    if args.train_resolution is not None and args.train_resolution <= 0:
+        raise ValueError(f"--train-resolution must be a positive image height, got {args.train_resolution}")
+    train_cams = cameras_from_transforms(args.train_cameras)[0] if args.train_cameras is not None else None
     cloud = read_ply(args.file, sanitize=args.sanitize)
     if args.transforms is not None:
         cams, names = cameras_from_transforms(args.transforms)
@@ -110,13 +130,19 @@ def run(args: argparse.Namespace) -> int:
         cams = orbit_cameras(np.asarray(cloud.means, np.float64), 8 if args.orbit is None else args.orbit,
                              args.height or 400, args.elevation)
         names = [f"orbit_{i:03d}" for i in range(len(cams))]
+    if train_cams is not None or args.train_resolution is not None:
+        train_cams = cameras_at_height(cams if train_cams is None else train_cams, args.train_resolution)
+        cloud = with_training_cameras(cloud, train_cams, trained=args.trained)
+        key = FILTER_KEY if args.trained == "mip" else DILATION_KEY
+        print(f"{key} from {len(train_cams)} training camera(s) at {train_cams[0].width}x{train_cams[0].height}")
+    settings = RenderSettings() if args.antialias is None else RenderSettings(antialias=args.antialias)
     from PIL import Image
 
     args.out.mkdir(parents=True, exist_ok=True)
     width = max(3, len(str(len(cams) - 1)))
     for i, (cam, name) in enumerate(zip(cams, names)):
         start = time.perf_counter()
-        out = render(cloud, cam, background=background, sh_degree=args.sh_degree)
+        out = render(cloud, cam, background=background, sh_degree=args.sh_degree, settings=settings)
         pixels = (out.image.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
         target = args.out / f"{i:0{width}d}_{Path(name).stem}.png"
         atomic_write(target, lambda f, p=pixels: Image.fromarray(p).save(f, format="PNG"))

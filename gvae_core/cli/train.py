@@ -11,7 +11,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "train", help="train 3DGS coarse-to-fine on a NeRF-Synthetic scene, recording lineages",
         description="Train 3D Gaussian Splatting over increasing resolutions. Writes stage_<s>.ply "
-                    "(with gvae_id / gvae_parent), lineage.npz, log.json and run.json into --out; "
+                    "(with gvae_id / gvae_parent and the anti-aliasing size of its training cameras), "
+                    "lineage.npz, log.json and run.json into --out; "
                     "an interrupted run resumes after its last finished stage.")
     p.add_argument("scene", type=Path, help="NeRF-Synthetic folder (transforms_train.json, images)")
     p.add_argument("--out", type=Path, required=True, help="run directory to write (created if needed)")
@@ -33,6 +34,9 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, help="random seed (default 0)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; 1 is "
                    "often fastest on a busy machine)")
+    p.add_argument("--antialias", choices=("classic", "mip"),
+                   help="classic (the reference 3DGS, default; stage PLYs get gvae_dilation_3D) or mip "
+                   "(train with Mip-Splatting's 3D and 2D filters; stage PLYs get filter_3D)")
     p.add_argument("--restart", action="store_true", help="start over instead of resuming")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -58,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
 
     overrides = dict(resolutions=tuple(args.resolutions) if args.resolutions else None,
                      sh_degree=args.sh_degree, seed=args.seed, init=args.init, init_count=args.init_count,
+                     antialias=args.antialias,
                      background=tuple(args.background) if args.background else None)
     if args.iterations:
         n_stages = len(args.resolutions or TrainConfig.profile(args.profile).resolutions)

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..antialias import ANTIALIAS_MODES, DEFAULT_ANTIALIAS, DILATION_KEY, FILTER_KEY, resolve_antialias
 from ..camera import Camera
 from ..cloud import GaussianCloud
 from ..conventions import is_torch
@@ -23,19 +24,22 @@ from .projection import Projected, project
 from .rasterize import composite, pack, tiles_to_image
 from .tiles import Binning, bin_gaussians
 
-__all__ = ["render", "RenderOutput", "RenderSettings"]
+__all__ = ["render", "RenderOutput", "RenderSettings", "ANTIALIAS_MODES", "antialias_parts"]
 
 
 @dataclass
 class RenderSettings:
-    """Knobs of the fast path that never change the image (beyond float32 rounding).
+    """How to render: the anti-aliasing mode, and knobs of the fast path that never change the
+    image (beyond float32 rounding).
 
+    antialias: one of `gvae_core.antialias.ANTIALIAS_MODES` (what they mean is said there);
     tile_size: tile edge in pixels; block: Gaussians per compositing block; budget: pixel-Gaussian
     pairs evaluated at once (bounds memory: about 40 bytes each); backward: "recompute" (custom
     autograd Function, bounded memory) or "autograd" (plain PyTorch ops, stores everything);
     exact_tiles: drop tile pairs the footprint ellipse misses (not just its bounding box);
     dtype: rasteriser precision (float64 for gradcheck)."""
 
+    antialias: str = DEFAULT_ANTIALIAS
     tile_size: int = 8
     block: int = 64
     budget: int = 1 << 21
@@ -78,10 +82,27 @@ def _field(x, device) -> torch.Tensor:
     return t if device is None else t.to(device)
 
 
+def antialias_parts(mode: str, cloud: GaussianCloud) -> tuple[bool, bool]:
+    """(Mip-Splatting's 3D filter on, 2D Mip filter on) of an anti-aliasing mode for `cloud`
+    (both False for "classic" and "matched"; `resolve_antialias` tells these apart)."""
+    resolved = resolve_antialias(mode, cloud)
+    return (resolved == "mip" and FILTER_KEY in cloud.extra, resolved == "mip")
+
+
+def _size(cloud: GaussianCloud, key: str, device) -> torch.Tensor:
+    size = _field(cloud.extra[key], device)
+    if size.numel() != len(cloud):
+        raise ValueError(f"render: extra[{key!r}] must hold one value per Gaussian, got shape "
+                         f"{tuple(size.shape)} for {len(cloud)} Gaussians")
+    return size.reshape(-1)
+
+
 def render(cloud: GaussianCloud, camera: Camera, *, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
            device=None, settings: RenderSettings | None = None) -> RenderOutput:
     """Render `cloud` (numpy or torch; gradients reach every torch field that requires grad)
-    through `camera`. `sh_degree` limits the SH bands used (default: all the cloud has)."""
+    through `camera`. `sh_degree` limits the SH bands used (default: all the cloud has);
+    `settings.antialias` says how the cloud's stored anti-aliasing sizes are used
+    (`gvae_core.antialias`: "filter_3D" in the "mip" mode, "gvae_dilation_3D" in "matched")."""
     s = settings or RenderSettings()
     if not isinstance(camera, Camera):
         raise ValueError(f"render: camera must be a gvae_core.Camera, got {type(camera).__name__}")
@@ -89,11 +110,15 @@ def render(cloud: GaussianCloud, camera: Camera, *, background=(0.0, 0.0, 0.0), 
     if not 0 <= degree <= 3:
         raise ValueError(f"render: sh_degree must be 0..3, got {sh_degree}")
     degree = min(degree, cloud.sh_degree)
+    mode = resolve_antialias(s.antialias, cloud)
     f = {name: _field(getattr(cloud, name), device) for name in
          ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")}
     dev = f["means"].device
+    filter_3d = _size(cloud, FILTER_KEY, dev) if mode == "mip" and FILTER_KEY in cloud.extra else None
+    dilation_3d = _size(cloud, DILATION_KEY, dev) if mode == "matched" else None
     proj: Projected = project(f["means"], f["scales"], f["quats"], f["opacities"], f["sh_dc"],
-                              f["sh_rest"], camera, degree, dtype=s.dtype)
+                              f["sh_rest"], camera, degree, dtype=s.dtype, filter_3d=filter_3d,
+                              mip_2d=mode == "mip", dilation_3d=dilation_3d)
     h, w = camera.height, camera.width
     binning: Binning = bin_gaussians(proj.means2d, proj.footprint, proj.depths, proj.visible, w, h,
                                      s.tile_size, exact=s.exact_tiles)

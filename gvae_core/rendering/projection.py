@@ -8,19 +8,31 @@ products), in the working dtype (float32 by default; float64 for gradient checks
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 
 from .. import quaternions
+from ..antialias import CLASSIC_DILATION
 from ..camera import Camera
-from ..conventions import activate_opacities, activate_scales, dc_to_rgb
+from ..conventions import LOG_SCALE_RANGE, NEAR_PLANE as NEAR, activate_opacities, activate_scales, clip, dc_to_rgb
 from .sh import sh_to_rgb
 
-#: Near plane: Gaussians with camera depth <= NEAR are culled before any division (DESIGN.md).
-NEAR = 0.01
-#: Added to the diagonal of every 2D covariance (anti-aliasing dilation of the reference 3DGS).
-DILATION = 0.3
+#: Added to the diagonal of every 2D covariance (anti-aliasing dilation of the reference 3DGS,
+#: the `classic` mode), in the pixels of the image being rendered; the opacity is not changed.
+DILATION = CLASSIC_DILATION
+#: The 2D Mip filter (Mip-Splatting; the `mip` mode): a screen-space Gaussian of this variance
+#: (px², about a one-pixel box filter) in place of DILATION, the opacity times
+#: sqrt(det Σ2D / det(Σ2D + MIP_2D_VARIANCE I)) so that the Gaussian's integral is kept.
+MIP_2D_VARIANCE = 0.1
+#: The 3D sizes (filter or dilation, standard deviations in world units) are clamped to this range
+#: on use: the lower end is far below any clamped scale (so 0 changes nothing, exactly), the upper
+#: end is the largest scale (non-finite sizes count as 0).
+FILTER_3D_RANGE = (math.exp(2.0 * LOG_SCALE_RANGE[0]), math.exp(LOG_SCALE_RANGE[1]))
+#: Below this, sqrt(det Σ2D / det(Σ2D + s I)) is taken at this value (it leaves the Gaussian far
+#: under 1/255 anyway); keeps the square root's derivative finite for degenerate footprints.
+MIP_2D_RATIO_FLOOR = 1e-12
 #: The projected centre is clamped to this many half fields of view, for the Jacobian only.
 FOV_CLAMP = 1.3
 #: Contributions with alpha below this are skipped; no Gaussian with opacity below it is drawn.
@@ -56,8 +68,18 @@ class Projected:
 
 
 def project(means, log_scales, quats, opacity_logits, sh_dc, sh_rest, camera: Camera, sh_degree: int,
-            dtype: torch.dtype = torch.float32) -> Projected:
-    """Project N Gaussians (raw parameters, torch) through `camera` following DESIGN.md."""
+            dtype: torch.dtype = torch.float32, *, filter_3d=None, mip_2d: bool = False,
+            dilation_3d=None) -> Projected:
+    """Project N Gaussians (raw parameters, torch) through `camera` following DESIGN.md.
+
+    `filter_3d` (N,) (None: off): standard deviation of Mip-Splatting's isotropic world-space 3D
+    filter: the covariance becomes Σ + f² I and the opacity is multiplied by
+    sqrt(det Σ / det(Σ + f² I)). `mip_2d`: the 2D Mip filter (MIP_2D_VARIANCE, opacity
+    compensated) in place of the classic DILATION. `dilation_3d` (N,) (None: off; not with
+    the other two): the classic dilation in world units, standard deviation g: covariance
+    Σ + g² I and 2D dilation max(0, DILATION - g² fx fy / z²), opacity unchanged."""
+    if dilation_3d is not None and (filter_3d is not None or mip_2d):
+        raise ValueError("project: dilation_3d does not go with the Mip filters")
     dev = means.device
     f64 = torch.float64
     center = torch.as_tensor(camera.center, dtype=f64, device=dev)
@@ -82,7 +104,20 @@ def project(means, log_scales, quats, opacity_logits, sh_dc, sh_rest, camera: Ca
     # Rotation to camera space as one quaternion: q_cam = q_camera ⊗ q_gaussian.
     q_camera = torch.as_tensor(quaternions.from_rotmat(camera.rotation), dtype=dtype, device=dev)
     w, qx, qy, qz = quaternions.multiply(q_camera, quaternions.normalize(quats.to(dtype))).unbind(-1)
-    s0, s1, s2 = activate_scales(log_scales.to(dtype)).unbind(-1)
+    opac = activate_opacities(opacity_logits.to(dtype))
+    size = filter_3d if filter_3d is not None else dilation_3d
+    if size is None:
+        s0, s1, s2 = activate_scales(log_scales.to(dtype)).unbind(-1)
+    else:
+        # R diag(s²) Rᵀ + f² I = R diag(s² + f²) Rᵀ: effective scales, in the log domain (no
+        # overflow, no underflow, exact identity for f = 0); compensation Π s / sqrt(s² + f²).
+        log_s = clip(log_scales.to(dtype), *LOG_SCALE_RANGE)
+        f = size.to(dtype)
+        f = torch.where(torch.isfinite(f), f, torch.zeros_like(f)).clamp(*FILTER_3D_RANGE)
+        log_eff = 0.5 * torch.logaddexp(2.0 * log_s, 2.0 * torch.log(f)[:, None])
+        s0, s1, s2 = log_eff.exp().unbind(-1)
+        if filter_3d is not None:
+            opac = opac * (log_s - log_eff).sum(-1).exp()
     # Columns of R diag(s): the Gaussian's axes in camera space, scaled by their std-devs.
     m00, m01, m02 = (1 - 2 * (qy * qy + qz * qz)) * s0, 2 * (qx * qy - w * qz) * s1, 2 * (qx * qz + w * qy) * s2
     m10, m11, m12 = 2 * (qx * qy + w * qz) * s0, (1 - 2 * (qx * qx + qz * qz)) * s1, 2 * (qy * qz - w * qx) * s2
@@ -92,18 +127,22 @@ def project(means, log_scales, quats, opacity_logits, sh_dc, sh_rest, camera: Ca
                   (j00 * m02 + j02 * m22).clamp(-lim, lim))
     b0, b1, b2 = ((j11 * m10 + j12 * m20).clamp(-lim, lim), (j11 * m11 + j12 * m21).clamp(-lim, lim),
                   (j11 * m12 + j12 * m22).clamp(-lim, lim))
-    # Σ2D = t tᵀ + 0.3 I with rows t1 = a, t2 = b; det = |a x b|² + 0.3 (|a|² + |b|²) + 0.09 is a
-    # sum of non-negative terms: >= 0.09, no cancellation even for needles.
+    # Σ2D = t tᵀ + d I with rows t1 = a, t2 = b; det = |a x b|² + d (|a|² + |b|²) + d² is a
+    # sum of non-negative terms: >= d², no cancellation even for needles.
+    d = MIP_2D_VARIANCE if mip_2d else DILATION
+    if dilation_3d is not None:  # what the 3D dilation leaves of the classic one at this depth
+        d = (DILATION - f * f * (fx * fy) * (iz * iz)).clamp(min=0.0)
     aa = a0 * a0 + a1 * a1 + a2 * a2
     bb = b0 * b0 + b1 * b1 + b2 * b2
     sxy = a0 * b0 + a1 * b1 + a2 * b2
     c0, c1, c2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
-    det = c0 * c0 + c1 * c1 + c2 * c2 + DILATION * (aa + bb) + DILATION ** 2
-    sxx, syy = aa + DILATION, bb + DILATION
+    cc = c0 * c0 + c1 * c1 + c2 * c2  # det(t tᵀ)
+    det = cc + d * (aa + bb) + d ** 2
+    sxx, syy = aa + d, bb + d
     inv_det = 1.0 / det
     conics = torch.stack([syy * inv_det, -sxy * inv_det, sxx * inv_det], -1)
-
-    opac = activate_opacities(opacity_logits.to(dtype))
+    if mip_2d:
+        opac = opac * torch.sqrt((cc * inv_det).clamp(min=MIP_2D_RATIO_FLOOR))
     mx = fx * u + cx
     my = fy * v + cy
 

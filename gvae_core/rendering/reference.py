@@ -6,11 +6,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..antialias import DILATION_KEY, FILTER_KEY
 from ..camera import Camera
 from ..cloud import GaussianCloud
 
 NEAR = 0.01
-DILATION = 0.3
+DILATION = 0.3  # "classic": added to the 2D covariance, opacity unchanged
+MIP_2D = 0.1  # "mip": added to the 2D covariance, opacity times sqrt(det ratio)
+FILTER_MAX = float(np.exp(20.0))  # 3D filter std clamp (non-finite -> 0)
 FOV_CLAMP = 1.3
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
@@ -50,9 +53,34 @@ def sh_color(dc: np.ndarray, rest: np.ndarray, d: np.ndarray, degree: int) -> np
     return np.maximum(c + 0.5, 0.0)
 
 
-def project_reference(cloud: GaussianCloud, camera: Camera, sh_degree: int | None = None) -> dict:
+def _sizes(cloud: GaussianCloud, key: str) -> np.ndarray:
+    f = _np64(cloud.extra[key]).reshape(-1)
+    return np.clip(np.where(np.isfinite(f), f, 0.0), 0.0, FILTER_MAX)
+
+
+def _modes(cloud: GaussianCloud, antialias: str):
+    """(Mip 3D filter std-devs or None, 2D Mip filter on, world dilation std-devs or None)."""
+    if antialias not in ("auto", "classic", "mip", "matched"):
+        raise ValueError(f"unknown antialias mode {antialias!r}")
+    has_filter, has_dilation = FILTER_KEY in cloud.extra, DILATION_KEY in cloud.extra
+    if antialias == "auto":
+        antialias = "mip" if has_filter else "matched" if has_dilation else "classic"
+    if antialias == "mip":
+        return (_sizes(cloud, FILTER_KEY) if has_filter else None), True, None
+    if antialias == "matched" and has_dilation:
+        return None, False, _sizes(cloud, DILATION_KEY)
+    return None, False, None
+
+
+def project_reference(cloud: GaussianCloud, camera: Camera, sh_degree: int | None = None,
+                      antialias: str = "auto") -> dict:
     """Per-Gaussian float64 screen quantities: mean2d (N,2), conic (N,2,2) = inverse 2D
-    covariance, opacity (N,), color (N,3), depth (N,), valid (N,) = in front of the near plane."""
+    covariance, opacity (N,), color (N,3), depth (N,), valid (N,) = in front of the near plane.
+    `antialias`: "classic" (2D covariance + 0.3 I), "mip" (3D covariance + filter_3D² I and 2D
+    covariance + 0.1 I, each with the opacity times sqrt(det before / det after)), "matched" (3D
+    covariance + g² I with g = gvae_dilation_3D, 2D covariance + max(0, 0.3 - g² fx fy / z²) I,
+    opacity as it is) or "auto" (mip with filter_3D, else matched with gvae_dilation_3D)."""
+    filt, mip, dil = _modes(cloud, antialias)
     means = _np64(cloud.means)
     n = len(means)
     degree = cloud.sh_degree if sh_degree is None else min(sh_degree, cloud.sh_degree)
@@ -80,6 +108,13 @@ def project_reference(cloud: GaussianCloud, camera: Camera, sh_degree: int | Non
         np.stack([2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy)], -1)], 1)
     m = r * scales[i][:, None, :]  # R @ diag(s)
     cov3 = m @ m.transpose(0, 2, 1)
+    weight = np.ones(len(i))
+    if filt is not None:
+        smoothed = cov3 + (filt[i] ** 2)[:, None, None] * np.eye(3)
+        weight *= np.exp(0.5 * (np.linalg.slogdet(cov3)[1] - np.linalg.slogdet(smoothed)[1]))
+        cov3 = smoothed
+    if dil is not None:
+        cov3 = cov3 + (dil[i] ** 2)[:, None, None] * np.eye(3)
     tx = np.clip(x / z, -lim_x, lim_x) * z
     ty = np.clip(y / z, -lim_y, lim_y) * z
     jac = np.zeros((len(i), 2, 3))
@@ -88,20 +123,31 @@ def project_reference(cloud: GaussianCloud, camera: Camera, sh_degree: int | Non
     jac[:, 1, 1] = camera.fy / z
     jac[:, 1, 2] = -camera.fy * ty / (z * z)
     t = jac @ rot
-    cov2 = t @ cov3 @ t.transpose(0, 2, 1) + DILATION * np.eye(2)
+    cov2 = t @ cov3 @ t.transpose(0, 2, 1)
+    if mip:
+        det0 = cov2[:, 0, 0] * cov2[:, 1, 1] - cov2[:, 0, 1] * cov2[:, 1, 0]
+        cov2 = cov2 + MIP_2D * np.eye(2)
+        det1 = cov2[:, 0, 0] * cov2[:, 1, 1] - cov2[:, 0, 1] * cov2[:, 1, 0]
+        weight *= np.sqrt(np.maximum(det0, 0.0) / det1)
+    elif dil is not None:
+        left = np.maximum(DILATION - dil[i] ** 2 * camera.fx * camera.fy / (z * z), 0.0)  # of the 0.3 px²
+        cov2 = cov2 + left[:, None, None] * np.eye(2)
+    else:
+        cov2 = cov2 + DILATION * np.eye(2)
     out["conic"][i] = np.linalg.inv(cov2)
     out["mean2d"][i] = np.stack([camera.fx * x / z + camera.cx, camera.fy * y / z + camera.cy], 1)
-    out["opacity"][i] = opac[i]
+    out["opacity"][i] = opac[i] * weight
     d = rel / np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-300)
     out["color"] = sh_color(dc, rest, d, degree)
     return out
 
 
 def render_reference(cloud: GaussianCloud, camera: Camera, background=(0.0, 0.0, 0.0),
-                     sh_degree: int | None = None, pixels: np.ndarray | None = None):
+                     sh_degree: int | None = None, pixels: np.ndarray | None = None, antialias: str = "auto"):
     """Float64 image (H,W,3), alpha (H,W) and expected depth (H,W); or, with `pixels` (M,2) as
-    (row, column) pairs, the (M,3), (M,), (M,) values at those pixels only."""
-    pr = project_reference(cloud, camera, sh_degree)
+    (row, column) pairs, the (M,3), (M,), (M,) values at those pixels only. `antialias`: as for
+    `project_reference`."""
+    pr = project_reference(cloud, camera, sh_degree, antialias)
     bg = np.asarray(background, np.float64).reshape(3)
     idx = np.flatnonzero(pr["valid"])
     idx = idx[np.argsort(pr["depth"][idx], kind="stable")]  # front to back
