@@ -1,9 +1,23 @@
-"""Refine: run `gvae_core.refine` on the active splat object and write the result back into it."""
+"""Refine: run `gvae_core.refine` on the active splat object and write the result back into it.
+
+Refining a capture takes seconds to minutes, so the work runs as a job that keeps Blender alive:
+`RefineJob` reads the object's Gaussians on the main thread (`start`), refines them in a worker
+thread (torch releases the GIL while it computes), reports progress (`poll`), can be cancelled
+(`cancel`: the worker stops at its next progress report) and writes the result back on the main
+thread (`finish`), in one change, only if the refine succeeded and the object was not changed
+meanwhile. Nothing in the blend file changes on cancel or failure.
+
+The operator drives the job two ways: `invoke` (the panel's button) starts it and returns to
+Blender, which calls `modal` on a timer: progress in the status bar and the panel, Esc cancels,
+one undo step on success. `execute` (scripts and `blender -b` batch runs) runs the same job and
+waits for it.
+"""
 
 from __future__ import annotations
 
 import os
 import sys
+import threading
 import time
 
 import bpy
@@ -16,26 +30,20 @@ from gvae_core.budget import parse_budget
 from . import convert, runtime
 
 
-def refine_object(obj, *, steps: int = 1, budget="auto", model=None, seed: int = 0,
-                  progress=None) -> dict:
-    """Refine a splat object in place: its mesh is replaced by one holding the refined cloud with a
-    `gvae_step` attribute (0 for the original Gaussians, the refine step for added ones, counted on
-    from an earlier refine). Nothing in the blend file changes unless the whole run succeeds.
-    Returns counts and timings for the report."""
-    refine = runtime.core_refine()
-    cloud, old_steps = convert.cloud_from_object(obj)
-    n_in = len(cloud)
-    if n_in == 0:
-        raise ValueError(f"object {obj.name!r} has no Gaussians to refine")
-    result = refine(cloud, steps=steps, budget=budget, model=model, seed=seed, progress=progress)
+class RefineCancelled(Exception):
+    """Raised inside the worker (from its progress report) when the job is cancelled."""
+
+
+def _write_result(obj, cloud, result, old_steps) -> None:
+    """Replace the object's mesh by one holding the refined cloud, with a `gvae_step` attribute (0
+    for the original Gaussians, the refine step for added ones, counted on from an earlier refine)."""
     out = result.cloud
+    n_in = len(cloud)
     marks = np.zeros(len(out), np.int32)
-    base = 0
     if old_steps is not None:
         marks[:n_in] = old_steps
-        base = int(old_steps.max(initial=0))
+    base = 0 if old_steps is None else int(old_steps.max(initial=0))
     marks[result.added] = base + result.step
-
     old = obj.data
     new = convert.mesh_from_cloud(out, old.name, steps=marks)
     for mat in old.materials:
@@ -43,11 +51,131 @@ def refine_object(obj, *, steps: int = 1, budget="auto", model=None, seed: int =
     obj.data = new
     if old.users == 0:
         bpy.data.meshes.remove(old)
-    return {"before": n_in, "after": len(out), "added": len(result.added), "timings": dict(result.timings)}
+
+
+class RefineJob:
+    """One refine of a splat object, in steps that need no window (the modal operator, `execute`
+    and the tests drive it the same way):
+
+    - `start()` (main thread): read the object's Gaussians, start the worker thread;
+    - `poll()` (main thread, any time): (done, fraction, message);
+    - `cancel()`: ask the worker to stop; it does at its next progress report;
+    - `finish()` (main thread, once done): write the result into the object and return counts and
+      timings; raises RefineCancelled when cancelled, or the worker's error, leaving the object as
+      it was. Also refuses to write when the object was deleted or its mesh replaced meanwhile.
+    """
+
+    def __init__(self, obj, *, steps: int = 1, budget="auto", model=None, seed: int = 0, refine=None):
+        self.obj_name = obj.name
+        self.steps, self.budget, self.model, self.seed = steps, budget, model, seed
+        self._refine = refine
+        self.fraction, self.message = 0.0, "starting"
+        self.result = None
+        self.info: dict | None = None
+        self.error: BaseException | None = None
+        self._cancel = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._mesh_pointer = None
+        self.started = self.ended = None
+
+    # ------------------------------------------------------------------ main thread
+    def start(self) -> RefineJob:
+        obj = bpy.data.objects.get(self.obj_name)
+        if obj is None or not convert.is_splat(obj):
+            raise ValueError(f"{self.obj_name!r} is not a splat object")
+        refine = self._refine or runtime.core_refine()  # imports torch: fails here, not in the worker
+        self.cloud, self.old_steps = convert.cloud_from_object(obj)
+        if len(self.cloud) == 0:
+            raise ValueError(f"object {obj.name!r} has no Gaussians to refine")
+        self._mesh_pointer = obj.data.as_pointer()
+        self._n_vertices = len(obj.data.vertices)
+        self.started = time.perf_counter()
+        self._thread = threading.Thread(target=self._work, args=(refine,), name="gvae-refine", daemon=True)
+        self._thread.start()
+        return self
+
+    def poll(self) -> tuple[bool, float, str]:
+        return self.done, self.fraction, self.message
+
+    @property
+    def done(self) -> bool:
+        return self._thread is not None and not self._thread.is_alive()
+
+    @property
+    def cancelled(self) -> bool:
+        return self._cancel.is_set()
+
+    def cancel(self) -> None:
+        self._cancel.set()
+        self.message = "cancelling"
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until the worker ends (True) or `timeout` seconds pass (False)."""
+        if self._thread is not None:
+            self._thread.join(timeout)
+        return self.done
+
+    def finish(self) -> dict:
+        if not self.done:
+            raise RuntimeError("RefineJob.finish: the job is still running")
+        if self.info is not None:
+            return self.info  # written already
+        if self.error is not None:
+            raise self.error
+        if self.cancelled or self.result is None:
+            raise RefineCancelled("Refine cancelled")
+        obj = bpy.data.objects.get(self.obj_name)
+        if obj is None or obj.data is None or obj.data.as_pointer() != self._mesh_pointer \
+                or len(obj.data.vertices) != self._n_vertices:
+            raise RuntimeError(f"object {self.obj_name!r} was deleted or changed while it was being refined; "
+                               f"the result was not written")
+        _write_result(obj, self.cloud, self.result, self.old_steps)
+        r, n_in = self.result, len(self.cloud)
+        self.result = self.cloud = None  # the object holds it now
+        self.info = {"before": n_in, "after": len(r.cloud), "added": len(r.added), "timings": dict(r.timings),
+                     "seconds": self.ended - self.started}
+        return self.info
+
+    # ------------------------------------------------------------------ worker thread
+    def _progress(self, fraction: float, message: str = "") -> None:
+        if self._cancel.is_set():
+            raise RefineCancelled("Refine cancelled")
+        self.fraction = max(self.fraction, min(1.0, float(fraction)))
+        self.message = message
+
+    def _work(self, refine) -> None:
+        try:
+            self.result = refine(self.cloud, steps=self.steps, budget=self.budget, model=self.model, seed=self.seed,
+                                 progress=self._progress)
+        except RefineCancelled:
+            self.result = None
+        except BaseException as exc:  # reported on the main thread by finish()
+            self.error = exc
+        finally:
+            self.ended = time.perf_counter()
+
+
+#: Jobs running now, by object name (the panel shows their progress; one job per object).
+RUNNING: dict[str, RefineJob] = {}
+
+
+def _report_text(info: dict) -> str:
+    parts = ", ".join(f"{k} {v:.2f} s" for k, v in info["timings"].items()
+                      if isinstance(v, (int, float)) and k != "total")
+    return (f"Refine: {info['before']} -> {info['after']} Gaussians (+{info['added']}) in {info['seconds']:.2f} s"
+            + (f" ({parts})" if parts else ""))
+
+
+def _redraw(context) -> None:
+    screen = getattr(context, "screen", None)
+    for area in (screen.areas if screen is not None else ()):
+        if area.type in ("VIEW_3D", "STATUSBAR"):
+            area.tag_redraw()
 
 
 class GVAE_OT_refine(Operator):
-    """Add detail to the active splat object with GaussianVAE (needs PyTorch)"""
+    """Add detail to the active splat object with GaussianVAE (needs PyTorch). Runs in the
+    background: progress in the status bar, Esc cancels"""
 
     bl_idname = "gvae.refine"
     bl_label = "Refine"
@@ -64,40 +192,102 @@ class GVAE_OT_refine(Operator):
 
     @classmethod
     def poll(cls, context):
-        return convert.is_splat(context.active_object)
+        obj = context.active_object
+        return convert.is_splat(obj) and obj.name not in RUNNING
+
+    def _job(self, context) -> RefineJob:
+        budget = parse_budget(self.budget)
+        model = None
+        if self.model:
+            model = bpy.path.abspath(self.model)
+            if os.path.isfile(model):  # a file picked inside the model folder
+                model = os.path.dirname(model)
+        return RefineJob(context.active_object, steps=self.steps, budget=budget, model=model, seed=self.seed)
 
     def execute(self, context):
-        obj = context.active_object
+        """Blocking: scripts and batch runs (`blender -b`)."""
         wm = context.window_manager
-        background = bpy.app.background
-
-        def progress(fraction: float, message: str = "") -> None:
-            wm.progress_update(max(0.0, min(1.0, float(fraction))))
-            if background:
-                print(f"gvae.refine: {100 * fraction:5.1f}% {message}", file=sys.stderr)
-
-        start = time.perf_counter()
-        wm.progress_begin(0.0, 1.0)
         try:
-            budget = parse_budget(self.budget)
-            model = None
-            if self.model:
-                model = bpy.path.abspath(self.model)
-                if os.path.isfile(model):  # a file picked inside the model folder
-                    model = os.path.dirname(model)
-            info = refine_object(obj, steps=self.steps, budget=budget, model=model, seed=self.seed,
-                                 progress=progress)
+            job = self._job(context).start()
+        except Exception as exc:
+            self.report({"ERROR"}, f"Refine failed: {exc}")
+            return {"CANCELLED"}
+        RUNNING[job.obj_name] = job
+        wm.progress_begin(0.0, 1.0)
+        shown = None
+        try:
+            while not job.wait(0.25):
+                wm.progress_update(job.fraction)
+                if bpy.app.background and job.message != shown:
+                    shown = job.message
+                    print(f"gvae.refine: {100 * job.fraction:5.1f}% {job.message}", file=sys.stderr)
+            info = job.finish()
         except Exception as exc:
             self.report({"ERROR"}, f"Refine failed: {exc}")
             return {"CANCELLED"}
         finally:
+            RUNNING.pop(job.obj_name, None)
             wm.progress_end()
-        parts = ", ".join(f"{k} {v:.2f} s" for k, v in info["timings"].items()
-                          if isinstance(v, (int, float)) and k != "total")
-        self.report({"INFO"}, f"Refine: {info['before']} -> {info['after']} Gaussians "
-                    f"(+{info['added']}) in {time.perf_counter() - start:.2f} s"
-                    + (f" ({parts})" if parts else ""))
+        self.report({"INFO"}, _report_text(info))
         return {"FINISHED"}
+
+    def invoke(self, context, event):
+        """The panel's button: start the job and keep Blender responsive while it runs (without a
+        user interface, `blender -b` or the bpy module, nothing would drive it: run it to the end)."""
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        try:
+            self._running = self._job(context).start()
+        except Exception as exc:
+            self.report({"ERROR"}, f"Refine failed: {exc}")
+            return {"CANCELLED"}
+        RUNNING[self._running.obj_name] = self._running
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.2, window=context.window)
+        wm.modal_handler_add(self)
+        wm.progress_begin(0.0, 1.0)
+        self._status(context)
+        return {"RUNNING_MODAL"}
+
+    def _status(self, context) -> None:
+        job = self._running
+        context.workspace.status_text_set(
+            f"GaussianVAE Refine {job.obj_name}: {100 * job.fraction:.0f}% {job.message}   (Esc: cancel)")
+        context.window_manager.progress_update(job.fraction)
+        _redraw(context)
+
+    def _end(self, context) -> None:
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        context.workspace.status_text_set(None)
+        RUNNING.pop(self._running.obj_name, None)
+        _redraw(context)
+
+    def modal(self, context, event):
+        job = self._running
+        if event.type == "ESC" and not job.cancelled:
+            job.cancel()
+        if event.type != "TIMER" and not job.done:
+            return {"PASS_THROUGH"}  # the rest of Blender keeps working
+        if not job.done:
+            self._status(context)
+            return {"PASS_THROUGH"}
+        self._end(context)
+        try:
+            info = job.finish()
+        except RefineCancelled:
+            self.report({"WARNING"}, "Refine cancelled; the object is unchanged")
+            return {"CANCELLED"}
+        except Exception as exc:
+            self.report({"ERROR"}, f"Refine failed: {exc}")
+            return {"CANCELLED"}
+        self.report({"INFO"}, _report_text(info))
+        return {"FINISHED"}
+
+    def cancel(self, context):  # Blender closes the window or the file while the job runs
+        self._running.cancel()
+        self._end(context)
 
 
 classes = (GVAE_OT_refine,)
@@ -109,5 +299,7 @@ def register():
 
 
 def unregister():
+    for job in list(RUNNING.values()):
+        job.cancel()
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)

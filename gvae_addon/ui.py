@@ -6,7 +6,7 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 from bpy.types import Panel, PropertyGroup
 
-from . import convert, nodes, runtime
+from . import convert, nodes, refine_ops, runtime
 
 
 class GVAE_Settings(PropertyGroup):
@@ -93,8 +93,14 @@ class GVAE_PT_refine(Panel):
         if settings.model_source == "FILE":
             col.prop(settings, "model_path")
         col.prop(settings, "seed")
+        obj = context.active_object
+        job = refine_ops.RUNNING.get(obj.name) if obj is not None else None
+        if job is not None:
+            layout.progress(factor=job.fraction, type="BAR", text=f"{100 * job.fraction:.0f}% {job.message}")
+            layout.label(text="Refining in the background (Esc: cancel)", icon="TIME")
+            return
         row = layout.row()
-        row.enabled = ok and convert.is_splat(context.active_object)
+        row.enabled = ok and convert.is_splat(obj)
         row.scale_y = 1.4
         op = row.operator("gvae.refine", icon="SHADERFX")
         op.steps = settings.steps

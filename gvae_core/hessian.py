@@ -2,138 +2,689 @@
 
 The score is built from the Gauss-Newton (Fisher) block H_i = J_i^T J_i of the rendered images
 with respect to Gaussian i's position (in the scene-normalised frame) and log-scale (6x6),
-summed over views. It needs no ground truth: with random +-1 pixel weights v, one ordinary
-backward pass of sum_p v_p I_p gives g_i = J_i^T v for every Gaussian at once, and
-E[g_i g_i^T] = J_i^T J_i. `probes` such passes per view average to the estimate.
+summed over views and over every pixel and colour channel. It needs no ground truth.
+
+The block is computed exactly, not estimated: one extra sweep over the renderer's tile lists
+per view (`_gauss_newton_sweep`) gives, for every pixel p, channel c and Gaussian k it reaches,
+the derivative of I_pc with respect to k's exponent (alpha_k = o_k exp(E_k)) and colour, which
+the renderer's backward pass would compute for a one-hot output gradient. The squares of these
+derivatives are summed over pixels as moments of the pixel offsets (one GEMM per block, then
+moved to each Gaussian's centre), so no per-pixel Jacobian is ever stored; the derivatives of the
+projection, written out for each anti-aliasing mode (`_gaussian_blocks`), carry them to position
+and log-scale. `hessian_blocks_reference` (one backward pass per pixel and channel through
+`render`) is the slow definition the tests hold it to: if the projection of `gvae_core.rendering`
+changes, `_gaussian_blocks` must follow, and those tests say so. Gaussians are processed in
+Morton order (neighbours in space are neighbours in memory) and the result is put back.
+
 Score: log det(I + H_i / lambda) with a ridge lambda relative to the mean block trace (finite,
->= 0, 0 for invisible Gaussians), or the trace of H_i.
+>= 0, 0 for Gaussians no view sees), or the trace of H_i.
+
+Views: the capture's cameras when given (`scoring_views` picks a few, spread out, at a modest
+resolution), else `default_views`: around the cloud for an object, from inside it for a scene
+that surrounds its centre (`surround_radius`).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
 
+from . import quaternions
+from .antialias import DILATION_KEY, FILTER_KEY, resolve_antialias
 from .camera import Camera
+from .capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS, default_views, scoring_views
 from .cloud import GaussianCloud
-from .rendering import render
+from .conventions import LOG_SCALE_RANGE, SH_C1 as SH_C1_, SH_C2 as SH_C2_, SH_C3 as SH_C3_
+from .rendering import RenderSettings, render
+from .rendering import projection as pj
+from .rendering.projection import Projected, project
+from .rendering.rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN, composite, pack, pair_table
+from .rendering.tiles import bin_gaussians
 
 BLOCK = 6  # position (3) + log-scale (3)
+#: Tile edge of the Hessian sweeps: small tiles waste fewer evaluations on sub-pixel Gaussians.
+TILE_SIZE = 4
+#: Upper-triangle index pairs of a 6x6 block, in the order of the packed (21, N) form.
+_TRIU = torch.triu_indices(BLOCK, BLOCK)
+#: Exponents (i, j) of the pixel-offset monomials u^i v^j up to degree 4; the first 6 are degree <= 2.
+_POWERS = [(d - j, j) for d in range(5) for j in range(d + 1)]
+_P2 = 6
+_INDEX = {p: k for k, p in enumerate(_POWERS)}
+#: Columns of the per-pair moments: 15 of s = sum_c e_c^2, 6 per channel of t_c = e_c w, 1 of w^2.
+_NMOM = len(_POWERS) + 3 * _P2 + 1
 
 
-def default_views(cloud: GaussianCloud, views: int = 4, resolution: int = 96,
-                  fov_x: float = math.radians(50.0), normalization=None) -> list[Camera]:
-    """`views` cameras spread over a sphere around the cloud (Fibonacci lattice), each looking at
-    its robust centre from where a sphere of 1.4 half-extents just fits. `normalization`: the
-    cloud's (centre, scale) when known (`GaussianCloud.normalization`)."""
-    center, half = normalization or cloud.normalization()
-    radius = 1.4 * half / math.sin(0.5 * fov_x)  # a sphere of radius 1.4 half-extents fills the view
-    cams = []
-    golden = math.pi * (3.0 - math.sqrt(5.0))
-    for k in range(max(int(views), 1)):
-        z = 0.85 - 1.5 * (k + 0.5) / max(views, 1)  # mostly the upper hemisphere, like NeRF-Synthetic
-        r = math.sqrt(max(1.0 - z * z, 0.0))
-        d = np.array([r * math.cos(golden * k), r * math.sin(golden * k), z])
-        cams.append(Camera.look_at(center + radius * d, center, (0.0, 0.0, 1.0), width=resolution,
-                                   height=resolution, fov_x=fov_x))
-    return cams
+# ------------------------------------------------------------------------- exact blocks
+
+def _fields(cloud: GaussianCloud, dtype) -> dict[str, torch.Tensor]:
+    """The cloud's parameters as torch tensors in the working dtype (positions as stored: the
+    projection takes them relative to the camera in float64 before rounding)."""
+    c = cloud.detach() if cloud.is_torch else cloud.to_torch()
+    return {name: getattr(c, name).to(dtype) if name != "means" or dtype == torch.float64 else getattr(c, name)
+            for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")}
 
 
-def _prepare(cloud: GaussianCloud):
-    """A float32 torch copy whose means and log-scales are leaves that require grad."""
-    c = cloud.detach().to_torch(dtype=torch.float32) if cloud.is_torch else cloud.to_torch(dtype=torch.float32)
+def _monomials(ts: int, dtype) -> torch.Tensor:
+    """(P, 15): u^i v^j of each pixel centre of a tile relative to the tile centre, by `_POWERS`."""
+    r = torch.arange(ts, dtype=torch.float64) - (ts - 1) / 2.0
+    u, v = r.repeat(ts), r.repeat_interleave(ts)
+    return torch.stack([u ** i * v ** j for i, j in _POWERS], 1).to(dtype)
+
+
+def _tile_groups(binning, block: int, budget: int) -> list[tuple[torch.Tensor, int]]:
+    """Non-empty tiles in Z-order of their position, in groups of about `budget` pixel-pair
+    evaluations a block (like `rendering.rasterize.tile_groups`, whose longest-first order scatters
+    neighbouring tiles): consecutive pairs then belong to nearby Gaussians."""
+    ty, tx = np.divmod(np.arange(binning.tiles_x * binning.tiles_y), binning.tiles_x)
+    code = np.zeros(len(tx), np.int64)
+    for bit in range(16):
+        code |= ((tx >> bit) & 1) << (2 * bit) | ((ty >> bit) & 1) << (2 * bit + 1)
+    counts = binning.counts.numpy()
+    order = np.argsort(code, kind="stable")
+    order = order[counts[order] > 0]
+    p = binning.tile_size ** 2
+    groups, i = [], 0
+    while i < len(order):
+        b = max(1, budget // (p * block))
+        chunk = order[i:i + b]
+        groups.append((torch.from_numpy(chunk), int(counts[chunk].max())))
+        i += b
+    return groups
+
+
+def _gauss_newton_sweep(pairs: torch.Tensor, binning, acc: torch.Tensor, block: int, budget: int,
+                        mom: torch.Tensor, width: int, height: int) -> None:
+    """Add, per Gaussian, the moments of its pixel derivatives about its centre into `mom` (N, 34)
+    (float64).
+
+    Recomputes every block of the compositing as the renderer does (same alpha, cap, skip and stop
+    rules) and, per pixel, the derivative e_c of channel c with respect to the Gaussian's exponent
+    E (alpha = o exp(E)) and its weight w = alpha T (the derivative with respect to its colour c):
+    e_c = alpha (colour_c T - behind_c / (1 - alpha)), behind_c the colour drawn after it. Moments
+    (one GEMM a block, about the tile centre, then moved to the Gaussian's centre): s = sum_c e_c^2
+    by the monomials u^i v^j up to degree 4, t_c = e_c w up to degree 2, and w^2."""
+    dt = pairs.dtype
+    ts = binning.tile_size
+    p = ts * ts
+    mono_t = _monomials(ts, dt).T.contiguous()  # (15, P)
+    mono2t = mono_t[:_P2].contiguous()
+    dummy = pairs.shape[0] - 1
+    gids = torch.cat([binning.gaussian_ids, binning.gaussian_ids.new_full((1,), -1)])
+    below_min = float(torch.nextafter(torch.tensor(ALPHA_MIN, dtype=dt), torch.tensor(0.0, dtype=dt)))
+    below_t = float(torch.nextafter(torch.tensor(T_MIN, dtype=dt), torch.tensor(0.0, dtype=dt)))
+    # pixels of the border tiles past the image's edge are composited but not part of the image
+    local = torch.arange(p)
+    for tiles, kmax in _tile_groups(binning, block, budget):
+        b = tiles.shape[0]
+        cx = (tiles % binning.tiles_x).to(dt) * ts + ts / 2.0
+        cy = (tiles // binning.tiles_x).to(dt) * ts + ts / 2.0
+        inside = (((tiles % binning.tiles_x)[:, None] * ts + local % ts < width)
+                  & ((tiles // binning.tiles_x)[:, None] * ts + local // ts < height)).to(dt)  # (B, P)
+        start, count = binning.offsets[tiles], binning.counts[tiles]
+        trans = torch.ones((b, p), dtype=dt)
+        done = torch.zeros((b, p), dtype=torch.bool)
+        rest = acc[tiles][:, :3].permute(1, 0, 2).contiguous()  # (3, B, P): colour still to come
+        active = torch.arange(b)
+        for k0 in range(0, kmax, block):
+            alive = (count[active] > k0) & ~done[active].all(1)
+            if not bool(alive.all()):
+                active = active[alive]
+                if active.numel() == 0:
+                    break
+            kb = min(block, kmax - k0)
+            kk = torch.arange(k0, k0 + kb)
+            pos = start[active][None, :] + kk[:, None]
+            ids = torch.where(kk[:, None] < count[active][None, :], pos, torch.full_like(pos, dummy)).reshape(-1)
+            gd = pairs.index_select(0, ids).reshape(kb, -1, pairs.shape[1])
+            mu = gd[..., 0] - cx[active]
+            mv = gd[..., 1] - cy[active]
+            a, bb, c = gd[..., 2], gd[..., 3], gd[..., 4]
+            # the exponent as the renderer computes it: a quadratic in tile-local pixel coordinates
+            c0 = torch.log(gd[..., 5]) - 0.5 * a * mu * mu - bb * mu * mv - 0.5 * c * mv * mv
+            coef = torch.stack([c0, a * mu + bb * mv, bb * mu + c * mv, -0.5 * a, -bb, -0.5 * c], -1)
+            alpha = torch.mm(coef.reshape(-1, _P2), mono2t).reshape(kb, -1, p)
+            alpha.exp_().clamp_(max=ALPHA_MAX)
+            torch.nn.functional.threshold_(alpha, below_min, 0.0)
+            was_done = done[active]
+            t_prev = trans[active]
+            tr = torch.empty((kb + 1,) + t_prev.shape, dtype=dt)
+            tr[0] = torch.where(was_done, torch.zeros_like(t_prev), t_prev)
+            for k in range(kb):
+                torch.addcmul(tr[k], tr[k], alpha[k], value=-1.0, out=tr[k + 1])
+            kept = torch.nn.functional.threshold(tr[1:], below_t, 2.0)
+            w = torch.sub(tr[:-1], kept).clamp_(min=0.0)  # (kb, B, P)
+            if k0 + block < kmax:
+                trans[active] = torch.where(was_done, t_prev, torch.minimum(tr[0], kept.amin(0)))
+                done[active] = was_done | (tr[-1] < T_MIN)
+            col = gd[..., 6:9].permute(2, 0, 1)[..., None]  # (3, kb, B, 1)
+            behind = col * w  # (3, kb, B, P): becomes the colour drawn after each, in place
+            behind[:, 0].neg_().add_(rest[:, active])
+            for k in range(1, kb):  # (a loop of slabs is ten times faster than torch.cumsum here)
+                torch.sub(behind[:, k - 1], behind[:, k], out=behind[:, k])
+            rest[:, active] = behind[:, -1]
+            w = w.mul_(inside[active])  # from here on: derivatives of the image's pixels only
+            w2 = (w * w).sum(-1).reshape(-1)
+            keep = (w2 > 0).nonzero().squeeze(1)
+            if keep.numel() == 0:
+                continue
+            # d I_c / d E = alpha (colour T - behind / (1 - alpha)); zero where alpha is capped,
+            # skipped (alpha = 0), past the stop (w = 0) or outside the image
+            gate = torch.where((alpha < ALPHA_MAX) & (w > 0), alpha, torch.zeros_like(alpha))
+            inv = torch.rsub(alpha, 1.0).reciprocal_()
+            e = behind.mul_(inv).neg_().addcmul_(col, tr[:-1]).mul_(gate)
+            s = (e * e).sum(0).reshape(-1, p)
+            t = e.mul_(w).reshape(3, -1, p)
+            moments = torch.empty((_NMOM, s.shape[0]), dtype=dt)
+            torch.mm(mono_t, s.T, out=moments[:len(_POWERS)])
+            moments[len(_POWERS):-1] = torch.matmul(mono2t, t.transpose(1, 2)).reshape(3 * _P2, -1)
+            moments[-1] = w2
+            off = torch.stack([mu.reshape(-1), mv.reshape(-1)])
+            if keep.numel() < w2.numel():
+                moments, off, ids = moments[:, keep], off[:, keep], ids.index_select(0, keep)
+            mom.index_add_(0, gids.index_select(0, ids), _central(moments, off).T.contiguous())
+
+
+def _central(raw: torch.Tensor, off: torch.Tensor) -> torch.Tensor:
+    """(34, K) float64 moments about each Gaussian's centre from the (34, K) moments about the
+    tile centre, the centre's offset from it being `off` (2, K): sum w (u - mu)^i (v - mv)^j =
+    sum_kl C(i,k) C(j,l) (-mu)^(i-k) (-mv)^(j-l) sum w u^k v^l, by Taylor shifts in u, then in v
+    (in place, 48 multiply-adds a pair)."""
+    m = raw.double()
+    nu, nv = -off[0].double(), -off[1].double()
+    s = [m[k] for k in range(len(_POWERS))]
+    t = [m[len(_POWERS) + ch * _P2:len(_POWERS) + (ch + 1) * _P2] for ch in range(3)]
+
+    def shift(rows, a):  # rows[0..n]: moments of orders 0..n in one variable; shift by a
+        n = len(rows) - 1
+        for step in range(1, n + 1):
+            for i in range(n, step - 1, -1):
+                rows[i].addcmul_(rows[i - 1], a)
+
+    for degree, group in ((4, s), (2, None)):
+        for j in range(degree + 1):  # shift in u: for each power of v, the powers of u
+            if group is not None:
+                shift([group[_INDEX[(i, j)]] for i in range(degree - j + 1)], nu)
+            else:
+                for tc in t:
+                    shift([tc[_INDEX[(i, j)]] for i in range(degree - j + 1)], nu)
+        for i in range(degree + 1):  # then in v
+            if group is not None:
+                shift([group[_INDEX[(i, j)]] for j in range(degree - i + 1)], nv)
+            else:
+                for tc in t:
+                    shift([tc[_INDEX[(i, j)]] for j in range(degree - i + 1)], nv)
+    return m
+
+
+def _sh_basis_gradient(d: list[torch.Tensor], degree: int) -> list[tuple]:
+    """Derivatives (d/dx, d/dy, d/dz; None for 0) of the non-constant real SH basis functions of
+    `gvae_core.rendering.sh.sh_basis`, in its order, at directions d = (x, y, z) (M-vectors)."""
+    x, y, z = d
+    c1 = SH_C1_
+    out = [(None, -c1, None), (None, None, c1), (-c1, None, None)]
+    if degree >= 2:
+        a = SH_C2_
+        out += [(a[0] * y, a[0] * x, None), (None, a[1] * z, a[1] * y), (-2 * a[2] * x, -2 * a[2] * y, 4 * a[2] * z),
+                (a[3] * z, None, a[3] * x), (2 * a[4] * x, -2 * a[4] * y, None)]
+    if degree >= 3:
+        b = SH_C3_
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        out += [(6 * b[0] * xy, 3 * b[0] * (xx - yy), None), (b[1] * yz, b[1] * xz, b[1] * xy),
+                (-2 * b[2] * xy, b[2] * (4 * zz - xx - 3 * yy), 8 * b[2] * yz),
+                (-6 * b[3] * xz, -6 * b[3] * yz, b[3] * (6 * zz - 3 * xx - 3 * yy)),
+                (b[4] * (4 * zz - 3 * xx - yy), -2 * b[4] * xy, 8 * b[4] * xz),
+                (2 * b[5] * xz, -2 * b[5] * yz, b[5] * (xx - yy)), (3 * b[6] * (xx - yy), -6 * b[6] * xy, None)]
+    return out
+
+
+def _mad(terms):
+    """sum of products a * b over (a, b) pairs, skipping None factors; None if nothing is left."""
+    acc = None
+    for a, b in terms:
+        if a is None or b is None:
+            continue
+        acc = a * b if acc is None else acc.addcmul_(a, b) if torch.is_tensor(a) and torch.is_tensor(b) else acc + a * b
+    return acc
+
+
+def _gaussian_blocks(f: dict, rows: torch.Tensor, mom: torch.Tensor, colors: torch.Tensor, camera: Camera,
+                     degree: int, dt, scale: float, alias: _Antialias) -> torch.Tensor:
+    """(21, M) packed blocks of one view for the Gaussians `rows`, from their central moments
+    `mom` (34, M) and drawn colours (M, 3) (0 where clamped).
+
+    The derivatives of what the rasteriser draws (centre, conic, opacity, colour) with respect to
+    camera-space position and log-scale are written out from the projection of
+    `gvae_core.rendering` in the cloud's anti-aliasing mode (`classic`: the 2D dilation; `matched`:
+    the 3D dilation and what it leaves of the 2D one at the Gaussian's depth; `mip`: the 3D filter
+    and the 2D Mip filter with their opacity compensation), on M-vectors, one component at a time.
+    The derivative of the exponent E = log o - (a du² + 2 b du dv + c dv²) / 2 is a polynomial in
+    the pixel offset (du, dv) from the centre, lam[monomial][theta], so J^T J = lam S lam^T + cross
+    terms with the colour + the colour's own part, S the moments of s by monomial pairs."""
+    f64 = torch.float64
+    m = len(rows)
+    rot = camera.rotation
+    rel64 = f["means"].index_select(0, rows).to(f64) - torch.as_tensor(camera.center, dtype=f64)
+    x, y, z = (rel64 @ torch.as_tensor(rot.T, dtype=f64)).to(dt).T.contiguous()
+    iz = 1.0 / z
+    u, v = x * iz, y * iz
+    fx, fy = camera.fx, camera.fy
+    lim_x = pj.FOV_CLAMP * 0.5 * camera.width / fx
+    lim_y = pj.FOV_CLAMP * 0.5 * camera.height / fy
+    uc, vc = u.clamp(-lim_x, lim_x), v.clamp(-lim_y, lim_y)
+    free_u, free_v = (u.abs() < lim_x).to(dt), (v.abs() < lim_y).to(dt)
+    iz2 = iz * iz
+    j00, j11, j02, j12 = fx * iz, fy * iz, -fx * uc * iz, -fy * vc * iz
+    dj00_z, dj11_z = -fx * iz2, -fy * iz2
+    dj02_x, dj02_z = -fx * iz2 * free_u, fx * iz2 * (uc + free_u * u)
+    dj12_y, dj12_z = -fy * iz2 * free_v, fy * iz2 * (vc + free_v * v)
+
+    q_camera = torch.as_tensor(quaternions.from_rotmat(rot), dtype=dt)
+    qn = quaternions.multiply(q_camera, quaternions.normalize(f["quats"].index_select(0, rows).to(dt)))
+    w, qx, qy, qz = qn.T.contiguous()
+    ls_raw = f["scales"].index_select(0, rows).to(dt)
+    ls = ls_raw.clamp(*LOG_SCALE_RANGE)
+    inside = ((ls_raw >= LOG_SCALE_RANGE[0]) & (ls_raw <= LOG_SCALE_RANGE[1])).to(dt)
+    dlog_o = [None] * BLOCK  # d log(opacity) / d theta
+    size = None if alias.size is None else alias.size.index_select(0, rows).to(dt)
+    if size is None:
+        s_eff, gain = ls.exp(), inside  # gain: d log s_eff / d log s
+    else:  # the 3D filter or dilation: effective scales sqrt(s² + f²)
+        size = torch.where(torch.isfinite(size), size, torch.zeros_like(size)).clamp(*pj.FILTER_3D_RANGE)
+        log_eff = 0.5 * torch.logaddexp(2.0 * ls, 2.0 * torch.log(size)[:, None])
+        s_eff = log_eff.exp()
+        gain = (2.0 * (ls - log_eff)).exp() * inside  # s² / (s² + f²)
+        if alias.mode == "mip":  # opacity times prod s / s_eff
+            dlog_o[3:] = list(((1.0 - gain) * inside).T)
+    s_eff, gain = s_eff.T.contiguous(), gain.T.contiguous()
+    # camera-space axes of the Gaussian (columns k of R diag(s)): rows 0, 1, 2 = camera x, y, z
+    r0 = (1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy))
+    r1 = (2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx))
+    r2 = (2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy))
+    m0 = [r0[k] * s_eff[k] for k in range(3)]
+    m1 = [r1[k] * s_eff[k] for k in range(3)]
+    m2 = [r2[k] * s_eff[k] for k in range(3)]
+    ak = [j00 * m0[k] + j02 * m2[k] for k in range(3)]  # rows a, b of J M (the projected axes)
+    bk = [j11 * m1[k] + j12 * m2[k] for k in range(3)]
+
+    def dot(p, q):
+        return p[0] * q[0] + p[1] * q[1] + p[2] * q[2]
+
+    am0, am1, am2, bm0, bm1, bm2 = dot(ak, m0), dot(ak, m1), dot(ak, m2), dot(bk, m0), dot(bk, m1), dot(bk, m2)
+    aa, bb, ab = dot(ak, ak), dot(bk, bk), dot(ak, bk)
+    d = pj.MIP_2D_VARIANCE if alias.mode == "mip" else pj.DILATION
+    dd_z = None  # d (2D dilation) / d camera z
+    if alias.mode == "matched" and size is not None:  # what the 3D dilation leaves of the classic one
+        rest_2d = pj.DILATION - size * size * (fx * fy) * iz2
+        d = rest_2d.clamp(min=0.0)
+        dd_z = 2.0 * size * size * (fx * fy) * iz2 * iz * (rest_2d > 0).to(dt)
+    cross = [ak[1] * bk[2] - ak[2] * bk[1], ak[2] * bk[0] - ak[0] * bk[2], ak[0] * bk[1] - ak[1] * bk[0]]
+    cc = dot(cross, cross)
+    det = cc + d * (aa + bb) + d * d
+    # derivatives by theta = camera x, y, z, log-scale 0, 1, 2 (None: zero)
+    daa = [2 * dj02_x * am2, None, 2 * (dj00_z * am0 + dj02_z * am2)] + [2 * ak[k] * ak[k] * gain[k] for k in range(3)]
+    dbb = [None, 2 * dj12_y * bm2, 2 * (dj11_z * bm1 + dj12_z * bm2)] + [2 * bk[k] * bk[k] * gain[k] for k in range(3)]
+    if dd_z is not None:  # the diagonal of Sigma_2D = t t^T + d I moves with d
+        daa[2], dbb[2] = daa[2] + dd_z, dbb[2] + dd_z
+    dab = [dj02_x * bm2, dj12_y * am2, dj00_z * bm0 + dj02_z * bm2 + dj11_z * am1 + dj12_z * am2] + \
+        [2 * ak[k] * bk[k] * gain[k] for k in range(3)]
+    inv = 1.0 / det
+    qa, qb, qc = (bb + d) * inv, -ab * inv, (aa + d) * inv
+    ca = (qa * qa, 2 * qa * qb, qb * qb)
+    cb = (qa * qb, qb * qb + qa * qc, qb * qc)
+    cq = (qb * qb, 2 * qb * qc, qc * qc)
+
+    def conic_derivative(coef):
+        return [_mad([(-coef[0], daa[t]), (-coef[1], dab[t]), (-coef[2], dbb[t])]) for t in range(BLOCK)]
+
+    dqa, dqb, dqc = conic_derivative(ca), conic_derivative(cb), conic_derivative(cq)
+    if alias.mode == "mip":
+        pv = [bk[1] * cross[2] - bk[2] * cross[1], bk[2] * cross[0] - bk[0] * cross[2],
+              bk[0] * cross[1] - bk[1] * cross[0]]  # B x C
+        qv = [cross[1] * ak[2] - cross[2] * ak[1], cross[2] * ak[0] - cross[0] * ak[2],
+              cross[0] * ak[1] - cross[1] * ak[0]]  # C x A
+        dcc = [2 * dj02_x * dot(m2, pv), 2 * dj12_y * dot(m2, qv),
+               2 * (dj00_z * dot(m0, pv) + dj02_z * dot(m2, pv) + dj11_z * dot(m1, qv) + dj12_z * dot(m2, qv))]
+        dcc += [2 * gain[k] * (ak[k] * pv[k] + bk[k] * qv[k]) for k in range(3)]
+        ok = (cc * inv > pj.MIP_2D_RATIO_FLOOR).to(dt)
+        inv_cc = ok / torch.where(cc > 0, cc, torch.ones_like(cc))
+        for t in range(BLOCK):
+            ddet = dcc[t] + d * ((daa[t] if daa[t] is not None else 0.0) + (dbb[t] if dbb[t] is not None else 0.0))
+            term = 0.5 * (dcc[t] * inv_cc - ok * ddet * inv)
+            dlog_o[t] = term if dlog_o[t] is None else dlog_o[t] + term
+    dmx = [fx * iz, None, -fx * u * iz, None, None, None]
+    dmy = [None, fy * iz, -fy * v * iz, None, None, None]
+    # camera x, y, z -> normalised world position: d/dp_j = scale * sum_i d/dcam_i R[i, j]
+    to_world = [[float(scale * rot[i, j]) for j in range(3)] for i in range(3)]
+
+    def world(g):
+        if all(c is None for c in g[:3]):
+            return g
+        pos = [_mad([(to_world[i][j], g[i]) for i in range(3)]) for j in range(3)]
+        return pos + g[3:]
+
+    dmx, dmy, dqa, dqb, dqc = world(dmx), world(dmy), world(dqa), world(dqb), world(dqc)
+    dlog_o = world(dlog_o)
+    # lam[monomial][theta] by the monomials 1, du, dv, du², du dv, dv²
+    lam = [dlog_o, [_mad([(qa, dmx[t]), (qb, dmy[t])]) for t in range(BLOCK)],
+           [_mad([(qb, dmx[t]), (qc, dmy[t])]) for t in range(BLOCK)],
+           [None if g is None else -0.5 * g for g in dqa], [None if g is None else -g for g in dqb],
+           [None if g is None else -0.5 * g for g in dqc]]
+    mom = mom.to(dt)
+    srow = {p: mom[k] for k, p in enumerate(_POWERS)}
+    smat = [[srow[(_POWERS[i][0] + _POWERS[j][0], _POWERS[i][1] + _POWERS[j][1])] for j in range(_P2)]
+            for i in range(_P2)]
+    # A = lam^T-side product: a[theta][j] = sum_i lam[i][theta] S[i][j]
+    a_mat = [[_mad([(lam[i][t], smat[i][j]) for i in range(_P2)]) for j in range(_P2)] for t in range(BLOCK)]
+    h = [[None] * BLOCK for _ in range(BLOCK)]
+    for t1 in range(BLOCK):
+        for t2 in range(t1, BLOCK):
+            h[t1][t2] = _mad([(a_mat[t1][j], lam[j][t2]) for j in range(_P2)])
+    rest = f["sh_rest"].index_select(0, rows)
+    if degree > 0 and rest.shape[1]:
+        k = (degree + 1) ** 2 - 1
+        rest = rest[:, :k].to(dt).permute(1, 2, 0).contiguous()  # (k, 3, M)
+        dist = torch.sqrt((rel64 * rel64).sum(-1))
+        dirs = (rel64 / dist[:, None]).to(dt).T.contiguous()
+        inv_dist = (scale / dist).to(dt)
+        grads = _sh_basis_gradient(list(dirs), degree)
+        live = (colors > 0).to(dt).T.contiguous()
+        jc = []  # d colour_c / d world position (normalised), c = r, g, b
+        for c in range(3):
+            g = [_mad([(grads[b][axis], rest[b, c]) for b in range(k)]) for axis in range(3)]
+            g = [torch.zeros_like(x) if gi is None else gi for gi in g]
+            radial = dot(g, dirs)
+            jc.append([(g[axis] - radial * dirs[axis]) * inv_dist * live[c] for axis in range(3)])
+        trow = mom[len(_POWERS):-1].reshape(3, _P2, m)
+        wsum = mom[-1]
+        for t1 in range(BLOCK):
+            # cross terms sum_p e_c w (lam mono)_t1 (d colour_c)_t2, both orders, and w² (d colour)(d colour)
+            lt = [_mad([(lam[i][t1], trow[c, i]) for i in range(_P2)]) for c in range(3)]
+            for t2 in range(BLOCK):
+                if t2 < 3:
+                    extra = _mad([(lt[c], jc[c][t2]) for c in range(3)])
+                    if extra is not None:
+                        if t1 <= t2:
+                            h[t1][t2] = extra if h[t1][t2] is None else h[t1][t2] + extra
+                        if t2 <= t1:
+                            h[t2][t1] = extra if h[t2][t1] is None else h[t2][t1] + extra
+                if t1 < 3 and t1 <= t2 < 3:
+                    own = _mad([(jc[c][t1], jc[c][t2]) for c in range(3)]) * wsum
+                    h[t1][t2] = own if h[t1][t2] is None else h[t1][t2] + own
+    out = torch.zeros((len(_TRIU[0]), m), dtype=f64)
+    for k, (t1, t2) in enumerate(zip(*_TRIU.tolist())):
+        if h[t1][t2] is not None:
+            out[k] = torch.nan_to_num(h[t1][t2], nan=0.0, posinf=0.0, neginf=0.0)
+    return out
+
+
+class _Clock:
+    """Seconds per part, added into `timings` (a dict, or None for no bookkeeping)."""
+
+    def __init__(self, timings: dict | None):
+        self.timings = timings
+        self.t = time.perf_counter()
+
+    def __call__(self, part: str) -> None:
+        now = time.perf_counter()
+        if self.timings is not None:
+            self.timings[part] = self.timings.get(part, 0.0) + now - self.t
+        self.t = now
+
+
+def _project(f: dict, camera: Camera, degree: int, dt, aa: _Antialias, chunk: int = 1 << 17) -> Projected:
+    """`rendering.projection.project` of every Gaussian, in chunks (it works Gaussian by Gaussian):
+    the same result with small temporaries, which for millions of Gaussians saves most of the time
+    spent faulting in fresh memory and missing the cache."""
+    n = len(f["means"])
+    parts = []
+    for i in range(0, max(n, 1), chunk):
+        part = slice(i, i + chunk)
+        parts.append(project(f["means"][part], f["scales"][part], f["quats"][part], f["opacities"][part],
+                             f["sh_dc"][part], f["sh_rest"][part], camera, degree, dtype=dt,
+                             **aa.select(part).project_args()))
+    if len(parts) == 1:
+        return parts[0]
+    return Projected(**{fld.name: torch.cat([getattr(p, fld.name) for p in parts]) for fld in fields(Projected)})
+
+
+def _accumulate_view(f: dict, camera: Camera, degree: int, settings: RenderSettings, scale: float,
+                     out: torch.Tensor, aa: _Antialias, timings: dict | None = None,
+                     work: torch.Tensor | None = None, chunk: int = 1 << 16) -> torch.Tensor | None:
+    """Add this view's packed blocks into `out` (21, N) float64. `work`: the (N, 34) float64
+    moment buffer of a previous view, reused (returned for the next)."""
+    dt = settings.dtype
+    clock = _Clock(timings)
+    with torch.no_grad():
+        proj = _project(f, camera, degree, dt, aa)
+        clock("project")
+        binning = bin_gaussians(proj.means2d, proj.footprint, proj.depths, proj.visible, camera.width, camera.height,
+                                settings.tile_size, exact=settings.exact_tiles)
+        clock("bin")
+        if binning.num_pairs == 0:
+            return work
+        table = pack(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
+        del proj
+        acc = composite(table, binning, block=settings.block, budget=settings.budget)
+        clock("composite")
+        if work is None or work.shape != (out.shape[1], _NMOM):
+            work = torch.zeros((out.shape[1], _NMOM), dtype=torch.float64)
+        else:
+            work.zero_()
+        mom = work
+        _gauss_newton_sweep(pair_table(table, binning), binning, acc, settings.block, settings.budget, mom,
+                            camera.width, camera.height)
+        del acc, binning
+        clock("sweep")
+        rows = (mom[:, -1] > 0).nonzero().squeeze(1)
+        clock("moments")
+        for i in range(0, len(rows), chunk):
+            r = rows[i:i + chunk]
+            blocks = _gaussian_blocks(f, r, mom.index_select(0, r).T.contiguous(), table.index_select(0, r)[:, 6:9],
+                                      camera, degree, dt, scale, aa)
+            out.index_add_(1, r, blocks)
+        clock("blocks")
+    return work
+
+
+def _packed_to_blocks(packed: torch.Tensor) -> torch.Tensor:
+    """(N, 6, 6) symmetric blocks from their packed upper triangles (21, N)."""
+    blocks = torch.zeros((packed.shape[1], BLOCK, BLOCK), dtype=packed.dtype)
+    blocks[:, _TRIU[0], _TRIU[1]] = packed.T
+    blocks[:, _TRIU[1], _TRIU[0]] = packed.T
+    return blocks
+
+
+def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, views: int, resolution: int,
+                    render_settings: RenderSettings | None, normalization,
+                    progress: Callable[[float, str], None] | None, timings: dict | None = None) -> torch.Tensor:
+    n = len(cloud)
+    out = torch.zeros((len(_TRIU[0]), n), dtype=torch.float64)
+    if n == 0:
+        return out
+    normalization = normalization or cloud.normalization()
+    cams = (scoring_views(cameras, views, resolution, cloud) if cameras is not None
+            else default_views(cloud, views or DEFAULT_VIEWS, resolution, normalization=normalization))
+    settings = render_settings or RenderSettings(tile_size=TILE_SIZE)
+    aa = _Antialias.of(cloud, settings)
+    # Work on the Gaussians in Morton order: neighbours in space are neighbours in memory, which
+    # makes the per-Gaussian gathers and sums of every view several times faster.
+    order = torch.from_numpy(_morton_order(cloud.numpy().means))
+    f = {k: v.index_select(0, order) for k, v in _fields(cloud, settings.dtype).items()}
+    aa = aa.select(order)
+    work = None
+    for k, cam in enumerate(cams):
+        if progress is not None:
+            progress(k / len(cams), f"Hessian view {k + 1}/{len(cams)}")
+        work = _accumulate_view(f, cam, cloud.sh_degree, settings, float(normalization[1]), out, aa, timings, work)
+    del work, f
+    result = torch.empty_like(out)
+    result[:, order] = out
+    return result
+
+
+def _morton_order(means: np.ndarray, bits: int = 21) -> np.ndarray:
+    """Rows sorted along a Z-order curve of their positions (`bits` <= 21 per axis, robust box)."""
+    p = np.asarray(means, np.float64)
+    p = np.where(np.isfinite(p), p, 0.0)
+    if len(p) == 0:
+        return np.zeros(0, np.int64)
+    lo, hi = np.percentile(p, [0.5, 99.5], axis=0)
+    q = np.clip((p - lo) / np.maximum(hi - lo, 1e-30), 0.0, 1.0)
+    q = (q * ((1 << bits) - 1)).astype(np.uint64)
+    code = np.zeros(len(p), np.uint64)
+    for axis in range(3):  # spread the bits two apart (the usual magic numbers), then interleave
+        v = q[:, axis]
+        for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                            (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+            v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+        code |= v << np.uint64(axis)
+    return np.argsort(code, kind="stable")
+
+
+@dataclass
+class _Antialias:
+    """How `render` draws the cloud (`gvae_core.antialias`): the resolved mode ("classic", "mip"
+    or "matched") and the per-Gaussian 3D size it uses (the filter or the dilation), or None."""
+
+    mode: str
+    size: torch.Tensor | None = None
+
+    @classmethod
+    def of(cls, cloud: GaussianCloud, settings: RenderSettings) -> _Antialias:
+        mode = resolve_antialias(getattr(settings, "antialias", "classic"), cloud)
+        key = {"mip": FILTER_KEY, "matched": DILATION_KEY}.get(mode)
+        size = None
+        if key is not None and key in cloud.extra:
+            size = torch.as_tensor(np.asarray(cloud.numpy().extra[key], np.float32).reshape(-1))
+            if size.numel() != len(cloud):
+                raise ValueError(f"hessian: extra[{key!r}] must hold one value per Gaussian, got {size.numel()} for "
+                                 f"{len(cloud)} Gaussians")
+        return cls(mode, size)
+
+    def select(self, rows) -> _Antialias:
+        """These rows (an index tensor or a slice)."""
+        if self.size is None:
+            return self
+        return _Antialias(self.mode, self.size[rows] if isinstance(rows, slice) else self.size.index_select(0, rows))
+
+    def project_args(self) -> dict:
+        if self.mode == "mip":
+            return {"filter_3d": self.size, "mip_2d": True}
+        if self.mode == "matched" and self.size is not None:
+            return {"dilation_3d": self.size}
+        return {}
+
+
+def hessian_blocks(cloud: GaussianCloud, cameras: Sequence[Camera] | None = None, *, views: int = DEFAULT_VIEWS,
+                   resolution: int = DEFAULT_RESOLUTION, render_settings: RenderSettings | None = None,
+                   normalization=None, progress=None) -> torch.Tensor:
+    """(N,6,6) float64: sum over views, pixels and colour channels of J_i^T J_i, J_i the derivative
+    of the rendered image with respect to Gaussian i's position (in the normalised frame) and
+    log-scale, computed exactly (see the module docstring). `cameras`: the capture's cameras, of
+    which `views` are used (0: all; `capture.scoring_views`: those that see the cloud, spread out,
+    scaled down to `resolution` pixels high), else `views` cameras from `capture.default_views`.
+    `render_settings`: a `gvae_core.rendering.RenderSettings`: its anti-aliasing mode (the default
+    is the renderer's), tile size, block and budget (speed and memory only; default tile size
+    TILE_SIZE), dtype (float64 for checks); `normalization`: the cloud's (centre, scale) when known
+    (`GaussianCloud.normalization`); `progress(fraction, message)` before each view."""
+    return _packed_to_blocks(_hessian_packed(cloud, cameras, views, resolution, render_settings, normalization,
+                                             progress))
+
+
+def _prepare(cloud: GaussianCloud, dtype=torch.float32):
+    """A torch copy whose means and log-scales are leaves that require grad."""
+    c = cloud.detach().to_torch(dtype=dtype) if cloud.is_torch else cloud.to_torch(dtype=dtype)
     means = c.means.detach().clone().requires_grad_(True)
     scales = c.scales.detach().clone().requires_grad_(True)
     return c.replace(means=means, scales=scales), means, scales
 
 
-def _gradient(output: torch.Tensor, means: torch.Tensor, scales: torch.Tensor, scale: float,
-              retain: bool) -> torch.Tensor:
-    """(N,6) float64 gradient of a scalar output: position (normalised frame), log-scale."""
-    gm, gs = torch.autograd.grad(output, [means, scales], retain_graph=retain, allow_unused=True)
-    gm = torch.zeros_like(means) if gm is None else gm
-    gs = torch.zeros_like(scales) if gs is None else gs
-    return torch.nan_to_num(torch.cat([gm * scale, gs], 1).double(), nan=0.0, posinf=0.0, neginf=0.0)
-
-
-def _render_image(cloud: GaussianCloud, camera: Camera, settings=None) -> torch.Tensor:
-    return render(cloud, camera, settings=settings).image
-
-
-def hessian_blocks(cloud: GaussianCloud, cameras: Sequence[Camera] | None = None, *, probes: int = 4,
-                   views: int = 4, resolution: int = 96, seed: int = 0, render_settings=None,
-                   normalization=None) -> torch.Tensor:
-    """(N,6,6) Hutchinson-style estimate of sum over views of J_i^T J_i (position in the
-    normalised frame, log-scale), from `probes` Rademacher-weighted backward passes per view.
-    `render_settings`: a `gvae_core.rendering.RenderSettings` (speed/memory knobs only);
-    `normalization`: the cloud's (centre, scale) when known (`GaussianCloud.normalization`)."""
-    if probes < 1:
-        raise ValueError(f"hessian: probes must be >= 1, got {probes}")
-    n = len(cloud)
-    blocks = torch.zeros((n, BLOCK, BLOCK), dtype=torch.float64)
-    if n == 0:
-        return blocks
-    normalization = normalization or cloud.normalization()
-    cams = list(cameras) if cameras is not None else default_views(cloud, views, resolution,
-                                                                   normalization=normalization)
-    scale = normalization[1]
-    rc, means, scales = _prepare(cloud)
-    gen = torch.Generator().manual_seed(int(seed))
-    for cam in cams:
-        image = _render_image(rc, cam, render_settings)
-        if not image.requires_grad:
-            continue
-        for p in range(probes):
-            v = torch.randint(0, 2, image.shape, generator=gen).to(image.dtype).mul_(2).sub_(1)
-            g = _gradient((image * v).sum(), means, scales, scale, retain=p < probes - 1)
-            blocks += g[:, :, None] * g[:, None, :]
-    return blocks / probes
-
-
-def hessian_blocks_reference(cloud: GaussianCloud, cameras: Sequence[Camera], render_settings=None) -> torch.Tensor:
-    """Slow exact reference: J_i^T J_i accumulated pixel by pixel (one backward per pixel channel)."""
+def hessian_blocks_reference(cloud: GaussianCloud, cameras: Sequence[Camera],
+                             render_settings: RenderSettings | None = None) -> torch.Tensor:
+    """Slow definition: J^T J accumulated pixel by pixel and channel by channel, one backward pass
+    through `render` each (position in the normalised frame, log-scale). Cameras are used as given."""
     n = len(cloud)
     blocks = torch.zeros((n, BLOCK, BLOCK), dtype=torch.float64)
     scale = cloud.normalization()[1]
-    rc, means, scales = _prepare(cloud)
+    dtype = render_settings.dtype if render_settings is not None else torch.float32
+    rc, means, scales = _prepare(cloud, dtype)
     for cam in cameras:
-        image = _render_image(rc, cam, render_settings).reshape(-1)
+        image = render(rc, cam, settings=render_settings).image.reshape(-1)
         for p in range(image.numel()):
             if not image[p].requires_grad:
                 continue
-            g = _gradient(image[p], means, scales, scale, retain=True)
+            gm, gs = torch.autograd.grad(image[p], [means, scales], retain_graph=True, allow_unused=True)
+            gm = torch.zeros_like(means) if gm is None else gm
+            gs = torch.zeros_like(scales) if gs is None else gs
+            g = torch.cat([gm * scale, gs], 1).double()
             blocks += g[:, :, None] * g[:, None, :]
     return blocks
+
+
+def scores_from_packed(packed: torch.Tensor, score: str = "logdet", ridge: float = 1e-2) -> torch.Tensor:
+    """`scores_from_blocks` on packed upper triangles (21, N) (`_TRIU` order)."""
+    if score not in ("logdet", "trace"):
+        raise ValueError(f"hessian: score must be 'logdet' or 'trace', got {score!r}")
+    h = torch.nan_to_num(packed.double(), nan=0.0, posinf=0.0, neginf=0.0)
+    index = {(int(i), int(j)): k for k, (i, j) in enumerate(zip(*_TRIU.tolist()))}
+    trace = sum(h[index[(k, k)]] for k in range(BLOCK)).clamp(min=0.0)
+    if score == "trace" or h.shape[1] == 0:
+        return trace.float()
+    lam = ridge * float(trace.mean()) / BLOCK
+    if not math.isfinite(lam) or lam <= 0.0:
+        return torch.zeros(h.shape[1], dtype=torch.float32)
+    out = torch.zeros(h.shape[1], dtype=torch.float32)
+    step = 1 << 16  # cache-sized pieces
+    for i in range(0, h.shape[1], step):
+        out[i:i + step] = _logdet_eye_plus({key: h[k, i:i + step] / lam for key, k in index.items()})
+    return out
+
+
+def _logdet_eye_plus(a: dict) -> torch.Tensor:
+    """log det(I + H) (float32, >= 0) of symmetric positive semi-definite 6x6 blocks given by their
+    upper-triangle components a[(i, j)] (vectors), by an unrolled LDL^T factorisation (the pivots
+    of I + H are >= 1)."""
+    d, lo = [], {}
+    out = torch.zeros_like(a[(0, 0)])
+    for j in range(BLOCK):
+        dj = 1.0 + a[(j, j)]
+        for k in range(j):
+            dj = dj - lo[(j, k)] * lo[(j, k)] * d[k]
+        dj = dj.clamp(min=1.0)
+        d.append(dj)
+        out += torch.log(dj)
+        for i in range(j + 1, BLOCK):
+            v = a[(j, i)]
+            for k in range(j):
+                v = v - lo[(i, k)] * lo[(j, k)] * d[k]
+            lo[(i, j)] = v / dj
+    return out.clamp(min=0.0).float()
 
 
 def scores_from_blocks(blocks: torch.Tensor, score: str = "logdet", ridge: float = 1e-2) -> torch.Tensor:
     """(N,) float32 scores from (N,6,6) blocks: 'trace', or 'logdet' = log det(I + H/lambda) with
     lambda = ridge * mean(trace)/6 (so the score does not depend on the image scale)."""
-    if score not in ("logdet", "trace"):
-        raise ValueError(f"hessian: score must be 'logdet' or 'trace', got {score!r}")
-    h = torch.nan_to_num(blocks.double(), nan=0.0, posinf=0.0, neginf=0.0)
-    h = 0.5 * (h + h.transpose(1, 2))
-    trace = torch.diagonal(h, dim1=1, dim2=2).sum(-1).clamp(min=0.0)
-    if score == "trace" or len(h) == 0:
-        return trace.float()
-    lam = ridge * float(trace.mean()) / BLOCK
-    if not math.isfinite(lam) or lam <= 0.0:
-        return torch.zeros(len(h), dtype=torch.float32)
-    eig = torch.linalg.eigvalsh(h / lam).clamp(min=0.0)
-    return torch.log1p(eig).sum(-1).float()
+    b = blocks.double()
+    b = 0.5 * (b + b.transpose(1, 2))
+    return scores_from_packed(b[:, _TRIU[0], _TRIU[1]].T, score, ridge)
 
 
-def hessian_scores(cloud: GaussianCloud, cameras: Sequence[Camera] | None = None, *, probes: int = 4,
-                   views: int = 4, score: str = "logdet", seed: int = 0, resolution: int = 96,
-                   ridge: float = 1e-2, render_settings=None, normalization=None) -> torch.Tensor:
-    """(N,) finite, non-negative per-Gaussian scores: the Gauss-Newton block of the renders over
-    `cameras` (or `views` cameras around the cloud at `resolution` px), estimated with `probes`
-    random +-1 pixel weightings per view; see the module docstring."""
+def hessian_scores(cloud: GaussianCloud, cameras: Sequence[Camera] | None = None, *, views: int = DEFAULT_VIEWS,
+                   resolution: int = DEFAULT_RESOLUTION, score: str = "logdet", ridge: float = 1e-2,
+                   render_settings: RenderSettings | None = None, normalization=None, progress=None,
+                   timings: dict | None = None) -> torch.Tensor:
+    """(N,) finite, non-negative per-Gaussian scores from the exact Gauss-Newton blocks
+    (`hessian_blocks`, same arguments); see the module docstring. `timings`: a dict that gets the
+    seconds spent per part (project, bin, composite, sweep, moments, blocks, score)."""
     if score not in ("logdet", "trace"):
         raise ValueError(f"hessian: score must be 'logdet' or 'trace', got {score!r}")
-    blocks = hessian_blocks(cloud, cameras, probes=probes, views=views, resolution=resolution, seed=seed,
-                            render_settings=render_settings, normalization=normalization)
-    return scores_from_blocks(blocks, score, ridge)
+    packed = _hessian_packed(cloud, cameras, views, resolution, render_settings, normalization, progress, timings)
+    clock = _Clock(timings)
+    scores = scores_from_packed(packed, score, ridge)
+    clock("score")
+    return scores

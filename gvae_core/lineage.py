@@ -269,6 +269,37 @@ class Lineage:
         return out
 
     # ------------------------------------------------------------ access
+    def stage_of(self, cloud: GaussianCloud) -> int:
+        """The stage whose snapshot `cloud` is (a `stage_<s>.ply` of the run, say): among the
+        stages at which every one of the cloud's `gvae_id`s is alive (Gaussians keep their id from
+        stage to stage, so there can be several), the one whose positions for those ids are the
+        cloud's (the closest; ties: the latest). Without ids, the stages with as many Gaussians as
+        the cloud, compared row by row. Raises ValueError when no stage fits."""
+        c = cloud.numpy()
+        ids = c.extra.get("gvae_id")
+        means = np.asarray(c.means, np.float64)
+        candidates = []
+        for s in range(self.n_stages):
+            snap = self.snapshots[s]
+            if ids is not None and len(ids) == len(c):
+                rows = self.rows_of(s, ids)
+                if (rows < 0).any():
+                    continue
+            elif len(snap) == len(c):
+                rows = np.arange(len(c))
+            else:
+                continue
+            gap = float(np.abs(np.asarray(snap.cloud.means, np.float64)[rows] - means).max(initial=0.0))
+            candidates.append((gap, -s))
+        if not candidates:
+            if ids is not None and len(ids) == len(c):
+                alive = [int((self.rows_of(s, ids) >= 0).sum()) for s in range(self.n_stages)]
+                raise ValueError(f"the cloud's {len(c)} Gaussian ids are not alive together at any stage of the "
+                                 f"lineage (alive per stage: {alive})")
+            raise ValueError(f"the cloud has {len(c)} Gaussians and no gvae_id property, and no stage of the lineage "
+                             f"has that many ({[len(s) for s in self.snapshots]})")
+        return -min(candidates)[1]
+
     def snapshot(self, stage: int) -> Snapshot:
         self._check_stage(stage)
         return self.snapshots[stage]

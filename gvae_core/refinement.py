@@ -25,9 +25,10 @@ import torch
 from .budget import select_budget
 from .camera import Camera
 from .cloud import _FIELDS, GaussianCloud
-from .hessian import hessian_scores
+from .hessian import DEFAULT_RESOLUTION, DEFAULT_VIEWS, hessian_scores
 from .lineage import (APP_EXIST, GEO_EXIST, GEO_LOG_SCALE, GEO_POSITION, Lineage, appearance_features,
                       cloud_from_features, geometry_features)
+from .resources import check_refine_memory
 from .vae import GaussianVAE, load_default_model
 from .vae.features import FEATURE_LOG_SCALE_RANGE, FEATURE_POSITION_LIMIT
 
@@ -37,7 +38,7 @@ class RefineResult:
     """The refined cloud (input rows first, in input order, then the added ones; extra properties
     as `GaussianCloud.append_children` gives them), which rows were added, each added row's
     ancestor row in the input, the step that added it, the input's Hessian scores, the input rows
-    the budget selected, and seconds per part."""
+    the budget selected, seconds per part, and the lineage stage the input was matched to."""
 
     cloud: GaussianCloud
     added: np.ndarray
@@ -46,6 +47,8 @@ class RefineResult:
     scores: np.ndarray
     selected: np.ndarray
     timings: dict[str, float] = field(default_factory=dict)
+    #: The lineage stage the input was matched to (None without a lineage).
+    stage: int | None = None
 
     @property
     def n_input(self) -> int:
@@ -60,9 +63,10 @@ class RefineResult:
 
 def _initial_history(cloud: GaussianCloud, lineage: Lineage | None, selected: np.ndarray, normalization):
     """Node features (M,T,11), (M,T,50) of the selected rows, and the normalisation's scale. The
-    last node is always the input Gaussian itself; earlier nodes come from the lineage when given.
-    Without a lineage the selected rows are one-node lineages (as `Lineage.from_cloud` makes them)
-    in the frame of the whole cloud, `normalization`."""
+    last node is always the input Gaussian itself; earlier nodes come from the lineage when given
+    (whose last stage is the cloud: `_lineage_for`). Without a lineage the selected rows are
+    one-node lineages (as `Lineage.from_cloud` makes them) in the frame of the whole cloud,
+    `normalization`."""
     sub = cloud.select(selected)
     center, scale = normalization if lineage is None else (lineage.center, lineage.scale)
     geo = geometry_features(sub, center, scale)[:, None]
@@ -75,11 +79,11 @@ def _initial_history(cloud: GaussianCloud, lineage: Lineage | None, selected: np
             rows = lineage.rows_of(last, ids)  # sequences() keeps the snapshot's order
             if (rows < 0).any():
                 raise ValueError(f"refine: {int((rows < 0).sum())} Gaussian id(s) of the cloud are not alive at the "
-                                 f"lineage's last stage")
+                                 f"lineage's stage {last}")
         elif len(seq) == len(cloud):
             rows = np.arange(len(cloud))
         else:
-            raise ValueError(f"refine: the lineage's last stage has {len(seq)} Gaussians but the cloud has "
+            raise ValueError(f"refine: the lineage's stage {last} has {len(seq)} Gaussians but the cloud has "
                              f"{len(cloud)} (and no gvae_id property to match them)")
         rows = rows[selected]
         geo = np.concatenate([seq.geometry[rows, :-1], geo], 1)
@@ -87,30 +91,60 @@ def _initial_history(cloud: GaussianCloud, lineage: Lineage | None, selected: np
     return geo, app, float(scale)
 
 
+def _lineage_for(cloud: GaussianCloud, lineage: Lineage, stage: int | None) -> tuple[Lineage, int]:
+    """The lineage up to the stage the cloud comes from (`stage`, else `Lineage.stage_of`): a
+    stage PLY of a run that went on to later stages is refined with the history it had then."""
+    if stage is None:
+        try:
+            stage = lineage.stage_of(cloud)
+        except ValueError as exc:
+            raise ValueError(f"refine: the cloud does not match the lineage: {exc}") from None
+    elif not 0 <= int(stage) < lineage.n_stages:
+        raise ValueError(f"refine: stage {stage} is not in the lineage's stages 0..{lineage.n_stages - 1}")
+    else:
+        ids = cloud.extra.get("gvae_id")
+        if ids is not None and len(ids) == len(cloud):
+            missing = int((lineage.rows_of(int(stage), ids) < 0).sum())
+            if missing:
+                raise ValueError(f"refine: {missing} Gaussian id(s) of the cloud are not alive at the lineage's "
+                                 f"stage {stage}")
+        elif len(lineage.snapshot(int(stage))) != len(cloud):
+            raise ValueError(f"refine: the lineage's stage {stage} has {len(lineage.snapshot(int(stage)))} Gaussians "
+                             f"but the cloud has {len(cloud)} (and no gvae_id property to match them)")
+    stage = int(stage)
+    return (lineage if stage == lineage.n_stages - 1 else lineage.prefix(stage + 1)), stage
+
+
 def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
-           cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, seed: int = 0,
-           progress: Callable[[float, str], None] | None = None, hessian_options: dict | None = None,
-           scores: Any = None, carry_appearance: bool = True) -> RefineResult:
+           cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, stage: int | None = None,
+           seed: int = 0, progress: Callable[[float, str], None] | None = None, hessian_options: dict | None = None,
+           scores: Any = None, carry_appearance: bool = True, check_memory: bool = True) -> RefineResult:
     """Refine `cloud` by `steps` (>= 1) sequential model steps on the Gaussians the budget selects
     (see `select_budget`). `model`: a `GaussianVAE` or a model directory (default: the bundled
-    one). `cameras`: views for the Hessian (default: views placed around the cloud). `lineage`:
-    the training lineage whose last stage is this cloud (default: one-node lineages). `scores`:
+    one). `cameras`: the capture's cameras for the Hessian (`gvae_core.capture.load_cameras`; a
+    few are picked and scaled down, `capture.scoring_views`), default: views placed around the
+    cloud (`capture.default_views`). `lineage`: the training lineage of the cloud (default:
+    one-node lineages); `stage`: the lineage stage the cloud is a snapshot of (default: found from
+    its `gvae_id`s and positions, `Lineage.stage_of`; later stages are not used). `scores`:
     precomputed Hessian scores (skips scoring). `carry_appearance`: after the first step the model
     changes geometry only, every child taking its parent's colour, SH and opacity (fed its own
     predictions, the model's appearance changes compound and PSNR above the training resolution
-    falls with every step; `reports/` has the ablation). Raises ValueError on non-finite input
-    rows."""
+    falls with every step; `reports/` has the ablation). `progress(fraction, message)` is called
+    as the work goes on; an exception it raises stops the refine (how the Blender job cancels).
+    `check_memory`: refuse, with `resources.NotEnoughMemoryError`, a cloud whose estimated peak
+    memory exceeds what is free. Raises ValueError on non-finite input rows."""
     (result,) = refine_steps(cloud, steps=steps, budget=budget, model=model, cameras=cameras, lineage=lineage,
-                             seed=seed, progress=progress, hessian_options=hessian_options, scores=scores,
-                             every_step=False, carry_appearance=carry_appearance)
+                             stage=stage, seed=seed, progress=progress, hessian_options=hessian_options,
+                             scores=scores, every_step=False, carry_appearance=carry_appearance,
+                             check_memory=check_memory)
     return result
 
 
 def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
-                 cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, seed: int = 0,
-                 progress: Callable[[float, str], None] | None = None, hessian_options: dict | None = None,
-                 scores: Any = None, every_step: bool = True,
-                 carry_appearance: bool = True) -> Iterator[RefineResult]:
+                 cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, stage: int | None = None,
+                 seed: int = 0, progress: Callable[[float, str], None] | None = None,
+                 hessian_options: dict | None = None, scores: Any = None, every_step: bool = True,
+                 carry_appearance: bool = True, check_memory: bool = True) -> Iterator[RefineResult]:
     """`refine`, yielding the result after every step (+1, +2, ...; each one the same as `refine`
     with that many steps and the same seed), or only after the last with `every_step=False`."""
     t_start = time.perf_counter()
@@ -119,12 +153,31 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
         raise ValueError(f"refine: steps must be an integer >= 1, got {steps!r}")
     src = cloud.numpy()
+    n = len(src)
+    options = dict(hessian_options or {})
+    scoring = scores is None and budget != "all"
+    if check_memory:
+        extra = sum(int(np.prod(np.shape(v)[1:], dtype=np.int64)) for v in src.extra.values())
+        if isinstance(budget, str) or isinstance(budget, (bool, np.bool_)):
+            selected_bound = n if budget == "all" else None  # auto: at most half
+        elif isinstance(budget, (int, np.integer)):
+            selected_bound = min(n, max(int(budget), 0))
+        else:
+            try:
+                selected_bound = min(n, int(np.ceil(float(budget) * n)))
+            except (TypeError, ValueError, OverflowError):  # refused with its reason by select_budget
+                selected_bound = None
+        check_refine_memory(n, src.sh_degree, extra_values=extra, views=options.get("views", DEFAULT_VIEWS),
+                            resolution=options.get("resolution", DEFAULT_RESOLUTION), selected=selected_bound,
+                            steps=steps, scoring=scoring)
     bad = src.nonfinite_rows()
     if len(bad):
         rows = ", ".join(str(int(r)) for r in bad[:5])
         raise ValueError(f"refine: the cloud has non-finite values in {len(bad)} row(s) "
                          f"[{rows}{', ...' if len(bad) > 5 else ''}]; sanitize it first")
-    n = len(src)
+    used_stage = None
+    if lineage is not None:
+        lineage, used_stage = _lineage_for(src, lineage, stage)
 
     t0 = time.perf_counter()
     if model is None:
@@ -133,13 +186,16 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
         model = GaussianVAE.load(model)
     timings["load"] = time.perf_counter() - t0
 
-    say(0.05, "scoring Gaussians (Hessian)")
+    # progress: scoring (when there is any) takes most of the time
+    h0, h1 = (0.02, 0.75) if scoring else (0.02, 0.05)
+    say(h0, "scoring Gaussians (Hessian)")
     t0 = time.perf_counter()
     if scores is None and budget == "all":
         scores = np.zeros(n, np.float32)  # every Gaussian is refined: nothing to rank
     normalization = src.normalization()  # the frame of Hessian positions and of lineages without history
     if scores is None:
-        scores = hessian_scores(src, cameras, seed=seed, normalization=normalization, **(hessian_options or {}))
+        scores = hessian_scores(src, cameras, normalization=normalization,
+                                progress=lambda f, message: say(h0 + (h1 - h0) * f, message), **options)
     scores = np.nan_to_num(np.asarray(scores.detach().cpu() if torch.is_tensor(scores) else scores,
                                       np.float32).reshape(-1), nan=0.0, posinf=0.0, neginf=0.0)
     if len(scores) != n:
@@ -154,7 +210,7 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
     gen = torch.Generator().manual_seed(int(seed))
     grow = _Growth(src, selected, hist_g, hist_a, scale)
     for k in range(1, steps + 1):
-        say(0.1 + 0.85 * (k - 1) / steps, f"step {k}/{steps}: {len(grow.rows)} lineages")
+        say(h1 + (0.97 - h1) * (k - 1) / steps, f"step {k}/{steps}: {len(grow.rows)} lineages")
         if len(grow.rows):
             # The budget chose these Gaussians to densify at the first step; later steps (and
             # every step with "all") let the model decide, lineage by lineage.
@@ -165,6 +221,7 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
             if final:
                 say(0.97, "assembling the refined cloud")
             result = grow.result(scores, {**timings}, t_start)
+            result.stage = used_stage
             if final:
                 say(1.0, result.summary())
             suspended = time.perf_counter()

@@ -1,12 +1,13 @@
 """Refinement: budgets, sequential steps, result consistency, degenerate inputs, the CLI."""
 
+import json
 import math
 
 import numpy as np
 import pytest
 import torch
 
-from gvae_core import GaussianCloud, refinement
+from gvae_core import Camera, GaussianCloud, refinement, resources
 from gvae_core.cli import main as gvae
 from gvae_core.lineage import Lineage
 from gvae_core.ply import read_ply, write_ply
@@ -130,7 +131,7 @@ def test_with_hessian_scores_and_torch_input():
     cloud = _cloud(n=30)
     calls = []
     r = refine(cloud.to_torch(), steps=1, budget=0.2, model=_model(exist_logit=30.0),
-               hessian_options={"views": 1, "probes": 1, "resolution": 24},
+               hessian_options={"views": 1, "resolution": 24},
                progress=lambda fraction, message: calls.append((fraction, message)))
     _check_result(cloud, r, 1)
     fractions = [f for f, _ in calls]
@@ -174,8 +175,8 @@ def test_lineage_history_is_used():
     seen.clear()
     refine(stage1, budget="all", model=model, scores=np.zeros(16))
     assert seen[0][0].shape[1] == 1  # without a lineage: one-node lineages
-    with pytest.raises(ValueError, match="16"):
-        refine(stage0, model=model, lineage=lin, scores=np.zeros(10))
+    with pytest.raises(ValueError, match=r"\[10, 16\]"):  # no stage of the lineage has 12 Gaussians
+        refine(_cloud(n=12, seed=1), model=model, lineage=lin, scores=np.zeros(12))
     # rows are matched to the lineage by the cloud's gvae_id when it has one
     perm = np.random.default_rng(1).permutation(16)
     shuffled = stage1.select(perm)
@@ -186,12 +187,74 @@ def test_lineage_history_is_used():
         refine(shuffled, budget="all", model=model, lineage=lin, scores=np.zeros(16))
 
 
+def _three_stage_lineage():
+    """Stages of 10, 16 and 20 Gaussians (ids persist; stage 2 prunes id 3 and adds four)."""
+    rng = np.random.default_rng(0)
+    stages = [_cloud(n=10, seed=1), _cloud(n=16, seed=2), _cloud(n=19, seed=3)]
+    lin = Lineage(np.zeros(3), 1.0)
+    lin.add_stage(stages[0], np.arange(10), np.full(10, -1), 50)
+    lin.add_stage(stages[1], np.arange(16), np.r_[np.arange(10), rng.integers(0, 10, 6)], 75)
+    ids2 = np.r_[np.delete(np.arange(16), 3), 16, 17, 18, 19]
+    lin.add_stage(stages[2], ids2, np.r_[np.delete(np.arange(16), 3), 0, 1, 2, 4], 100)
+    lin.set_normalization(*stages[2].normalization())
+    return lin
+
+
+def test_a_stage_of_a_longer_run_is_refined_with_its_own_history():
+    """A stage PLY of a run that went on to later stages: the lineage is cut at the cloud's stage
+    (found from its ids and positions, or given), as the trainer would have left it there."""
+    lin = _three_stage_lineage()
+    model = _model(exist_logit=30.0)
+    seen = []
+    predict = model.predict
+
+    def spy(hg, ha, densify=None, **kw):
+        seen.append(np.asarray(hg).copy())
+        return predict(hg, ha, densify, **kw)
+
+    model.predict = spy
+    stage1 = lin.stage_cloud(1)  # as `gvae train` writes stage_1.ply: with gvae_id, gvae_parent
+    assert lin.stage_of(stage1) == 1 and lin.stage_of(lin.stage_cloud(2)) == 2
+    r = refine(stage1, budget="all", model=model, lineage=lin, scores=np.zeros(16))
+    assert r.stage == 1
+    want = lin.prefix(2)
+    np.testing.assert_array_equal(seen[0], want.sequences(1).geometry)
+    # stage 0's ids are all alive at stage 1 too (and at 2 but for id 3): the positions decide
+    assert lin.stage_of(lin.stage_cloud(0)) == 0
+    assert refine(lin.stage_cloud(0), budget=3, model=model, lineage=lin, scores=_scores(10)).stage == 0
+    # without ids: by count and positions
+    plain = lin.stage_cloud(1).replace(extra={})
+    assert refine(plain, budget=3, model=model, lineage=lin, scores=_scores(16)).stage == 1
+    # a stage given explicitly, and a wrong one
+    assert refine(stage1, budget=3, model=model, lineage=lin, stage=1, scores=_scores(16)).stage == 1
+    with pytest.raises(ValueError, match="not alive"):
+        refine(stage1, budget=3, model=model, lineage=lin, stage=0, scores=_scores(16))
+    with pytest.raises(ValueError, match="stage 5"):
+        refine(stage1, budget=3, model=model, lineage=lin, stage=5, scores=_scores(16))
+
+
+def test_a_cloud_too_large_for_the_memory_is_refused_before_any_work(monkeypatch):
+    calls = []
+    monkeypatch.setattr(refinement, "hessian_scores", lambda *a, **k: calls.append(1))
+    monkeypatch.setattr(resources, "available_memory", lambda: 200 << 20)  # 200 MiB free
+    with pytest.raises(resources.NotEnoughMemoryError, match=r"64 Gaussians .* needs about \d+\.\d GiB"):
+        refine(_cloud(n=64), model=_model())
+    assert not calls
+    need = resources.estimate_refine_memory(1_000_000, 3)
+    assert need > resources.estimate_refine_memory(1_000_000, 0) > resources.estimate_refine_memory(100_000, 0)
+    monkeypatch.setattr(resources, "available_memory", lambda: need - 1)
+    with pytest.raises(resources.NotEnoughMemoryError, match="1,000,000 Gaussians"):
+        resources.check_refine_memory(1_000_000, 3)
+    monkeypatch.setattr(resources, "available_memory", lambda: None)  # unknown: not refused
+    assert resources.check_refine_memory(10 ** 9, 3) > 0
+
+
 def test_cli_refine_and_fit(tmp_path, capsys):
     model_dir = tmp_path / "model"
     _model(exist_logit=30.0).save(model_dir)
     write_ply(_cloud(n=50), tmp_path / "in.ply")
     code = gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "out.ply"), "--steps", "2", "--budget", "4",
-                 "--model", str(model_dir), "--views", "1", "--probes", "1", "--resolution", "16"])
+                 "--model", str(model_dir), "--views", "1", "--resolution", "16"])
     assert code == 0
     out = read_ply(tmp_path / "out.ply")
     c = 4  # slots
@@ -278,3 +341,31 @@ def test_appearance_is_carried_after_the_first_step(carry):
                                  carry_appearance=carry)
     assert len(second.cloud) > len(first.cloud)  # the second step did add Gaussians
     assert (_appearances(second.cloud) <= _appearances(first.cloud)) == carry
+
+
+def test_cli_refines_a_stage_of_a_longer_run_with_the_capture_cameras(tmp_path, capsys):
+    """`gvae refine RUN/stage_1.ply out.ply --lineage RUN/lineage.npz --cameras transforms.json` on
+    a run that went on to stage 2."""
+    model_dir = tmp_path / "model"
+    _model(exist_logit=30.0).save(model_dir)
+    lin = _three_stage_lineage()
+    run = tmp_path / "run"
+    run.mkdir()
+    lin.save(run / "lineage.npz")
+    write_ply(lin.stage_cloud(1), run / "stage_1.ply")
+    cams = [Camera.look_at((4 * math.cos(a), 4 * math.sin(a), 1.5), (0, 0, 0), width=80, height=60)
+            for a in np.linspace(0, 6, 6)]
+    frames = [{"file_path": f"view_{i}", "transform_matrix": c.to_blender_c2w().tolist()} for i, c in enumerate(cams)]
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_angle_x": cams[0].fov_x, "w": 80, "h": 60,
+                                                          "frames": frames}))
+    out = tmp_path / "out.ply"
+    base = ["refine", str(run / "stage_1.ply"), str(out), "--lineage", str(run / "lineage.npz"), "--model",
+            str(model_dir), "--budget", "4"]
+    assert gvae(base + ["--cameras", str(tmp_path / "transforms.json"), "--views", "3"]) == 0
+    text = capsys.readouterr().out
+    assert "IN.ply is stage 1" in text and "6 capture cameras" in text and "4 selected" in text
+    assert len(read_ply(out)) > 16
+    assert gvae(base + ["--stage", "2"]) == 2
+    assert "not alive at the lineage's stage 2" in capsys.readouterr().err
+    assert gvae(base + ["--cameras", str(tmp_path / "missing.json")]) == 2
+    assert "missing.json" in capsys.readouterr().err

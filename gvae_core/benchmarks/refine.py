@@ -1,21 +1,32 @@
-"""Refinement speed and quality: ms per model step against Gaussian count and budget, Hessian
-scoring timed on its own, model sizes, and the model's reconstruction error on held-out
-transitions (what the refinement quality rests on)."""
+"""Refinement speed and quality: ms per model step against Gaussian count and budget, model
+sizes, the model's reconstruction error on held-out transitions (what the refinement quality
+rests on), the Hessian blocks against their definition, and whole refines at capture scale (100k
+to 3M Gaussians: seconds per part, peak memory, selected and added counts)."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
+import resource
 import statistics
+import subprocess
+import sys
 import time
 
 import numpy as np
 import torch
 
+from ..camera import Camera
+from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS, load_cameras
 from ..examples import example_cloud
 from ..experiment import PROTOCOLS, runs_dir
-from ..hessian import hessian_scores
+from ..hessian import hessian_blocks, hessian_blocks_reference, hessian_scores
+from ..ply import read_ply
 from ..refinement import refine
+from ..rendering import RenderSettings
+from ..resources import estimate_refine_memory
+from ..scenes import cache_dir, scene_key
 from ..vae import GaussianVAE, copy_parent_baseline, default_model_dir, evaluate, load_runs, synthetic_transitions
 
 
@@ -105,20 +116,129 @@ def run(args) -> None:
                   f"| {statistics.median(rest_ms[1:]):.1f}; {rest_ms[0]:.1f} | {statistics.median(cpu_ms[1:]):.1f} "
                   f"| {nonfinite} / {changed} |")
 
-    print("\n| Gaussians | views x probes | resolution | Hessian ms | process CPU ms | error: non-finite / "
-          "negative scores | top-10% share of score mass |")
-    print("|---:|---|---:|---:|---:|---|---:|")
-    for n in counts:
-        cloud = clouds[n]
-        views, probes, res = (2, 2, 64) if quick or n > 20_000 else (4, 4, 96)
-        times, cpu, s = [], [], None
-        for rep in range(1 if n > 20_000 else 2):
-            t0, c0 = time.perf_counter(), time.process_time()
-            s = hessian_scores(cloud, views=views, probes=probes, resolution=res, seed=rep).numpy()
-            times.append((time.perf_counter() - t0) * 1e3)
-            cpu.append((time.process_time() - c0) * 1e3)
-        top = np.sort(s)[::-1][: max(1, n // 10)].sum() / max(s.sum(), 1e-30)
-        print(f"| {n} | {views} x {probes} | {res} | {statistics.median(times):.0f} | {statistics.median(cpu):.0f} "
-              f"| {int((~np.isfinite(s)).sum())} / {int((s < 0).sum())} | {top:.2f} |")
+    _exactness()
+    if not quick:
+        _view_choice()
+    _capture_scale([100_000] if quick else [100_000, 1_000_000, 3_000_000], repeats=1 if quick else 3)
     if math.isfinite(os.getloadavg()[0]):
         print(f"(load average at the end: {os.getloadavg()[0]:.2f})")
+
+
+def _exactness() -> None:
+    """The Hessian blocks against their definition (one backward pass per pixel and channel
+    through the renderer) on a small cloud: the error of the fast path that the speed rows use."""
+    cloud = example_cloud(40, seed=3)
+    cams = [Camera.look_at((3.0, 0.5, 1.5), (0, 0, 0), width=14, height=12),
+            Camera.look_at((-1.0, 2.5, 2.0), (0, 0, 0), width=12, height=12)]
+    print("\nHessian blocks against their definition (40 Gaussians, two 12-14 px views; max over Gaussians of "
+          "|H - H_def| / |H_def|):")
+    for dtype in (torch.float64, torch.float32):
+        s = RenderSettings(backward="autograd", dtype=dtype, tile_size=4)
+        t0 = time.perf_counter()
+        ref = hessian_blocks_reference(cloud, cams, s)
+        t1 = time.perf_counter()
+        fast = hessian_blocks(cloud, cams, views=0, render_settings=s)
+        t2 = time.perf_counter()
+        seen = ref.norm(dim=(1, 2)) > 0
+        err = ((fast - ref).norm(dim=(1, 2))[seen] / ref.norm(dim=(1, 2))[seen]).max().item()
+        print(f"  {str(dtype).replace('torch.', '')}: {err:.1e} ({int(seen.sum())} Gaussians seen; definition "
+              f"{(t1 - t0) * 1e3:.0f} ms, fast path {(t2 - t1) * 1e3:.0f} ms)")
+
+
+def _view_choice() -> None:
+    """How many views, how large: the top 10% of the score from a few views against the top 10% of
+    the score from all training views (the `quick` experiment's training-resolution clouds and
+    their scenes' training cameras, when both are cached)."""
+    p = PROTOCOLS["quick"]
+    folder = runs_dir() / f"{p.name}-{p.run_key()}"
+    stage = f"stage_{p.train_stage}.ply"
+    found = []
+    for run in sorted(folder.iterdir()) if folder.is_dir() else []:
+        scene = cache_dir() / "scenes" / f"{run.name}-{p.scene_profile}-s0-{scene_key(run.name, p.scene_profile, 0)}"
+        if (run / stage).is_file() and (scene / "transforms_train.json").is_file():
+            found.append((run.name, read_ply(run / stage), load_cameras(scene / "transforms_train.json")))
+    if not found:
+        print(f"\n(view choice: no cached `quick` runs with their scenes under {folder}; `make report` makes them)")
+        return
+    print("\nView choice: recall of the top 10% of the score from all training cameras (`quick` runs, training "
+          "resolution), and the rank correlation (Spearman) with it:")
+    print("\n| scene (Gaussians, cameras) | views | recall@10% | Spearman | seconds |")
+    print("|---|---|---:|---:|---:|")
+    configs = [("capture", 2, 256), ("capture", 4, 128), ("capture", 4, 256), ("capture", 8, 256),
+               ("default", 2, 256), ("default", 3, 256), ("default", 4, 96), ("default", 4, 256), ("default", 8, 256)]
+    for name, cloud, cams in found[:3]:
+        ref = hessian_scores(cloud, cams, views=0, resolution=max(c.height for c in cams)).numpy()
+        top = set(np.argsort(-ref)[: len(ref) // 10])
+        for kind, views, res in configs:
+            t0 = time.perf_counter()
+            s = hessian_scores(cloud, cams if kind == "capture" else None, views=views, resolution=res).numpy()
+            seconds = time.perf_counter() - t0
+            recall = len(top & set(np.argsort(-s)[: len(s) // 10])) / max(len(top), 1)
+            rank = np.corrcoef(np.argsort(np.argsort(s)), np.argsort(np.argsort(ref)))[0, 1]
+            print(f"| {name} ({len(cloud):,}, {len(cams)} x {cams[0].height} px) | {kind} {views} x {res} px | "
+                  f"{recall:.2f} | {rank:.3f} | {seconds:.1f} |", flush=True)
+
+
+def _capture_scale(counts, repeats: int) -> None:
+    """A whole +1 refine (budget auto, the default 4 Hessian views at 256 px) of example clouds
+    of 100k to 3M SH-3 Gaussians, each size in a fresh process (its peak memory is its own)."""
+    threads = os.environ.get("OMP_NUM_THREADS") or torch.get_num_threads()
+    print(f"\nWhole +1 refine, budget auto, default Hessian views ({DEFAULT_VIEWS} x {DEFAULT_RESOLUTION} px), "
+          f"`example_cloud(N)` (SH 3), torch threads {threads}; each size in a fresh process, "
+          f"median of {repeats} (3M: 1); seconds:")
+    print("\n| Gaussians | Hessian (project / bin / composite / sweep / moments / blocks / score) | features | model "
+          "| assemble | refine total (process CPU) | peak RSS (estimate) | selected | added "
+          "| error: non-finite scores / out rows, changed unselected | load |")
+    print("|---:|---|---:|---:|---:|---|---|---:|---:|---|---:|")
+    for n in counts:
+        runs = 1 if n > 1_500_000 else repeats
+        load0 = os.getloadavg()[0]
+        proc = subprocess.run([sys.executable, "-m", "gvae_core.benchmarks.refine", "--one", str(n), "--repeats",
+                               str(runs)], capture_output=True, text=True, timeout=3600)
+        if proc.returncode != 0:
+            why = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else proc.returncode
+            print(f"| {n:,} | failed: {why} |")
+            continue
+        r = json.loads(proc.stdout.strip().splitlines()[-1])
+        h = r["hessian_parts"]
+        parts = " / ".join(f"{h.get(k, 0.0):.2f}" for k in ("project", "bin", "composite", "sweep", "moments",
+                                                               "blocks", "score"))
+        print(f"| {n:,} | **{r['hessian']:.2f}** ({parts}) | {r['features']:.2f} | {r['model']:.2f} | "
+              f"{r['assemble']:.2f} | **{r['total']:.2f}** ({r['cpu']:.1f}) | {r['peak'] / 2 ** 30:.2f} GiB "
+              f"({r['estimate'] / 2 ** 30:.2f}) | {r['selected']:,} | {r['added']:,} | {r['bad_scores']} / "
+              f"{r['bad_rows']}, {r['changed']} | {load0:.1f}-{os.getloadavg()[0]:.1f} |", flush=True)
+
+
+def _one(n: int, repeats: int) -> dict:
+    """The child of `_capture_scale`: refine example_cloud(n) `repeats` times; medians."""
+    model, _ = _load_model()
+    cloud = example_cloud(n, seed=1)
+    rows: list[dict] = []
+    for _ in range(repeats):
+        parts: dict = {}
+        c0 = resource.getrusage(resource.RUSAGE_SELF)
+        r = refine(cloud, steps=1, budget="auto", model=model, seed=0, hessian_options={"timings": parts})
+        c1 = resource.getrusage(resource.RUSAGE_SELF)
+        rows.append({**{k: r.timings.get(k, 0.0) for k in ("hessian", "features", "model", "assemble", "total")},
+                     "cpu": c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime, "hessian_parts": parts})
+    med = {k: statistics.median(row[k] for row in rows)
+           for k in ("hessian", "features", "model", "assemble", "total", "cpu")}
+    med["hessian_parts"] = {k: statistics.median(row["hessian_parts"][k] for row in rows)
+                            for k in rows[0]["hessian_parts"]}
+    unsel = np.setdiff1d(np.arange(n), r.selected)
+    changed = int((r.cloud.means[unsel] != cloud.means[unsel]).any(1).sum())
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * (1 if sys.platform == "darwin" else 1024)
+    return {**med, "selected": len(r.selected), "added": len(r.added), "peak": peak,
+            "estimate": estimate_refine_memory(n, cloud.sh_degree, selected=len(r.selected)),
+            "bad_scores": int((~np.isfinite(r.scores)).sum() + (r.scores < 0).sum()),
+            "bad_rows": len(r.cloud.validate().nonfinite_rows), "changed": changed}
+
+
+if __name__ == "__main__":
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--one", type=int, required=True)
+    parser.add_argument("--repeats", type=int, default=1)
+    a = parser.parse_args()
+    print(json.dumps(_one(a.one, a.repeats)))

@@ -7,6 +7,8 @@ import json
 import time
 from pathlib import Path
 
+from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -36,18 +38,27 @@ def register(subparsers) -> None:
         "refine", help="refine a 3DGS PLY past its training resolution",
         description="Score the Gaussians (Hessian), pick the budget's share and run the lineage VAEs "
         "for K sequential steps; write the refined PLY (input Gaussians first, then the added ones).")
-    r.add_argument("input", type=Path, metavar="IN.ply")
-    r.add_argument("output", type=Path, metavar="OUT.ply")
+    r.add_argument("input", type=Path, metavar="IN.ply", help="a splat file: 3DGS or compressed PLY, .splat, .spz")
+    r.add_argument("output", type=Path, metavar="OUT.ply",
+                   help="where the refined cloud goes, in the format its name asks for (.ply, .spz, .splat)")
     r.add_argument("--steps", type=int, default=1, help="sequential refinement steps, 1..4 (default: 1)")
     r.add_argument("--budget", default="auto",
                    help="'all', 'auto' (from the score distribution), a fraction (0.1 or 10%%) or a count "
                    "(default: auto)")
     r.add_argument("--model", type=Path, default=None, help="model directory (default: the bundled one)")
     r.add_argument("--lineage", type=Path, default=None,
-                   help="lineage.npz of the run whose last stage is IN.ply (default: one-node lineages)")
-    r.add_argument("--views", type=int, default=4, help="views around the cloud for the Hessian")
-    r.add_argument("--probes", type=int, default=4, help="random probes per view for the Hessian")
-    r.add_argument("--resolution", type=int, default=96, help="Hessian view height in pixels")
+                   help="lineage.npz of the run IN.ply comes from (default: one-node lineages); its stages up to "
+                   "IN.ply's are used")
+    r.add_argument("--stage", type=int, default=None, metavar="K",
+                   help="the lineage stage IN.ply is (default: found from its gvae_id values and positions)")
+    r.add_argument("--cameras", type=Path, default=None, metavar="PATH",
+                   help="the capture's cameras for the Hessian: a transforms*.json file or a COLMAP sparse model "
+                   "(folder with cameras/images .bin or .txt); default: views placed around the cloud")
+    r.add_argument("--views", type=int, default=DEFAULT_VIEWS,
+                   help="views the Hessian is computed from (of the capture's cameras, spread out; 0: all of "
+                   "them) (default: %(default)s)")
+    r.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION,
+                   help="Hessian view height in pixels (capture cameras are scaled down to it) (default: %(default)s)")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--sanitize", action="store_true", help="drop non-finite Gaussians of IN.ply first")
     r.set_defaults(func=run_refine)
@@ -133,20 +144,28 @@ def _scene_name(run: Path) -> str:
 
 def run_refine(args: argparse.Namespace) -> int:
     from ..budget import parse_budget
+    from ..capture import load_cameras
     from ..lineage import Lineage
-    from ..ply import read_ply, write_ply
+    from ..formats import read_splat_file, write_splat_file
     from ..refinement import refine
 
     budget = parse_budget(args.budget)
     t0 = time.perf_counter()
-    cloud = read_ply(args.input, sanitize=args.sanitize)
+    cloud = read_splat_file(args.input, sanitize=args.sanitize)
     lineage = Lineage.load(args.lineage) if args.lineage is not None else None
+    cameras = load_cameras(args.cameras) if args.cameras is not None else None
     t_read = time.perf_counter() - t0
-    result = refine(cloud, steps=args.steps, budget=budget, model=args.model, lineage=lineage, seed=args.seed,
-                    hessian_options={"views": args.views, "probes": args.probes, "resolution": args.resolution})
+    if args.stage is not None and lineage is None:
+        raise ValueError("--stage needs --lineage")
+    result = refine(cloud, steps=args.steps, budget=budget, model=args.model, lineage=lineage, stage=args.stage,
+                    cameras=cameras, seed=args.seed,
+                    hessian_options={"views": args.views, "resolution": args.resolution})
     t0 = time.perf_counter()
-    write_ply(result.cloud, args.output)
-    print(f"read {args.input} in {t_read:.2f} s")
+    write_splat_file(result.cloud, args.output)
+    print(f"read {args.input} in {t_read:.2f} s"
+          + (f"; {len(cameras)} capture cameras from {args.cameras}" if cameras is not None else ""))
+    if lineage is not None:
+        print(f"lineage: stages 0..{result.stage} of {lineage.n_stages} (IN.ply is stage {result.stage})")
     print(result.summary())
     print(f"wrote {args.output} ({len(result.cloud)} Gaussians) in {time.perf_counter() - t0:.2f} s")
     return 0

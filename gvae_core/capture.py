@@ -1,0 +1,504 @@
+"""The cameras a capture was made from: NeRF-style `transforms*.json` and COLMAP sparse models.
+
+`load_cameras(path)` reads either, as `Camera`s in the OpenCV convention of DESIGN.md, in the
+capture's world frame (the frame of a 3DGS cloud trained from it). numpy only, no images read
+beyond the size of one when a JSON file does not state it.
+
+- `transforms*.json` (NeRF-Synthetic, Instant-NGP, nerfstudio): camera-to-world matrices in the
+  Blender/OpenGL convention (y up, looking along -z), flipped as `load_nerf_synthetic` does.
+  Intrinsics from `fl_x`/`fl_y`/`cx`/`cy`/`w`/`h` (per frame or for all) or `camera_angle_x`
+  (and `camera_angle_y`), with the image size from the JSON or from the first frame's image.
+- COLMAP sparse model (a folder holding `cameras.bin` + `images.bin`, or `cameras.txt` +
+  `images.txt`, or one of those files): world-to-camera rotation (quaternion w, x, y, z) and
+  translation per image, OpenCV convention already, pixel centres at +0.5 like ours. Camera
+  models SIMPLE_PINHOLE and PINHOLE are read as they are; SIMPLE_RADIAL, RADIAL, OPENCV and
+  FULL_OPENCV as pinholes with their distortion ignored (a warning says so: fine for choosing
+  views to score with, not for reprojecting pixels); fisheye models are refused.
+
+Files that cannot be read raise `DatasetError` (a ValueError) naming the file and the problem.
+
+The views the Hessian (`gvae_core.hessian`) is computed from come from here too: `scoring_views`
+picks a few of a capture's cameras, `default_views` places cameras when there are none (around an
+object, or inside a scene that surrounds its centre, `surround_radius`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from .camera import Camera
+from .cloud import GaussianCloud
+from .datasets import DatasetError
+
+__all__ = ["load_cameras", "read_colmap_cameras", "COLMAP_MODELS", "scoring_views", "default_views",
+           "surround_radius", "DEFAULT_VIEWS", "DEFAULT_RESOLUTION"]
+
+#: COLMAP camera models: id -> (name, number of parameters).
+COLMAP_MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5),
+                 4: ("OPENCV", 8), 5: ("OPENCV_FISHEYE", 8), 6: ("FULL_OPENCV", 12), 7: ("FOV", 5),
+                 8: ("SIMPLE_RADIAL_FISHEYE", 4), 9: ("RADIAL_FISHEYE", 5), 10: ("THIN_PRISM_FISHEYE", 12),
+                 11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16)}
+_MODEL_IDS = {name: (i, count) for i, (name, count) in COLMAP_MODELS.items()}
+#: Models read as pinholes: (index of fx, of fy (None: same as fx), of cx, of cy) in the parameters.
+_PINHOLE_LIKE = {"SIMPLE_PINHOLE": (0, None, 1, 2), "PINHOLE": (0, 1, 2, 3), "SIMPLE_RADIAL": (0, None, 1, 2),
+                 "RADIAL": (0, None, 1, 2), "OPENCV": (0, 1, 2, 3), "FULL_OPENCV": (0, 1, 2, 3)}
+#: Views the Hessian is computed from by default, and their height in pixels (`scoring_views`,
+#: `default_views`).
+DEFAULT_VIEWS = 4
+DEFAULT_RESOLUTION = 256
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".webp", ".JPG", ".PNG", ".JPEG")
+
+
+def load_cameras(path) -> list[Camera]:
+    """The capture's cameras from a `transforms*.json` file, a COLMAP sparse model folder (binary
+    or text) or one of its files; see the module docstring."""
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(f"{path}: no such file or folder (expected a transforms*.json file or a COLMAP "
+                           f"sparse model)")
+    if path.is_file() and path.suffix.lower() == ".json":
+        return _load_transforms(path)
+    folder = path if path.is_dir() else path.parent
+    if path.is_dir() and not _colmap_files(folder):
+        for sub in ("sparse/0", "sparse", "colmap/sparse/0", "distorted/sparse/0"):
+            if _colmap_files(folder / sub):
+                folder = folder / sub
+                break
+        else:
+            found = sorted(folder.glob("transforms*.json"))
+            if len(found) == 1 or (folder / "transforms.json").is_file():
+                return _load_transforms(folder / "transforms.json" if (folder / "transforms.json").is_file()
+                                        else found[0])
+            raise DatasetError(f"{path}: no cameras found (no transforms*.json and no COLMAP cameras/images "
+                               f".bin or .txt)")
+    files = _colmap_files(folder)
+    if not files:
+        raise DatasetError(f"{path}: not a COLMAP sparse model (needs cameras.bin and images.bin, or cameras.txt "
+                           f"and images.txt, in {folder})")
+    cams_file, images_file = files
+    intrinsics = read_colmap_cameras(cams_file)
+    return _colmap_images(images_file, intrinsics)
+
+
+def _colmap_files(folder: Path):
+    for ext in (".bin", ".txt"):
+        c, i = folder / f"cameras{ext}", folder / f"images{ext}"
+        if c.is_file() and i.is_file():
+            return c, i
+    return None
+
+
+# ------------------------------------------------------------------------ scoring views
+
+
+def surround_radius(cloud: GaussianCloud, normalization=None) -> tuple[float, float] | None:
+    """Where cameras can stand inside a scene that surrounds its centre (a capture with its
+    background), or None for an object. A scene surrounds its centre when, in the distribution of
+    the Gaussians' distances from the robust centre, some band of radii is nearly empty (free space
+    for the cameras, at most 1/4 of the count a uniform spread over log-radius would put there),
+    with at least 5% of the Gaussians inside it (what the cameras look at) and at least 5% beyond
+    it that cover at least 80% of the directions around the centre (the background). Returns the
+    radius of what lies inside the free space (the middle one of the emptiest such bands) and the
+    radius where the background begins, or None."""
+    center, _ = normalization or cloud.normalization()
+    p = np.asarray(cloud.numpy().means, np.float64)
+    p = p[np.isfinite(p).all(1)]
+    if len(p) < 64:
+        return None
+    if len(p) > 200_000:  # a subsample decides as well
+        p = p[np.random.default_rng(0).choice(len(p), 200_000, replace=False)]
+    rel = p - center
+    r = np.linalg.norm(rel, axis=1)
+    lo, hi = np.percentile(r, [2.0, 99.5])
+    if not (lo > 0 and hi > 4.0 * lo):
+        return None
+    bins = 32
+    edges = np.geomspace(lo, hi, bins + 1)
+    counts = np.histogram(r, edges)[0]
+    inside = np.cumsum(counts) - counts  # Gaussians below each bin (from lo on)
+    n = len(r)
+    expected = counts.sum() / bins
+    good = []
+    for k in range(1, bins - 1):
+        window = counts[k - 1:k + 2].mean()  # a band three bins wide
+        if window > 0.25 * expected or inside[k - 1] + (r < lo).sum() < 0.05 * n:
+            continue
+        outer = r > edges[k + 2]
+        if outer.sum() < 0.05 * n:
+            continue
+        good.append((window, k))
+    if not good:
+        return None
+    least = min(w for w, _ in good)
+    emptiest = [k for w, k in good if w <= least]  # the middle of the emptiest bands
+    k = emptiest[len(emptiest) // 2]
+    outer = r > edges[k + 2]
+    if _direction_coverage(rel[outer]) < 0.8:
+        return None
+    # what the cameras look at ends where the Gaussians inside the band end; the background
+    # starts where those beyond it start
+    return float(np.percentile(r[r < edges[k]], 99.0)), float(np.percentile(r[outer], 1.0))
+
+
+def _direction_coverage(rel: np.ndarray, cells: int = 64) -> float:
+    """Fraction of `cells` equal-area direction cells (a Fibonacci lattice) holding a point of `rel`."""
+    k = np.arange(cells) + 0.5
+    z = 1.0 - 2.0 * k / cells
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * k
+    lattice = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], 1)
+    d = rel / np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-30)
+    return len(np.unique(np.argmax(d @ lattice.T, axis=1))) / cells
+
+
+def default_views(cloud: GaussianCloud, views: int = DEFAULT_VIEWS, resolution: int = DEFAULT_RESOLUTION,
+                  fov_x: float = math.radians(50.0), normalization=None) -> list[Camera]:
+    """`views` cameras spread over a sphere around the cloud's robust centre (Fibonacci lattice,
+    mostly the upper hemisphere, z up), all looking at the centre. For an object, from where a
+    sphere of 1.4 half-extents just fits the view; for a scene that surrounds its centre
+    (`surround_radius`), from inside it, in the free space between what it surrounds and the
+    background, with a field of view of 70 degrees. `normalization`: the cloud's (centre, scale)
+    when known (`GaussianCloud.normalization`)."""
+    normalization = normalization or cloud.normalization()
+    center, half = normalization
+    band = surround_radius(cloud, normalization)
+    if band is not None:
+        # inside the free band, as far out as framing what lies within it needs (1.2 times its
+        # radius fills the view), as a capture orbits its subject
+        fov_x = max(fov_x, math.radians(70.0))
+        radius = min(max(1.2 * band[0] / math.sin(0.5 * fov_x), band[0] * 1.1), band[1])
+    else:
+        radius = 1.4 * half / math.sin(0.5 * fov_x)  # a sphere of radius 1.4 half-extents fills the view
+    cams = []
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    for k in range(max(int(views), 1)):
+        z = 0.85 - 1.5 * (k + 0.5) / max(views, 1)  # mostly the upper hemisphere, like NeRF-Synthetic
+        r = math.sqrt(max(1.0 - z * z, 0.0))
+        d = np.array([r * math.cos(golden * k), r * math.sin(golden * k), z])
+        cams.append(Camera.look_at(center + radius * d, center, (0.0, 0.0, 1.0), width=resolution,
+                                   height=resolution, fov_x=fov_x))
+    return cams
+
+
+def scoring_views(cameras: Sequence[Camera], views: int = DEFAULT_VIEWS, resolution: int = DEFAULT_RESOLUTION,
+                  cloud: GaussianCloud | None = None) -> list[Camera]:
+    """`views` of the capture's `cameras` to compute the Hessian from: those that see the cloud
+    (when given: at least 1% of its centres in the image, in front of the camera), spread out by
+    farthest-point sampling on camera centre and viewing direction (from the camera that sees the
+    most), each scaled to `resolution` pixels high when it is larger (a capture's full-size images
+    cost time and add little to the score). All of them when `views` is 0 or covers them all.
+    Raises ValueError when no camera sees the cloud (cameras of another frame, say)."""
+    cams = list(cameras)
+    if not cams:
+        raise ValueError("scoring views: no cameras")
+    seen = np.ones(len(cams))
+    if cloud is not None and len(cloud):
+        p = np.asarray(cloud.numpy().means, np.float64)
+        p = p[np.isfinite(p).all(1)]
+        if len(p) > 20_000:
+            p = p[np.random.default_rng(0).choice(len(p), 20_000, replace=False)]
+        for i, cam in enumerate(cams):
+            uv, z = cam.project(p)
+            with np.errstate(invalid="ignore"):
+                inside = (z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) \
+                    & (uv[:, 1] <= cam.height)
+            seen[i] = inside.mean() if len(p) else 0.0
+        keep = np.flatnonzero(seen >= 0.01)
+        if len(keep) == 0:
+            raise ValueError(f"none of the {len(cams)} cameras sees the cloud (are they in the cloud's frame? a "
+                             f"COLMAP model or transforms.json of the capture the cloud was trained from)")
+        cams, seen = [cams[i] for i in keep], seen[keep]
+    if 0 < views < len(cams):
+        centres = np.stack([c.center for c in cams])
+        dirs = np.stack([c.rotation[2] for c in cams])
+        extent = max(float(np.ptp(centres, axis=0).max()), 1e-12)
+        feats = np.concatenate([centres / extent, 0.5 * dirs], 1)
+        first = int(np.argmax(seen))
+        pick = [first]
+        dist = np.linalg.norm(feats - feats[first], axis=1)
+        while len(pick) < views:
+            nxt = int(np.argmax(dist))
+            pick.append(nxt)
+            dist = np.minimum(dist, np.linalg.norm(feats - feats[nxt], axis=1))
+        cams = [cams[i] for i in sorted(pick)]
+    return [c.scaled(resolution) if c.height > resolution else c for c in cams]
+
+
+# ------------------------------------------------------------------------------ COLMAP
+
+class _Reader:
+    """Little-endian binary reads that name the file when it ends too early."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.data = path.read_bytes()
+        self.pos = 0
+
+    def read(self, fmt: str, what: str):
+        size = struct.calcsize("<" + fmt)
+        if self.pos + size > len(self.data):
+            raise DatasetError(f"{self.path}: truncated: the file ends inside {what} (byte {self.pos} of "
+                               f"{len(self.data)})")
+        values = struct.unpack_from("<" + fmt, self.data, self.pos)
+        self.pos += size
+        return values
+
+    def string(self, what: str) -> str:
+        end = self.data.find(b"\0", self.pos)
+        if end < 0:
+            raise DatasetError(f"{self.path}: truncated: the file ends inside {what}")
+        raw = self.data[self.pos:end]
+        self.pos = end + 1
+        try:
+            return raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise DatasetError(f"{self.path}: corrupt: {what} is not text") from None
+
+    def skip(self, size: int, what: str) -> None:
+        if size < 0 or self.pos + size > len(self.data):
+            raise DatasetError(f"{self.path}: truncated: the file ends inside {what}")
+        self.pos += size
+
+
+def read_colmap_cameras(path) -> dict[int, tuple[str, int, int, np.ndarray]]:
+    """COLMAP `cameras.bin` or `cameras.txt`: camera id -> (model name, width, height, parameters)."""
+    path = Path(path)
+    out: dict[int, tuple[str, int, int, np.ndarray]] = {}
+    if path.suffix == ".bin":
+        r = _Reader(path)
+        (count,) = r.read("Q", "the camera count")
+        if count > len(r.data):
+            raise DatasetError(f"{path}: corrupt: {count} cameras in a {len(r.data)}-byte file")
+        for k in range(count):
+            cam_id, model_id, width, height = r.read("iiQQ", f"camera {k}")
+            if model_id not in COLMAP_MODELS:
+                raise DatasetError(f"{path}: corrupt: camera {cam_id} has unknown model id {model_id}")
+            name, n = COLMAP_MODELS[model_id]
+            params = np.array(r.read(f"{n}d", f"the parameters of camera {cam_id}"), np.float64)
+            out[cam_id] = (name, int(width), int(height), params)
+        if r.pos != len(r.data):
+            raise DatasetError(f"{path}: corrupt: {len(r.data) - r.pos} bytes after the last of {count} cameras")
+    else:
+        for lineno, line in _text_lines(path):
+            parts = line.split()
+            try:
+                cam_id, name, width, height = int(parts[0]), parts[1], int(parts[2]), int(parts[3])
+                params = np.array([float(v) for v in parts[4:]], np.float64)
+            except (IndexError, ValueError):
+                raise DatasetError(f"{path}: line {lineno}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got "
+                                   f"{line[:80]!r}") from None
+            if name not in _MODEL_IDS:
+                raise DatasetError(f"{path}: line {lineno}: unknown camera model {name!r}")
+            if len(params) != _MODEL_IDS[name][1]:
+                raise DatasetError(f"{path}: line {lineno}: a {name} camera has {_MODEL_IDS[name][1]} parameters, "
+                                   f"got {len(params)}")
+            out[cam_id] = (name, width, height, params)
+    if not out:
+        raise DatasetError(f"{path}: no cameras")
+    return out
+
+
+def _text_lines(path: Path):
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise DatasetError(f"{path}: corrupt: not a text file") from None
+    for lineno, line in enumerate(text.splitlines(), 1):
+        line = line.strip()
+        if line and not line.startswith("#"):
+            yield lineno, line
+
+
+def _pinhole(cam_file: Path, cam_id: int, intrinsics: dict, warned: set) -> tuple[float, float, float, float, int, int]:
+    if cam_id not in intrinsics:
+        raise DatasetError(f"{cam_file}: an image refers to camera {cam_id}, which the cameras file lacks")
+    name, width, height, params = intrinsics[cam_id]
+    if name not in _PINHOLE_LIKE:
+        raise DatasetError(f"{cam_file}: camera {cam_id} uses the {name} model, which is not supported (pinhole "
+                           f"and radial models only: {', '.join(_PINHOLE_LIKE)})")
+    if name not in ("SIMPLE_PINHOLE", "PINHOLE") and name not in warned:
+        warned.add(name)
+        warnings.warn(f"{cam_file}: {name} cameras are read as pinholes, their distortion ignored", stacklevel=3)
+    ifx, ify, icx, icy = _PINHOLE_LIKE[name]
+    fx = params[ifx]
+    return fx, params[ify] if ify is not None else fx, params[icx], params[icy], width, height
+
+
+def _camera(path: Path, what: str, q, t, intr) -> Camera:
+    q = np.asarray(q, np.float64)
+    t = np.asarray(t, np.float64)
+    norm = np.linalg.norm(q)
+    if not (np.isfinite(q).all() and np.isfinite(t).all()) or norm < 1e-12:
+        raise DatasetError(f"{path}: {what}: non-finite or zero pose")
+    w, x, y, z = q / norm
+    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    w2c = np.eye(4)
+    w2c[:3, :3] = rot
+    w2c[:3, 3] = t
+    fx, fy, cx, cy, width, height = intr
+    try:
+        return Camera(w2c, fx, fy, cx, cy, width, height)
+    except ValueError as exc:
+        raise DatasetError(f"{path}: {what}: {exc}") from None
+
+
+def _colmap_images(path: Path, intrinsics: dict) -> list[Camera]:
+    """COLMAP `images.bin` or `images.txt` as cameras, in image-id order."""
+    cam_file = path.with_name("cameras" + path.suffix)
+    warned: set = set()
+    found: list[tuple[int, Camera]] = []
+    if path.suffix == ".bin":
+        r = _Reader(path)
+        (count,) = r.read("Q", "the image count")
+        if count > len(r.data):
+            raise DatasetError(f"{path}: corrupt: {count} images in a {len(r.data)}-byte file")
+        for k in range(count):
+            image_id, *pose, cam_id = r.read("I7di", f"image {k}")
+            name = r.string(f"the name of image {image_id}")
+            (points,) = r.read("Q", f"the point count of image {image_id}")
+            r.skip(24 * points, f"the points of image {image_id}")
+            intr = _pinhole(cam_file, cam_id, intrinsics, warned)
+            found.append((image_id, _camera(path, f"image {image_id} ({name})", pose[:4], pose[4:], intr)))
+        if r.pos != len(r.data):
+            raise DatasetError(f"{path}: corrupt: {len(r.data) - r.pos} bytes after the last of {count} images")
+    else:
+        # Two lines an image: the pose, then its 2D points (possibly an empty line). A line that
+        # parses as a pose where points are expected is taken as the next pose (some writers drop
+        # the empty lines).
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            raise DatasetError(f"{path}: corrupt: not a text file") from None
+        lines = [(n, line.strip()) for n, line in enumerate(text.splitlines(), 1) if not line.startswith("#")]
+        i = 0
+        while i < len(lines):
+            lineno, line = lines[i]
+            i += 1
+            if not line:
+                continue
+            parsed = _pose_line(line)
+            if parsed is None:
+                raise DatasetError(f"{path}: line {lineno}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, got "
+                                   f"{line[:80]!r}")
+            image_id, pose, cam_id = parsed
+            if i < len(lines) and _pose_line(lines[i][1]) is None:
+                i += 1  # its points line
+            intr = _pinhole(cam_file, cam_id, intrinsics, warned)
+            found.append((image_id, _camera(path, f"line {lineno}", pose[:4], pose[4:], intr)))
+    if not found:
+        raise DatasetError(f"{path}: no images")
+    return [cam for _, cam in sorted(found, key=lambda item: item[0])]
+
+
+def _pose_line(line: str):
+    """(image id, 7 pose numbers, camera id) of an images.txt pose line, else None."""
+    parts = line.split()
+    if len(parts) < 10:
+        return None
+    try:
+        image_id, cam_id = int(parts[0]), int(parts[8])
+        pose = [float(v) for v in parts[1:8]]
+    except ValueError:
+        return None
+    name = " ".join(parts[9:])
+    try:
+        float(name)
+        return None  # all numbers: a points line
+    except ValueError:
+        return image_id, pose, cam_id
+
+
+# ------------------------------------------------------------------------- transforms.json
+
+def _load_transforms(path: Path) -> list[Camera]:
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: malformed JSON: {exc}") from None
+    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if not isinstance(frames, list) or not frames:
+        raise DatasetError(f"{path}: malformed: expected an object with a non-empty 'frames' list")
+    model = str(meta.get("camera_model", "OPENCV")).upper()
+    if "FISHEYE" in model:
+        raise DatasetError(f"{path}: camera_model {model} is not supported (pinhole cameras only)")
+    if any(float(meta.get(k, 0.0) or 0.0) != 0.0 for k in ("k1", "k2", "k3", "k4", "p1", "p2")):
+        warnings.warn(f"{path}: the cameras' lens distortion is ignored (read as pinholes)", stacklevel=3)
+    size = None
+    cams = []
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, dict):
+            raise DatasetError(f"{path}: malformed frame {i}: not an object")
+        try:
+            c2w = np.asarray(frame["transform_matrix"], np.float64)
+        except (KeyError, TypeError, ValueError):
+            raise DatasetError(f"{path}: malformed frame {i}: needs a numeric 'transform_matrix'") from None
+        if c2w.shape == (3, 4):
+            c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
+        if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
+            raise DatasetError(f"{path}: frame {i}: transform_matrix must be a finite 4x4 matrix")
+
+        def get(key, default=None, frame=frame, i=i):
+            return _number(path, meta, frame, i, key, default)
+
+        w, h = get("w"), get("h")
+        if w is None or h is None:
+            if size is None:
+                size = _image_size(path, frame, i)
+            w, h = size
+        fx, fy = get("fl_x"), get("fl_y")
+        if fx is None:
+            angle = get("camera_angle_x")
+            if angle is None:
+                raise DatasetError(f"{path}: frame {i}: no focal length ('fl_x' or 'camera_angle_x')")
+            if not 0.0 < angle < math.pi:
+                raise DatasetError(f"{path}: camera_angle_x {angle} is not in (0, pi)")
+            fx = 0.5 * w / math.tan(0.5 * angle)
+        if fy is None:
+            angle_y = get("camera_angle_y")
+            fy = 0.5 * h / math.tan(0.5 * angle_y) if angle_y is not None and 0 < angle_y < math.pi else fx
+        cx, cy = get("cx", w / 2.0), get("cy", h / 2.0)
+        base = Camera.from_blender_c2w(c2w, 2.0 * math.atan(0.5 * w / fx), int(round(w)), int(round(h)))
+        try:
+            cams.append(Camera(base.world_to_cam, fx, fy, cx, cy, int(round(w)), int(round(h))))
+        except ValueError as exc:
+            raise DatasetError(f"{path}: frame {i}: {exc}") from None
+    return cams
+
+
+def _number(path: Path, meta: dict, frame: dict, index: int, key: str, default=None) -> float | None:
+    """A frame's numeric field, else the file's, else `default`; non-numbers are refused."""
+    value = frame.get(key, meta.get(key, default))
+    if value is None:
+        return None
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{path}: frame {index}: {key!r} is not a number") from None
+    if not math.isfinite(value):
+        raise DatasetError(f"{path}: frame {index}: {key!r} is not finite")
+    return value
+
+
+def _image_size(path: Path, frame: dict, index: int) -> tuple[int, int]:
+    """(width, height) of a frame's image (only its header is read)."""
+    rel = str(frame.get("file_path", ""))
+    base = path.parent / rel
+    candidates = ([base] if base.suffix else []) + [base.with_name(base.name + s) for s in _IMAGE_SUFFIXES]
+    for c in candidates:
+        if rel and c.is_file():
+            try:
+                with Image.open(c) as im:
+                    return im.size
+            except (UnidentifiedImageError, OSError) as exc:
+                raise DatasetError(f"{c}: cannot read the image size: {exc}") from None
+    raise DatasetError(f"{path}: frame {index}: no image size ('w' and 'h') and its image "
+                       f"{rel!r} was not found")

@@ -1,0 +1,58 @@
+"""The Blender Refine job: the work runs in a worker thread while Blender stays responsive, with
+progress, cancel (Esc), and the object written once on success and untouched otherwise. Driven
+without a window (`RefineJob.start/poll/cancel/finish`), as the modal operator drives it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gvae_core.ply import write_ply
+from tests.blender.conftest import run_scenario
+from tests.blender.test_extension import make_cloud
+from tests.conftest import requires_bpy
+
+pytestmark = requires_bpy
+
+
+def test_refine_job_progress_cancel_failure_and_modal_events(extension_zip, tmp_path):
+    pytest.importorskip("torch", reason="the real refine needs PyTorch (an optional runtime in Blender)")
+    from gvae_core.vae import GaussianVAE  # noqa: PLC0415 - after the check for torch
+
+    n = 48
+    src = tmp_path / "in.ply"
+    write_ply(make_cloud(n, degree=1), src)
+    model = GaussianVAE.create(seed=0).save(tmp_path / "model")  # untrained: the data path, not the model
+    res = run_scenario("refine_job", tmp_path, extension_zip, ply=str(src), model=str(model))
+    k = n // 4
+    # success: progress rose while the main thread kept working; the object changed only at finish
+    assert res["polls"] >= 20 and res["fractions_rise"] and res["untouched_while_running"]
+    assert "stand-in" in res["messages"]
+    assert res["info"] == {"before": n, "after": n + k, "added": k} and res["after_success"] == n + k
+    steps = np.load(tmp_path / "refine_job.json.success.npz")["gvae_step"]
+    np.testing.assert_array_equal(steps, [0] * n + [1] * k)
+    # cancel and failure: reported, nothing changed
+    assert res["cancel_flag"] and res["cancel"]["error"] == "Refine cancelled" and res["cancel"]["unchanged"]
+    assert res["cancel_state_same"]
+    assert res["fail"]["error"] == "stand-in failure" and res["fail_state_same"]
+    # the mesh was replaced meanwhile: not overwritten
+    assert "changed while it was being refined" in res["changed"]["error"] and res["changed_vertices"] == 1
+    # the real refine: cancelled at its first progress report, then run through
+    assert res["real_available"]
+    assert res["real_cancel"]["error"] == "Refine cancelled" and res["real_cancel_state_same"]
+    assert any("Hessian" in m for m in res["real_messages"]), res["real_messages"]
+    info = res["real_info"]
+    assert info["before"] == n + k and info["after"] == res["real_after"] == info["before"] + info["added"]
+    # the modal operator: events pass through while it runs, Esc cancels, status bar cleared
+    assert res["poll_while_running"] is False
+    m = res["modal_cancel"]
+    assert m["results"] == ["CANCELLED"] and m["passed_through"] >= 10 and m["status_progress"]
+    assert m["status_cleared"] and m["running_cleared"] and m["state_same"]
+    assert m["reports"] == [[["WARNING"], "Refine cancelled; the object is unchanged"]]
+    f = res["modal_finish"]
+    assert f["result"] == ["FINISHED"] and f["reports"][0][0] == ["INFO"] and "Refine:" in f["reports"][0][1]
+    assert f["vertices"] > res["real_after"]
+    # invoke without a window runs to the end, like execute
+    assert res["invoke"] == ["FINISHED"] and res["invoke_vertices"] > f["vertices"]
+    before, after, undone, redone = res["undo"]
+    assert after > before and undone == before and redone == after  # one undo step
