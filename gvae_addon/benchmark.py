@@ -1,10 +1,12 @@
 """Blender side of `make bench` (gvae_core/benchmarks/blender.py runs this in a subprocess with the
 bpy module: `python -m gvae_addon.benchmark N REPEATS`). Registers the add-on from the source
-tree, times its operators on an N-Gaussian SH-3 PLY and prints one JSON line."""
+tree, times its operators on an N-Gaussian SH-3 PLY and prints one JSON line. `... render PLY
+CAMERA.json OUT_DIR`: Cycles renders of an imported PLY (`render_main`)."""
 
 from __future__ import annotations
 
 import json
+import resource
 import statistics
 import sys
 import tempfile
@@ -15,7 +17,9 @@ import bpy
 import numpy as np
 
 import gvae_addon
-from gvae_addon import convert
+from mathutils import Matrix
+
+from gvae_addon import convert, nodes
 from gvae_core.examples import random_cloud
 from gvae_core.ply import read_ply, write_ply
 
@@ -59,6 +63,44 @@ def _attribute_error(obj, cloud) -> float:
     return err
 
 
+#: Display settings whose re-evaluation is timed when the scene camera moves (the modifier
+#: depends on it: SH colour and screen filter); orbiting the viewport re-evaluates nothing.
+CAMERA_MOVE_SETTINGS = {
+    "ellipsoids, view-dependent colour (default)": {},
+    "ellipsoids, DC colour only": {"View-Dependent Colour": False},
+    "viewport: Points Only": {"Points Only": True},
+    "viewport: Display Fraction 0.1": {"Display Fraction": 0.1},
+}
+
+
+def _camera_moves(obj, repeats: int) -> dict:
+    """Median seconds of the depsgraph update after the scene camera moves, per display setting."""
+    scene = bpy.context.scene
+    cam = bpy.data.objects.new("bench_cam", bpy.data.cameras.new("bench_cam"))
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    mod = nodes.splat_modifier(obj)
+    defaults = {name: mod[nodes.modifier_input_id(mod, name)] for name in ("View-Dependent Colour", "Points Only",
+                                                                          "Display Fraction")}
+    out = {}
+    for label, values in CAMERA_MOVE_SETTINGS.items():
+        for name, value in {**defaults, **values}.items():
+            mod[nodes.modifier_input_id(mod, name)] = value
+        obj.update_tag()
+        bpy.context.evaluated_depsgraph_get().update()
+        times = []
+        for r in range(repeats):
+            cam.location = (3.0 + 0.1 * r, -3.0, 2.0)
+            t0 = time.perf_counter()
+            bpy.context.evaluated_depsgraph_get().update()
+            times.append(time.perf_counter() - t0)
+        out[label] = statistics.median(times)
+    for name, value in defaults.items():
+        mod[nodes.modifier_input_id(mod, name)] = value
+    bpy.data.objects.remove(cam)
+    return out
+
+
 def main() -> int:
     n, repeats = int(sys.argv[1]), int(sys.argv[2])
     gvae_addon.register()
@@ -87,6 +129,7 @@ def main() -> int:
             bpy.context.evaluated_depsgraph_get().update()
             t_eval.append(time.perf_counter() - t0)
         out["reevaluate_s"] = statistics.median(t_eval)
+        out["camera_move_s"] = _camera_moves(obj, repeats)
         out["import_s"] = statistics.median(t_imp)
         out["import_instances_s"] = statistics.median(t_inst)
         out["instances"] = min(counts)
@@ -128,5 +171,60 @@ def main() -> int:
     return 0
 
 
+#: Cycles settings of the render benchmark: "converged" samples each pixel once at its centre
+#: without Russian roulette on transparent bounces (deterministic: the converged image of the
+#: reference renderer's point sampling); "16 spp" is Blender's pixel filter with 16 samples.
+RENDER_CONFIGS = {
+    "converged (1 spp at pixel centres, no roulette)": {"samples": 1, "filter_width": 0.01, "roulette": False},
+    "16 spp, Blender's default pixel filter": {"samples": 16, "filter_width": 1.5, "roulette": True},
+}
+
+
+def _cpu_seconds() -> float:
+    """User + system CPU time of this process, all threads (steadier than wall time under load)."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def render_main(ply: str, camera_json: str, out_dir: str) -> int:
+    """`python -m gvae_addon.benchmark render PLY CAMERA.json OUT_DIR`: import with the default
+    options, then a Cycles render (CPU, 2 threads) per RENDER_CONFIGS to PNG; prints one JSON line."""
+    gvae_addon.register()
+    cam_args = json.loads(Path(camera_json).read_text())
+    _clear()
+    scene = bpy.context.scene
+    t0 = time.perf_counter()
+    bpy.ops.import_scene.gaussian_splat(filepath=ply)
+    out = {"import_s": time.perf_counter() - t0, "n": len(bpy.context.active_object.data.vertices), "renders": {}}
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    cam.matrix_world = Matrix(cam_args["c2w"])
+    cam.data.sensor_fit = "HORIZONTAL"
+    cam.data.angle_x = cam_args["fov_x"]
+    cam.data.clip_start = 0.01
+    r = scene.render
+    r.resolution_x, r.resolution_y, r.resolution_percentage = cam_args["width"], cam_args["height"], 100
+    r.engine = "CYCLES"
+    r.film_transparent = True
+    r.threads_mode, r.threads = "FIXED", 2
+    r.image_settings.file_format, r.image_settings.color_mode = "PNG", "RGBA"
+    c = scene.cycles
+    c.device, c.use_denoising, c.use_adaptive_sampling = "CPU", False, False
+    for i, (name, cfg) in enumerate(RENDER_CONFIGS.items()):
+        c.samples, c.filter_width = cfg["samples"], cfg["filter_width"]
+        c.min_transparent_bounces = 0 if cfg["roulette"] else c.transparent_max_bounces
+        r.filepath = str(Path(out_dir) / f"render{i}.png")
+        t0, cpu0 = time.perf_counter(), _cpu_seconds()
+        bpy.ops.render.render(write_still=True)
+        out["renders"][name] = {"seconds": time.perf_counter() - t0, "cpu_seconds": _cpu_seconds() - cpu0,
+                                "png": r.filepath, "samples": cfg["samples"], "bounces": c.transparent_max_bounces}
+    gvae_addon.unregister()
+    print("RESULT " + json.dumps(out))
+    return 0
+
+
 if __name__ == "__main__":
+    if sys.argv[1] == "render":
+        sys.exit(render_main(*sys.argv[2:5]))
     sys.exit(main())

@@ -1,4 +1,4 @@
-"""File > Import / Export > Gaussian Splat (.ply): PLY files <-> splat objects."""
+"""File > Import / Export > Gaussian Splat: splat files (.ply, .splat, .spz) <-> splat objects."""
 
 from __future__ import annotations
 
@@ -14,9 +14,10 @@ from bpy.types import Operator, OperatorFileListElement
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from gvae_core.cloud import GaussianCloud
-from gvae_core.ply import read_ply, write_ply
+from gvae_core.formats import read_splat_file, write_spz
+from gvae_core.ply import write_ply
 
-from . import convert, nodes
+from . import convert, nodes, render_setup
 
 #: Object rotation (Euler XYZ) per axis option: the data stay as in the file.
 AXES = {
@@ -36,7 +37,7 @@ def _with_messages(function, *args, **kwargs):
 
 def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
                 scale_factor: float = nodes.DEFAULT_SCALE_FACTOR, fraction: float = 1.0,
-                points_only: bool = False, min_opacity: float = 0.0):
+                points_only: bool = False, min_opacity: float = 0.0, view_dependent: bool = True):
     """A new splat object holding `cloud`, linked to the active collection (removed again if
     anything fails). An integer `gvae_step` property (written by Export with "Write Refine Step")
     becomes the object's `gvae_step` attribute again."""
@@ -51,7 +52,8 @@ def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
         obj = bpy.data.objects.new(name, me)
         obj.rotation_euler = AXES[axes]
         nodes.add_splat_modifier(obj, scale_factor=scale_factor, fraction=fraction,
-                                 points_only=points_only, min_opacity=min_opacity)
+                                 points_only=points_only, min_opacity=min_opacity,
+                                 view_dependent=view_dependent)
         context.collection.objects.link(obj)
     except BaseException:
         if obj is not None:
@@ -62,7 +64,8 @@ def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
 
 
 def export_splat(obj, path: str, *, apply_transform: bool = False, write_step: bool = False):
-    """Write a splat object as a 3DGS PLY (atomic). Returns (count, messages)."""
+    """Write a splat object as a 3DGS PLY, or an .spz when `path` ends in .spz (atomic). Returns
+    (count, messages)."""
     cloud, steps = convert.cloud_from_object(obj)
     messages = []
     if apply_transform:
@@ -73,19 +76,20 @@ def export_splat(obj, path: str, *, apply_transform: bool = False, write_step: b
                              "Apply Transform") from None
     if write_step and steps is not None:
         cloud = cloud.replace(extra={**cloud.extra, convert.STEP_ATTR: steps})
-    write_ply(cloud, path)
-    return len(cloud), messages
+    writer = write_spz if path.lower().endswith(".spz") else write_ply
+    _, written = _with_messages(writer, cloud, path)
+    return len(cloud), messages + written
 
 
 class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
-    """Import 3D Gaussian Splatting PLY files as splat objects (one per file)"""
+    """Import Gaussian splat files (3DGS or compressed PLY, .splat, .spz) as splat objects (one per file)"""
 
     bl_idname = "import_scene.gaussian_splat"
     bl_label = "Import Gaussian Splat"
     bl_options = {"REGISTER", "UNDO", "PRESET"}
 
     filename_ext = ".ply"
-    filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
+    filter_glob: StringProperty(default="*.ply;*.splat;*.spz", options={"HIDDEN"})
     files: CollectionProperty(type=OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
     directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
 
@@ -95,7 +99,14 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
                ("Y_DOWN", "Y Down, Z Forward", "3DGS/COLMAP/OpenCV scenes: rotate the object so that "
                 "-Y becomes up (an object rotation; the data are not changed)")))
     scale_factor: FloatProperty(name="Scale Factor", default=nodes.DEFAULT_SCALE_FACTOR, min=0.0,
-                                soft_max=5.0, description="Ellipsoid semi-axes in standard deviations")
+                                soft_max=5.0, description="Multiplies every Gaussian's size (1: as trained)")
+    view_dependent: BoolProperty(name="View-Dependent Colour", default=True,
+                                 description="Spherical-harmonics colour seen from the scene camera; off: "
+                                 "the base (DC) colour only (faster, independent of the camera)")
+    setup_scene: BoolProperty(name="Set Up Scene", default=True,
+                              description="Standard view transform (splat colours are display-referred: "
+                              "AgX or Filmic would tone-map them) and enough Cycles transparent bounces "
+                              "for overlapping splats")
     display_fraction: FloatProperty(name="Display Fraction", default=1.0, min=0.0, max=1.0,
                                     subtype="FACTOR", description="Fraction of the splats shown")
     points_only: BoolProperty(name="Points Only", default=False,
@@ -119,7 +130,7 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
             # Read every file first: a bad file leaves the blend file untouched.
             loaded = []
             for path in self._paths():
-                cloud, messages = _with_messages(read_ply, path, sanitize=self.drop_invalid)
+                cloud, messages = _with_messages(read_splat_file, path, sanitize=self.drop_invalid)
                 loaded.append((path, cloud))
                 for msg in messages:
                     self.report({"WARNING"}, msg)
@@ -129,7 +140,8 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
                     made.append(build_splat(
                         context, cloud, name, axes=self.axis_conversion,
                         scale_factor=self.scale_factor, fraction=self.display_fraction,
-                        points_only=self.points_only, min_opacity=self.min_opacity))
+                        points_only=self.points_only, min_opacity=self.min_opacity,
+                        view_dependent=self.view_dependent))
                 except ValueError as exc:
                     raise ValueError(f"{path}: {exc}") from exc
         except Exception as exc:
@@ -145,15 +157,28 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
             obj.select_set(True)
         context.view_layer.objects.active = made[-1]
         total = sum(len(o.data.vertices) for o in made)
+        scene_note = self._scene(context.scene)
         self.report({"INFO"}, f"Imported {total} Gaussians into {len(made)} object(s) in "
-                    f"{time.perf_counter() - start:.2f} s")
+                    f"{time.perf_counter() - start:.2f} s{scene_note}")
         return {"FINISHED"}
+
+    def _scene(self, scene) -> str:
+        """Set up (or check) the scene for splats: the INFO note of what changed; warnings when
+        Set Up Scene is off and the scene would show the splats wrong."""
+        render_setup.sync_focal_length(scene)
+        if self.setup_scene:
+            changes = render_setup.setup_scene(scene)
+            return f"; scene set up for splats: {', '.join(changes)}" if changes else ""
+        for problem in (render_setup.view_transform_problem(scene), render_setup.bounce_problem(scene)):
+            if problem:
+                self.report({"WARNING"}, f"Gaussian splats: {problem}")
+        return ""
 
     def draw(self, context):
         layout = self.layout
         layout.use_property_split = True
-        for prop in ("axis_conversion", "scale_factor", "display_fraction", "points_only",
-                     "min_opacity", "drop_invalid"):
+        for prop in ("axis_conversion", "scale_factor", "view_dependent", "display_fraction", "points_only",
+                     "min_opacity", "setup_scene", "drop_invalid"):
             layout.prop(self, prop)
 
 
@@ -193,13 +218,35 @@ class EXPORT_SCENE_OT_gaussian_splat(Operator, ExportHelper):
         return {"FINISHED"}
 
 
+class EXPORT_SCENE_OT_gaussian_splat_spz(Operator, ExportHelper):
+    """Export the active splat object as a Niantic .spz file (compressed: 8-bit colours, rotations and SH)"""
+
+    bl_idname = "export_scene.gaussian_splat_spz"
+    bl_label = "Export Gaussian Splat (.spz)"
+    bl_options = {"REGISTER", "PRESET"}
+
+    filename_ext = ".spz"
+    filter_glob: StringProperty(default="*.spz", options={"HIDDEN"})
+    apply_transform: BoolProperty(
+        name="Apply Transform", default=False,
+        description="Write positions, rotations and scales in world space (uniform scale only; "
+        "view-dependent SH colour is not rotated)")
+    write_step = False  # .spz holds no extra properties such as gvae_step
+
+    @classmethod
+    def poll(cls, context):
+        return convert.is_splat(context.active_object)
+
+    execute = EXPORT_SCENE_OT_gaussian_splat.execute  # the PLY exporter's, writing .spz for a .spz path
+
+
 class GVAE_FH_gaussian_splat(bpy.types.FileHandler):
-    """Drag and drop of .ply files into the viewport."""
+    """Drag and drop of .ply, .splat and .spz files into the viewport."""
 
     bl_idname = "GVAE_FH_gaussian_splat"
     bl_label = "Gaussian Splat"
     bl_import_operator = "import_scene.gaussian_splat"
-    bl_file_extensions = ".ply"
+    bl_file_extensions = ".ply;.splat;.spz"
 
     @classmethod
     def poll_drop(cls, context):
@@ -207,14 +254,16 @@ class GVAE_FH_gaussian_splat(bpy.types.FileHandler):
 
 
 def menu_import(self, context):
-    self.layout.operator(IMPORT_SCENE_OT_gaussian_splat.bl_idname, text="Gaussian Splat (.ply)")
+    self.layout.operator(IMPORT_SCENE_OT_gaussian_splat.bl_idname, text="Gaussian Splat (.ply, .splat, .spz)")
 
 
 def menu_export(self, context):
     self.layout.operator(EXPORT_SCENE_OT_gaussian_splat.bl_idname, text="Gaussian Splat (.ply)")
+    self.layout.operator(EXPORT_SCENE_OT_gaussian_splat_spz.bl_idname, text="Gaussian Splat (.spz)")
 
 
-classes = (IMPORT_SCENE_OT_gaussian_splat, EXPORT_SCENE_OT_gaussian_splat, GVAE_FH_gaussian_splat)
+classes = (IMPORT_SCENE_OT_gaussian_splat, EXPORT_SCENE_OT_gaussian_splat, EXPORT_SCENE_OT_gaussian_splat_spz,
+           GVAE_FH_gaussian_splat)
 
 
 def register():

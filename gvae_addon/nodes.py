@@ -1,90 +1,262 @@
-"""The Geometry Nodes group and the material that draw a splat object.
+"""The Geometry Nodes group and the material that draw a splat object as the Gaussians it holds.
 
-Geometry Nodes: one low-poly ellipsoid (an icosphere with the unit sphere's volume) instanced per
-Gaussian centre, rotated by
-the w,x,y,z quaternion `rot_0..3` and scaled by exp(clamped `scale_0..2`) times a user factor.
-Instances are not realised. Display inputs on the modifier: the fraction of splats shown, points
-only (a point cloud instead of ellipsoids) and the lowest opacity shown.
+Geometry Nodes (one group per SH degree, since the `f_rest_*` layout depends on it), per Gaussian,
+following the reference renderer (DESIGN.md, Rendering semantics) for the scene's active camera:
+- size: the standard deviations exp(clamped `scale_0..2`) times the Scale Factor, each variance
+  widened by the cloud's anti-aliasing (`gvae_core.antialias`, the renderer's "auto" mode):
+  Mip-Splatting's 3D filter `filter_3D` (+f², opacity x prod s / sqrt(s² + f²)) and its 2D
+  filter (0.1 px², opacity compensated), or for a cloud without `filter_3D` the classic
+  dilation (0.3 px², opacity unchanged; held at least at `gvae_dilation_3D`² when the cloud
+  has it). A screen-space variance v px² becomes the isotropic world variance v (z / f)² at
+  the Gaussian's depth z from the camera (f: the camera's focal length in pixels of the render,
+  the "Focal Length (px)" input that `render_setup` keeps in step): its projection is the
+  renderer's v I in pixels;
+- colour: SH_C0 * f_dc + 0.5 plus, with View-Dependent Colour on, the SH bands for the direction
+  camera -> centre in the object's own frame; clamped at 0 and converted from sRGB to linear
+  (splat colours are display-referred: the Standard view transform gives them back);
+- one primitive instanced at the centre, rotated by the w,x,y,z quaternion `rot_0..3` and scaled
+  so that instance space is the Gaussian's whitened frame in units of the radius where its
+  alpha can reach 1/255, sqrt(2 ln(255 o)) std-devs (Gaussians below 1/255 opacity are not
+  drawn at all): in the viewport a low-poly icosphere enclosing that ellipsoid (right from every
+  side); in renders (Camera-Facing in Renders, the default) a disc through the centre turned, in
+  that frame, to face the scene camera: one surface per Gaussian, met where the ray crosses the
+  plane through the centre, so Cycles and EEVEE composite the Gaussians in the order of their
+  centres' depths as the reference does, with half the transparent bounces.
+The colour and the opacity are stored on the instances (points with Points Only) as
+`gvae_color` (linear) and `gvae_alpha`; every other attribute is dropped before instancing.
 
-Material: colour = max(SH_C0 * f_dc + 0.5, 0) and alpha = sigmoid(opacity), read with Attribute
-nodes, emitted (splat colours are radiance, not albedo) over a transparent BSDF; it works in EEVEE
-and Cycles. Back faces are transparent, so each ellipsoid is blended once. Attributes are looked
-up both as instancer attributes (ellipsoids) and as geometry attributes (points only); the
-missing lookup reads zero, so their sum is the value.
+Material: alpha = min(0.99, o exp(-d²/2)) with d the Mahalanobis distance of the ray's closest
+approach to the centre (computed in instance space from the hit point and the ray direction),
+zero below 1/255; written o (255 o)^(-q) with q = d² / radius², which needs only o, and the same
+for any primitive shape or turn in that frame. Emitted colour `gvae_color` over a transparent
+BSDF; back faces are transparent (each Gaussian is blended once). Cycles and EEVEE. With Points
+Only, a point cloud of constant alpha (a preview).
 """
-
 from __future__ import annotations
 
 import math
 
 import bpy
 
-from gvae_core.conventions import LOG_SCALE_RANGE, OPACITY_LOGIT_RANGE, SH_C0
+from gvae_core.antialias import CLASSIC_DILATION, DILATION_KEY, FILTER_KEY
+from gvae_core.conventions import (ALPHA_MAX, ALPHA_MIN, LOG_SCALE_RANGE, MIP_2D_VARIANCE, OPACITY_LOGIT_RANGE,
+                                   SH_C0, SH_C1, SH_C2, SH_C3, SH_REST_COUNTS, SRGB_EOTF)
+
+from .convert import layout
 
 GROUP_NAME = "GaussianVAE Splats"
 MATERIAL_NAME = "GaussianVAE Splat"
 MODIFIER_NAME = "GaussianVAE Splats"
-#: Bumped when the node setup changes; an older group in a blend file is rebuilt in place.
-NODES_VERSION = 2
-#: Default size of an ellipsoid in standard deviations: sqrt(2) gives a solid ellipse the same
-#: integrated opacity as the Gaussian it stands for (pi k^2 = 2 pi for k = sqrt 2).
-DEFAULT_SCALE_FACTOR = math.sqrt(2.0)
+COLOR_ATTR = "gvae_color"
+ALPHA_ATTR = "gvae_alpha"
+#: Bumped when the node setup changes; an older group or material in a blend file is rebuilt in place.
+NODES_VERSION = 3
+#: Multiplies every Gaussian's standard deviations (1: the Gaussians as trained).
+DEFAULT_SCALE_FACTOR = 1.0
+#: Circumradius of Blender's icosphere (subdivisions d) that encloses the unit sphere is
+#: 1 + a * b^(1 - d): 1.2585, 1.0706, 1.0193, 1.0053 >= the exact 1.2584, 1.0705, 1.0181, 1.0045.
+_ICO_ENCLOSE = (0.2585, 3.66)
+#: The camera-facing disc (whitened frame, unit = the visible radius): an octagon around the
+#: circle of radius DISC_RADIUS. A disc through the centre of the unit sphere, perpendicular to
+#: the direction of a camera at distance D, holds the sphere's silhouette when its radius is
+#: D / sqrt(D² - 1): 1.1 covers D >= 2.4 visible radii; nearer, only alpha below 1.3% (D >= 1.5)
+#: is cut.
+DISC_RADIUS, DISC_SIDES = 1.1, 8
 
 # Interface: (name, socket type, default, min, max, description)
 INPUTS = (
     ("Scale Factor", "NodeSocketFloat", DEFAULT_SCALE_FACTOR, 0.0, 100.0,
-     "Ellipsoid semi-axes in standard deviations of the Gaussian"),
+     "Multiplies every Gaussian's size (1: as trained)"),
+    ("View-Dependent Colour", "NodeSocketBool", True, None, None,
+     "Spherical-harmonics colour seen from the scene camera; off: the base (DC) colour only, "
+     "faster and independent of the camera"),
     ("Display Fraction", "NodeSocketFloat", 1.0, 0.0, 1.0,
      "Fraction of the splats shown (a fixed random subset, for large scenes)"),
     ("Points Only", "NodeSocketBool", False, None, None,
      "Show one point per Gaussian instead of ellipsoids (fast for large scenes)"),
     ("Min Opacity", "NodeSocketFloat", 0.0, 0.0, 1.0, "Hide splats whose opacity is below this"),
+    ("Viewport Only", "NodeSocketBool", True, None, None,
+     "Display Fraction and Points Only act in the viewport only; renders show every splat as itself"),
+    ("Camera-Facing in Renders", "NodeSocketBool", True, None, None,
+     "Renders draw each Gaussian as one disc through its centre facing the scene camera (composited "
+     "in the order of the centres' depths, as the reference renderer does, and half the transparent "
+     "bounces); off, or in the viewport: the ellipsoid, right from every side"),
     ("Detail", "NodeSocketInt", 1, 1, 4, "Subdivisions of the icosphere drawn per Gaussian"),
     ("Material", "NodeSocketMaterial", None, None, None, "Material of the splats"),
+)
+#: Inputs the import sets (not in the sidebar; the modifier shows them): the screen-space
+#: anti-aliasing of the reference renderer, emulated per Gaussian at its depth from the scene
+#: camera, and the camera's focal length in pixels (render_setup's handlers keep it in step with
+#: the scene's camera and render size).
+HIDDEN_INPUTS = (
+    ("Screen Filter", "NodeSocketFloat", CLASSIC_DILATION, 0.0, 10.0,
+     "Screen-space variance (px²) added to every Gaussian at the render resolution, as the reference "
+     "renderer does: 0.3 without opacity change (3DGS) or 0.1 with Compensate (Mip-Splatting)"),
+    ("Compensate Screen Filter", "NodeSocketBool", False, None, None,
+     "Scale the opacity so that the screen filter keeps each Gaussian's integral (Mip-Splatting's 2D filter)"),
+    ("Focal Length (px)", "NodeSocketFloat", 0.0, 0.0, 1e7,
+     "Focal length of the scene camera in pixels of the render (driven); 0 turns the screen filter off"),
 )
 
 
 class _Builder:
-    """Small helper to add and link nodes with less noise."""
+    """Adds and links nodes with less noise; `arrange()` lays them out in columns by link depth."""
 
     def __init__(self, tree):
         self.tree = tree
-        self.x = 0
+        self.nodes = []
+        self.edges = []  # (from node index, to node index): RNA look-ups are slow, keep our own
 
-    def node(self, kind: str, x: float, y: float, **props):
+    def node(self, kind: str, **props):
         n = self.tree.nodes.new(kind)
-        n.location = (x, y)
         for key, value in props.items():
             setattr(n, key, value)
+        n["gvae_i"] = len(self.nodes)
+        self.nodes.append(n)
         return n
 
     def link(self, out, inp):
-        self.tree.links.new(out, inp)
+        self.tree.links.new(out, inp, verify_limits=False)
+        self.edges.append((out.node["gvae_i"], inp.node["gvae_i"]))
 
-    def math(self, op: str, a, b=None, x=0, y=0):
-        n = self.node("ShaderNodeMath", x, y, operation=op)
-        for sock, value in ((n.inputs[0], a), (n.inputs[1], b)):
-            if value is None:
-                continue
-            if isinstance(value, (int, float)):
-                sock.default_value = value
-            else:
-                self.link(value, sock)
+    def _feed(self, sock, value):
+        if value is None:
+            return
+        if isinstance(value, (int, float)):
+            sock.default_value = (value,) * 3 if sock.type == "VECTOR" else value
+        else:
+            self.link(value, sock)
+
+    def math(self, op: str, a, b=None, c=None):
+        n = self.node("ShaderNodeMath", operation=op)
+        for sock, value in zip(n.inputs, (a, b, c)):
+            self._feed(sock, value)
         return n.outputs[0]
 
+    def vmath(self, op: str, a, b=None, c=None, *, scale=None):
+        """Vector Math; a float given for a vector input becomes (v, v, v). The float result of
+        DOT_PRODUCT / LENGTH is returned for those operations, else the vector."""
+        n = self.node("ShaderNodeVectorMath", operation=op)
+        for sock, value in zip(n.inputs, (a, b, c)):
+            self._feed(sock, value)
+        if scale is not None:
+            self._feed(n.inputs["Scale"], scale)
+        return n.outputs[1] if op in ("DOT_PRODUCT", "LENGTH", "DISTANCE") else n.outputs[0]
 
-def _named(b: _Builder, name: str, x: float, y: float):
-    n = b.node("GeometryNodeInputNamedAttribute", x, y, data_type="FLOAT")
+    def combine(self, xyz):
+        n = self.node("ShaderNodeCombineXYZ")
+        for sock, value in zip(n.inputs, xyz):
+            self._feed(sock, value)
+        return n.outputs[0]
+
+    def separate(self, vec):
+        n = self.node("ShaderNodeSeparateXYZ")
+        self.link(vec, n.inputs[0])
+        return list(n.outputs)
+
+    def product(self, values):
+        out = values[0]
+        for v in values[1:]:
+            out = self.math("MULTIPLY", out, v)
+        return out
+
+    def total(self, values):
+        out = values[0]
+        for v in values[1:]:
+            out = self.math("ADD", out, v)
+        return out
+
+    def arrange(self):
+        """Columns by the longest chain of links from a node without inputs (readable in the editor)."""
+        depth = [0] * len(self.nodes)
+        changed = True
+        while changed:
+            changed = False
+            for a, c in self.edges:
+                if depth[a] + 1 > depth[c]:
+                    depth[c] = depth[a] + 1
+                    changed = True
+        rows: dict[int, int] = {}
+        for n, d in zip(self.nodes, depth):
+            n.location = (220.0 * d, -160.0 * rows.get(d, 0))
+            rows[d] = rows.get(d, 0) + 1
+            del n["gvae_i"]
+
+
+def _named(b: _Builder, name: str, data_type: str = "FLOAT"):
+    """A named attribute (0 where the geometry has none)."""
+    n = b.node("GeometryNodeInputNamedAttribute", data_type=data_type)
     n.inputs["Name"].default_value = name
     return n.outputs["Attribute"]
 
 
-def _build_group(ng) -> None:
+def _remove_attributes(b: _Builder, geo, pattern: str):
+    """Remove Named Attribute with a wildcard pattern (a node property up to Blender 4.5, a menu
+    socket from 5.0)."""
+    rm = b.node("GeometryNodeRemoveAttribute")
+    if "Pattern Mode" in rm.inputs:
+        rm.inputs["Pattern Mode"].default_value = "Wildcard"
+    else:
+        rm.pattern_mode = "WILDCARD"
+    rm.inputs["Name"].default_value = pattern
+    b.link(geo, rm.inputs["Geometry"])
+    return rm.outputs["Geometry"]
+
+
+def _store(b: _Builder, geo, name: str, value, data_type: str):
+    st = b.node("GeometryNodeStoreNamedAttribute", data_type=data_type, domain="POINT")
+    st.inputs["Name"].default_value = name
+    b.link(geo, st.inputs["Geometry"])
+    b.link(value, st.inputs["Value"])
+    return st.outputs["Geometry"]
+
+
+def sh_basis_terms(b: _Builder, direction, degree: int) -> list:
+    """Node outputs of the real SH basis functions 1..(degree+1)²-1 of a unit direction field
+    (gvae_core.rendering.sh.sh_basis without the constant band)."""
+    dx, dy, dz = b.separate(direction)
+    m = b.math
+    terms = []
+    if degree >= 1:
+        terms += [m("MULTIPLY", dy, -SH_C1), m("MULTIPLY", dz, SH_C1), m("MULTIPLY", dx, -SH_C1)]
+    if degree >= 2:
+        xx, yy, zz = m("MULTIPLY", dx, dx), m("MULTIPLY", dy, dy), m("MULTIPLY", dz, dz)
+        xy, yz, xz = m("MULTIPLY", dx, dy), m("MULTIPLY", dy, dz), m("MULTIPLY", dx, dz)
+        xx_yy = m("ADD", xx, yy)
+        xx_m_yy = m("SUBTRACT", xx, yy)
+        terms += [m("MULTIPLY", xy, SH_C2[0]), m("MULTIPLY", yz, SH_C2[1]),
+                  m("MULTIPLY", m("SUBTRACT", m("MULTIPLY", zz, 2.0), xx_yy), SH_C2[2]),
+                  m("MULTIPLY", xz, SH_C2[3]), m("MULTIPLY", xx_m_yy, SH_C2[4])]
+    if degree >= 3:
+        zz4_m = m("SUBTRACT", m("MULTIPLY", zz, 4.0), xx_yy)  # 4zz - xx - yy
+        terms += [
+            m("MULTIPLY", m("MULTIPLY", dy, m("SUBTRACT", m("MULTIPLY", xx, 3.0), yy)), SH_C3[0]),
+            m("MULTIPLY", m("MULTIPLY", xy, dz), SH_C3[1]),
+            m("MULTIPLY", m("MULTIPLY", dy, zz4_m), SH_C3[2]),
+            m("MULTIPLY", m("MULTIPLY", dz, m("SUBTRACT", m("MULTIPLY", zz, 2.0), m("MULTIPLY", xx_yy, 3.0))),
+              SH_C3[3]),
+            m("MULTIPLY", m("MULTIPLY", dx, zz4_m), SH_C3[4]),
+            m("MULTIPLY", m("MULTIPLY", dz, xx_m_yy), SH_C3[5]),
+            m("MULTIPLY", m("MULTIPLY", dx, m("SUBTRACT", xx, m("MULTIPLY", yy, 3.0))), SH_C3[6]),
+        ]
+    return terms
+
+
+def _srgb_to_linear(b: _Builder, c):
+    """The sRGB EOTF of one channel (>= 0), extended above 1 by its power law."""
+    thr, slope, off, scale, gamma = SRGB_EOTF
+    low = b.math("DIVIDE", c, slope)
+    high = b.math("POWER", b.math("DIVIDE", b.math("ADD", c, off), scale), gamma)
+    is_low = b.math("LESS_THAN", c, thr)  # 1 where c < thr
+    return b.math("ADD", b.math("MULTIPLY", low, is_low), b.math("MULTIPLY", high, b.math("SUBTRACT", 1.0, is_low)))
+
+
+def _build_group(ng, degree: int) -> None:
     ng.nodes.clear()
     ng.interface.clear()
     ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
     ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
-    for name, kind, default, lo, hi, desc in INPUTS:
+    for name, kind, default, lo, hi, desc in INPUTS + HIDDEN_INPUTS:
         s = ng.interface.new_socket(name, description=desc, in_out="INPUT", socket_type=kind)
         if default is not None:
             s.default_value = default
@@ -94,151 +266,268 @@ def _build_group(ng) -> None:
             s.subtype = "FACTOR"
 
     b = _Builder(ng)
-    gin = b.node("NodeGroupInput", -1400, 0)
-    gout = b.node("NodeGroupOutput", 1000, 0)
+    gin = b.node("NodeGroupInput").outputs
+    gout = b.node("NodeGroupOutput")
+    m = b.math
+
+    # The scene's active camera in the object's own frame (the frame of the Gaussians' data).
+    cam = b.node("GeometryNodeObjectInfo", transform_space="RELATIVE")
+    b.link(b.node("GeometryNodeInputActiveCamera").outputs[0], cam.inputs["Object"])
+    rel = b.vmath("SUBTRACT", b.node("GeometryNodeInputPosition").outputs[0], cam.outputs["Location"])
+    view_dir = b.vmath("NORMALIZE", rel)  # camera -> centre
+    forward = b.node("FunctionNodeRotateVector")
+    forward.inputs["Vector"].default_value = (0.0, 0.0, -1.0)
+    b.link(cam.outputs["Rotation"], forward.inputs["Rotation"])
+    depth = m("ABSOLUTE", b.vmath("DOT_PRODUCT", rel, forward.outputs[0]))
+    # Screen-space filter as a world-space isotropic variance at the Gaussian's depth:
+    # variance (px²) x (depth / focal length in px)²; 0 while the focal length is unknown (0).
+    pixel = m("DIVIDE", depth, gin["Focal Length (px)"])
+    screen_var = m("MULTIPLY", gin["Screen Filter"], m("MULTIPLY", pixel, pixel))
 
     # Rotation from the w,x,y,z quaternion (normalised by the node).
-    q = b.node("FunctionNodeQuaternionToRotation", -800, 300)
+    q = b.node("FunctionNodeQuaternionToRotation")
     for i, comp in enumerate("WXYZ"):
-        b.link(_named(b, f"rot_{i}", -1100, 450 - 80 * i), q.inputs[comp])
+        b.link(_named(b, f"rot_{i}"), q.inputs[comp])
 
-    # Scale: exp(clamp(log-scale)) * factor.
-    comb = b.node("ShaderNodeCombineXYZ", -600, 0)
-    for i, comp in enumerate("XYZ"):
-        clamp = b.node("ShaderNodeClamp", -900, 50 - 120 * i)
+    # Variances: s² (std-devs exp(clamp(log-scale)) x factor); with the 3D filter f:
+    # s² + f²; with the screen filter v: + v. Opacity compensations, each exactly 1 when its
+    # filter is 0: 3D filter prod s / sqrt(s² + f²) (the reference's rule); screen filter (only
+    # with Compensate, the Mip 2D filter) sqrt(det Σ2D / det(Σ2D + v I)), with the 2D
+    # covariance of the projection along the view direction u (in the Gaussian's frame):
+    # det Σ2D = det Σ · uᵀ Σ⁻¹ u.
+    f = _named(b, FILTER_KEY)
+    ff = m("MULTIPLY", f, f)
+    # "matched" (a cloud with the classic dilation held in world units, DILATION_KEY = d): the
+    # added variance is max(d², screen variance), opacity unchanged; not with the Mip filters.
+    d = m("MULTIPLY", _named(b, DILATION_KEY), m("SUBTRACT", 1.0, gin["Compensate Screen Filter"]))
+    screen_var = m("MAXIMUM", m("MULTIPLY", d, d), screen_var)
+    u = b.node("FunctionNodeRotateVector")
+    b.link(view_dir, u.inputs["Vector"])
+    inv_q = b.node("FunctionNodeInvertRotation")
+    b.link(q.outputs[0], inv_q.inputs[0])
+    b.link(inv_q.outputs[0], u.inputs["Rotation"])
+    uu = [m("MULTIPLY", c, c) for c in b.separate(u.outputs[0])]
+    std_tot, ratio_3d, ratio_det, quad_eff, quad_tot = [], [], [], [], []
+    for i in range(3):
+        clamp = b.node("ShaderNodeClamp")
         clamp.inputs["Min"].default_value, clamp.inputs["Max"].default_value = LOG_SCALE_RANGE
-        b.link(_named(b, f"scale_{i}", -1100, 50 - 120 * i), clamp.inputs["Value"])
-        b.link(b.math("EXPONENT", clamp.outputs[0], x=-750, y=50 - 120 * i), comb.inputs[comp])
-    scale = b.node("ShaderNodeVectorMath", -400, 0, operation="SCALE")
-    b.link(comb.outputs[0], scale.inputs[0])
-    b.link(gin.outputs["Scale Factor"], scale.inputs["Scale"])
+        b.link(_named(b, f"scale_{i}"), clamp.inputs["Value"])
+        s = m("MULTIPLY", m("EXPONENT", clamp.outputs[0]), gin["Scale Factor"])
+        var_eff = m("MULTIPLY_ADD", s, s, ff)
+        var_tot = m("ADD", var_eff, screen_var)
+        std_tot.append(m("SQRT", var_tot))
+        ratio_3d.append(m("DIVIDE", s, m("SQRT", var_eff)))  # in (0, 1]
+        ratio_det.append(m("DIVIDE", var_eff, var_tot))  # in (0, 1]
+        quad_eff.append(m("DIVIDE", uu[i], var_eff))
+        quad_tot.append(m("DIVIDE", uu[i], var_tot))
+    comp_2d = b.node("GeometryNodeSwitch", input_type="FLOAT")
+    b.link(gin["Compensate Screen Filter"], comp_2d.inputs["Switch"])
+    comp_2d.inputs["False"].default_value = 1.0
+    b.link(m("SQRT", m("MULTIPLY", b.product(ratio_det), m("DIVIDE", b.total(quad_eff), b.total(quad_tot)))),
+           comp_2d.inputs["True"])
 
-    # Selection: a fixed random subset of the given fraction, opacity at least the threshold.
-    logit = _named(b, "opacity", -1100, -450)
-    clamped = b.node("ShaderNodeClamp", -950, -450)
-    clamped.inputs["Min"].default_value, clamped.inputs["Max"].default_value = OPACITY_LOGIT_RANGE
-    b.link(logit, clamped.inputs["Value"])
-    expo = b.math("EXPONENT", b.math("MULTIPLY", clamped.outputs[0], -1.0, -800, -450), x=-650, y=-450)
-    alpha = b.math("DIVIDE", 1.0, b.math("ADD", expo, 1.0, -500, -450), -350, -450)
-    keep_op = b.node("FunctionNodeCompare", -200, -450, data_type="FLOAT", operation="GREATER_EQUAL")
-    b.link(alpha, keep_op.inputs[0])
-    b.link(gin.outputs["Min Opacity"], keep_op.inputs[1])
-    rand = b.node("FunctionNodeRandomValue", -500, -650, data_type="FLOAT")
+    logit = b.node("ShaderNodeClamp")
+    logit.inputs["Min"].default_value, logit.inputs["Max"].default_value = OPACITY_LOGIT_RANGE
+    b.link(_named(b, "opacity"), logit.inputs["Value"])
+    sigmoid = m("DIVIDE", 1.0, m("ADD", m("EXPONENT", m("MULTIPLY", logit.outputs[0], -1.0)), 1.0))
+    opacity = b.product([sigmoid, b.product(ratio_3d), comp_2d.outputs[0]])
+
+    # Radius of the visible part: sqrt(2 ln(255 o)) std-devs; the icosphere encloses that ellipsoid.
+    radius = m("SQRT", m("MAXIMUM", m("MULTIPLY", m("LOGARITHM", m("MULTIPLY", opacity, 1.0 / ALPHA_MIN), math.e),
+                                        2.0), 0.0))
+    scale = b.vmath("SCALE", b.combine(std_tot), scale=radius)
+
+    # Selection: a fixed random subset of the given fraction; visible (o >= 1/255); o >= Min Opacity.
+    keep_op = b.node("FunctionNodeCompare", data_type="FLOAT", operation="GREATER_EQUAL")
+    b.link(opacity, keep_op.inputs[0])
+    b.link(m("MAXIMUM", gin["Min Opacity"], ALPHA_MIN), keep_op.inputs[1])
+    rand = b.node("FunctionNodeRandomValue", data_type="FLOAT")
     rand.inputs["Seed"].default_value = 0
-    keep_frac = b.node("FunctionNodeCompare", -200, -650, data_type="FLOAT", operation="LESS_THAN")
+    keep_frac = b.node("FunctionNodeCompare", data_type="FLOAT", operation="LESS_THAN")
     b.link(rand.outputs[1], keep_frac.inputs[0])
-    b.link(gin.outputs["Display Fraction"], keep_frac.inputs[1])
-    select = b.node("FunctionNodeBooleanMath", 0, -500, operation="AND")
+    # Display Fraction and Points Only act where "display" applies: always, or in the viewport only.
+    display_not = b.node("FunctionNodeBooleanMath", operation="NOT")
+    b.link(gin["Viewport Only"], display_not.inputs[0])
+    display = b.node("FunctionNodeBooleanMath", operation="OR")  # viewport, or not viewport-only
+    b.link(b.node("GeometryNodeIsViewport").outputs[0], display.inputs[0])
+    b.link(display_not.outputs[0], display.inputs[1])
+    fraction = b.node("GeometryNodeSwitch", input_type="FLOAT")
+    b.link(display.outputs[0], fraction.inputs["Switch"])
+    fraction.inputs["False"].default_value = 1.0
+    b.link(gin["Display Fraction"], fraction.inputs["True"])
+    b.link(fraction.outputs[0], keep_frac.inputs[1])
+    points_only = b.node("FunctionNodeBooleanMath", operation="AND")
+    b.link(gin["Points Only"], points_only.inputs[0])
+    b.link(display.outputs[0], points_only.inputs[1])
+    select = b.node("FunctionNodeBooleanMath", operation="AND")
     b.link(keep_op.outputs[0], select.inputs[0])
     b.link(keep_frac.outputs[0], select.inputs[1])
 
-    # Evaluate rotation, scale and selection on the full points, then drop the attributes the
-    # instances do not need (SH rest, scales, rotations) so they are not copied per instance.
-    cap = b.node("GeometryNodeCaptureAttribute", 0, 200, domain="POINT")
-    for name, kind in (("Rotation", "ROTATION"), ("Scale", "VECTOR"), ("Selection", "BOOLEAN")):
-        cap.capture_items.new(kind, name)
-    b.link(gin.outputs["Geometry"], cap.inputs["Geometry"])
-    b.link(q.outputs[0], cap.inputs["Rotation"])
-    b.link(scale.outputs[0], cap.inputs["Scale"])
-    b.link(select.outputs[0], cap.inputs["Selection"])
-    geo = cap.outputs["Geometry"]
-    for i, pattern in enumerate(("f_rest_*", "scale_*", "rot_*")):
-        rm = b.node("GeometryNodeRemoveAttribute", 200 + 150 * i, 300)
-        rm.inputs["Pattern Mode"].default_value = "Wildcard"
-        rm.inputs["Name"].default_value = pattern
-        b.link(geo, rm.inputs["Geometry"])
-        geo = rm.outputs["Geometry"]
+    # Colour: SH_C0 * f_dc + 0.5 (+ the SH bands seen from the active camera), clamped at 0.
+    colour = b.vmath("MULTIPLY_ADD", b.combine([_named(b, f"f_dc_{i}") for i in range(3)]), SH_C0, 0.5)
+    k = SH_REST_COUNTS[degree]
+    if k:
+        rest = None
+        for j, basis in enumerate(sh_basis_terms(b, view_dir, degree)):
+            coeff = b.combine([_named(b, f"f_rest_{c * k + j}") for c in range(3)])
+            rest = (b.vmath("SCALE", coeff, scale=basis) if rest is None
+                    else b.vmath("MULTIPLY_ADD", coeff, basis, rest))
+        switch = b.node("GeometryNodeSwitch", input_type="VECTOR")
+        b.link(gin["View-Dependent Colour"], switch.inputs["Switch"])
+        b.link(rest, switch.inputs["True"])
+        colour = b.vmath("ADD", colour, switch.outputs[0])
+    colour = b.vmath("MAXIMUM", colour, 0.0)
+    linear = b.combine([_srgb_to_linear(b, ch) for ch in b.separate(colour)])
 
-    # Ellipsoids: an icosphere with the material, instanced per selected point.
-    # Radius of the icosphere whose volume is the unit sphere's: an icosahedron (Detail 1) inscribed
-    # in the unit sphere holds 0.61 of its volume; the gap shrinks about 4x per subdivision
-    # (1 + 0.182 / 4^(d-1) matches the exact 1.182, 1.046, 1.012, 1.003 within 0.1%).
-    level = b.math("SUBTRACT", gin.outputs["Detail"], 1.0, 0, -250)
-    radius_ico = b.math("MULTIPLY_ADD", b.math("POWER", 0.25, level, 150, -250), 0.182, 300, -250)
-    radius_ico.node.inputs[2].default_value = 1.0
-    ico = b.node("GeometryNodeMeshIcoSphere", 300, -100)
+    # Evaluate everything on the full points, then drop every named attribute (SH, scales, extras:
+    # none is copied per instance) and store only what the material reads.
+    cap = b.node("GeometryNodeCaptureAttribute", domain="POINT")
+    captured = (("Rotation", "ROTATION", q.outputs[0]), ("Scale", "VECTOR", scale),
+                ("Selection", "BOOLEAN", select.outputs[0]), ("Colour", "VECTOR", linear),
+                ("Opacity", "FLOAT", opacity), ("Std", "VECTOR", b.combine(std_tot)),
+                ("Facing", "VECTOR", b.vmath("DIVIDE", b.vmath("SCALE", u.outputs[0], scale=-1.0),
+                                             b.combine(std_tot))))
+    for name, kind, _ in captured:
+        cap.capture_items.new(kind, name)
+    b.link(gin["Geometry"], cap.inputs["Geometry"])
+    for name, _, value in captured:
+        b.link(value, cap.inputs[name])
+    geo = _remove_attributes(b, cap.outputs["Geometry"], "*")
+    geo = _store(b, geo, COLOR_ATTR, cap.outputs["Colour"], "FLOAT_VECTOR")
+    geo = _store(b, geo, ALPHA_ATTR, cap.outputs["Opacity"], "FLOAT")
+
+    # Ellipsoids: an icosphere enclosing the unit sphere, instanced per point with the Gaussian's
+    # rotation and scale (instance space = its whitened frame). Renders (Camera-Facing): a disc
+    # instead, turned within that frame to face the scene camera, so that a ray meets each
+    # Gaussian once, where it crosses the plane through the centre; the material's closest
+    # approach does not depend on the primitive's shape or turn.
+    radius_ico = m("MULTIPLY_ADD", m("POWER", _ICO_ENCLOSE[1], m("SUBTRACT", 1.0, gin["Detail"])),
+                   _ICO_ENCLOSE[0], 1.0)
+    ico = b.node("GeometryNodeMeshIcoSphere")
     b.link(radius_ico, ico.inputs["Radius"])
-    b.link(gin.outputs["Detail"], ico.inputs["Subdivisions"])
-    ico_mat = b.node("GeometryNodeSetMaterial", 500, -100)
-    b.link(ico.outputs["Mesh"], ico_mat.inputs["Geometry"])
-    b.link(gin.outputs["Material"], ico_mat.inputs["Material"])
-    inst = b.node("GeometryNodeInstanceOnPoints", 700, 100)
+    b.link(gin["Detail"], ico.inputs["Subdivisions"])
+    disc = b.node("GeometryNodeMeshCircle", fill_type="NGON")
+    disc.inputs["Vertices"].default_value = DISC_SIDES
+    disc.inputs["Radius"].default_value = DISC_RADIUS / math.cos(math.pi / DISC_SIDES)
+    facing = b.node("FunctionNodeBooleanMath", operation="NIMPLY")  # camera-facing and not viewport
+    b.link(gin["Camera-Facing in Renders"], facing.inputs[0])
+    b.link(b.node("GeometryNodeIsViewport").outputs[0], facing.inputs[1])
+    shape = b.node("GeometryNodeSwitch", input_type="GEOMETRY")
+    b.link(facing.outputs[0], shape.inputs["Switch"])
+    b.link(ico.outputs["Mesh"], shape.inputs["False"])
+    b.link(disc.outputs["Mesh"], shape.inputs["True"])
+    ico_mat = b.node("GeometryNodeSetMaterial")
+    b.link(shape.outputs[0], ico_mat.inputs["Geometry"])
+    b.link(gin["Material"], ico_mat.inputs["Material"])
+    inst = b.node("GeometryNodeInstanceOnPoints")
     b.link(geo, inst.inputs["Points"])
     b.link(cap.outputs["Selection"], inst.inputs["Selection"])
     b.link(ico_mat.outputs["Geometry"], inst.inputs["Instance"])
     b.link(cap.outputs["Rotation"], inst.inputs["Rotation"])
     b.link(cap.outputs["Scale"], inst.inputs["Scale"])
+    # The camera in the whitened frame is -diag(1 / std) R^T (centre - camera): the disc's normal.
+    # Instance transform T R diag(std) becomes T R diag(std) R_turn (Rotate Instances would turn
+    # the instance between R and diag(std)).
+    turn = b.node("FunctionNodeAlignRotationToVector", axis="Z")
+    b.link(cap.outputs["Facing"], turn.inputs["Vector"])
+    turn_m = b.node("FunctionNodeCombineTransform")
+    b.link(turn.outputs[0], turn_m.inputs["Rotation"])
+    turned = b.node("FunctionNodeMatrixMultiply")
+    b.link(b.node("GeometryNodeInstanceTransform").outputs[0], turned.inputs[0])
+    b.link(turn_m.outputs[0], turned.inputs[1])
+    rotate = b.node("GeometryNodeSetInstanceTransform")
+    b.link(inst.outputs["Instances"], rotate.inputs["Instances"])
+    b.link(facing.outputs[0], rotate.inputs["Selection"])
+    b.link(turned.outputs[0], rotate.inputs["Transform"])
 
-    # Points only: a point cloud with the mean semi-axis as radius.
-    radius = b.node("ShaderNodeVectorMath", 500, -350, operation="LENGTH")
-    b.link(cap.outputs["Scale"], radius.inputs[0])
-    pts = b.node("GeometryNodeMeshToPoints", 700, -300)
+    # Points only: a point cloud; radius sqrt(2) x the mean std-dev (a disc of that radius holds
+    # the Gaussian's integrated opacity), constant alpha.
+    pts = b.node("GeometryNodeMeshToPoints")
     b.link(geo, pts.inputs["Mesh"])
     b.link(cap.outputs["Selection"], pts.inputs["Selection"])
-    b.link(b.math("MULTIPLY", radius.outputs["Value"], 1.0 / math.sqrt(3.0), 600, -450),
-           pts.inputs["Radius"])
-    pts_mat = b.node("GeometryNodeSetMaterial", 850, -300)
+    b.link(m("MULTIPLY", b.vmath("LENGTH", cap.outputs["Std"]), math.sqrt(2.0 / 3.0)), pts.inputs["Radius"])
+    pts_mat = b.node("GeometryNodeSetMaterial")
     b.link(pts.outputs["Points"], pts_mat.inputs["Geometry"])
-    b.link(gin.outputs["Material"], pts_mat.inputs["Material"])
+    b.link(gin["Material"], pts_mat.inputs["Material"])
 
-    switch = b.node("GeometryNodeSwitch", 900, 0, input_type="GEOMETRY")
-    b.link(gin.outputs["Points Only"], switch.inputs["Switch"])
-    b.link(inst.outputs["Instances"], switch.inputs["False"])
+    switch = b.node("GeometryNodeSwitch", input_type="GEOMETRY")
+    b.link(points_only.outputs[0], switch.inputs["Switch"])
+    b.link(rotate.outputs["Instances"], switch.inputs["False"])
     b.link(pts_mat.outputs["Geometry"], switch.inputs["True"])
     b.link(switch.outputs[0], gout.inputs["Geometry"])
-    gout.location = (1100, 0)
+    b.arrange()
     ng["gvae_nodes_version"] = NODES_VERSION
+    ng["gvae_sh_degree"] = degree
 
 
-def ensure_node_group():
-    """The shared node group, built (or rebuilt when outdated) on demand."""
-    ng = bpy.data.node_groups.get(GROUP_NAME)
+def group_name(degree: int) -> str:
+    return f"{GROUP_NAME} (SH {degree})"
+
+
+def ensure_node_group(degree: int = 0):
+    """The shared node group of clouds of SH degree `degree`, built (or rebuilt when outdated)."""
+    if degree not in SH_REST_COUNTS:
+        raise ValueError(f"SH degree must be 0..3, got {degree}")
+    name = group_name(degree)
+    ng = bpy.data.node_groups.get(name)
     if ng is None or ng.bl_idname != "GeometryNodeTree":
-        ng = bpy.data.node_groups.new(GROUP_NAME, "GeometryNodeTree")
-    if ng.get("gvae_nodes_version") != NODES_VERSION:
-        _build_group(ng)
+        ng = bpy.data.node_groups.new(name, "GeometryNodeTree")
+    if ng.get("gvae_nodes_version") != NODES_VERSION or ng.get("gvae_sh_degree") != degree:
+        _build_group(ng, degree)
     return ng
 
 
-def _attr_sum(b: _Builder, name: str, x: float, y: float):
+def _attr_sum(b: _Builder, name: str, vector: bool = False):
     """Attribute `name` as instancer attribute plus as geometry attribute (one of them is 0)."""
-    inst = b.node("ShaderNodeAttribute", x, y, attribute_type="INSTANCER", attribute_name=name)
-    geom = b.node("ShaderNodeAttribute", x, y - 170, attribute_type="GEOMETRY", attribute_name=name)
-    return b.math("ADD", inst.outputs["Fac"], geom.outputs["Fac"], x + 200, y)
+    out = 1 if vector else 2  # outputs: Color, Vector, Fac(tor), Alpha
+    inst = b.node("ShaderNodeAttribute", attribute_type="INSTANCER", attribute_name=name)
+    geom = b.node("ShaderNodeAttribute", attribute_type="GEOMETRY", attribute_name=name)
+    return (b.vmath if vector else b.math)("ADD", inst.outputs[out], geom.outputs[out])
 
 
 def _build_material(mat) -> None:
-    mat.use_nodes = True
+    if not mat.use_nodes:
+        mat.use_nodes = True
     tree = mat.node_tree
     tree.nodes.clear()
     b = _Builder(tree)
-    rgb = b.node("ShaderNodeCombineColor", -100, 300)
-    for i, comp in enumerate(("Red", "Green", "Blue")):
-        dc = _attr_sum(b, f"f_dc_{i}", -900, 600 - 380 * i)
-        lin = b.math("MULTIPLY_ADD", dc, SH_C0, -450, 600 - 380 * i)
-        lin.node.inputs[2].default_value = 0.5
-        b.link(b.math("MAXIMUM", lin, 0.0, -250, 600 - 380 * i), rgb.inputs[comp])
-    logit = _attr_sum(b, "opacity", -900, -600)
-    clamped = b.node("ShaderNodeClamp", -450, -600)
-    clamped.inputs["Min"].default_value, clamped.inputs["Max"].default_value = OPACITY_LOGIT_RANGE
-    b.link(logit, clamped.inputs["Value"])
-    expo = b.math("EXPONENT", b.math("MULTIPLY", clamped.outputs[0], -1.0, -300, -600), x=-150, y=-600)
-    alpha = b.math("DIVIDE", 1.0, b.math("ADD", expo, 1.0, 0, -600), 150, -600)
-    # Only the ellipsoid's front faces draw: a ray through a closed mesh would blend it twice.
-    geometry = b.node("ShaderNodeNewGeometry", 0, -800)
-    alpha = b.math("MULTIPLY", alpha, b.math("SUBTRACT", 1.0, geometry.outputs["Backfacing"], 150, -800),
-                   300, -650)
-    emit = b.node("ShaderNodeEmission", 200, 300)
-    b.link(rgb.outputs[0], emit.inputs["Color"])
+    m = b.math
+    colour = _attr_sum(b, COLOR_ATTR, vector=True)
+    inst_o = b.node("ShaderNodeAttribute", attribute_type="INSTANCER", attribute_name=ALPHA_ATTR).outputs[2]
+    pts_o = b.node("ShaderNodeAttribute", attribute_type="GEOMETRY", attribute_name=ALPHA_ATTR).outputs[2]
+
+    # Ellipsoids: the ray p + t v in instance space (the Gaussian's whitened frame, unit = its
+    # visible radius): squared distance of the closest approach q = |p|² - (p.v)² / |v|²;
+    # alpha = o exp(-radius² q / 2) = o (255 o)^(-q) = o exp(-q ln(255 o)).
+    p = b.node("ShaderNodeTexCoord").outputs["Object"]
+    v = b.node("ShaderNodeVectorTransform", vector_type="VECTOR", convert_from="WORLD", convert_to="OBJECT")
+    b.link(b.node("ShaderNodeNewGeometry").outputs["Incoming"], v.inputs[0])
+    v = v.outputs[0]
+    pv = b.vmath("DOT_PRODUCT", p, v)
+    q = m("MAXIMUM", m("SUBTRACT", b.vmath("DOT_PRODUCT", p, p),
+                       m("DIVIDE", m("MULTIPLY", pv, pv), b.vmath("DOT_PRODUCT", v, v))), 0.0)
+    log255o = m("LOGARITHM", m("MULTIPLY", inst_o, 1.0 / ALPHA_MIN), math.e)  # 0 for points (o = 0)
+    falloff = m("EXPONENT", m("MULTIPLY", q, m("MULTIPLY", log255o, -1.0)))
+    alpha = m("MINIMUM", m("ADD", m("MULTIPLY", inst_o, falloff), pts_o), ALPHA_MAX)
+    visible = m("GREATER_THAN", alpha, ALPHA_MIN * (1.0 - 1e-6))  # 1/255 itself is drawn
+    # Only front faces draw: a ray through a closed mesh would blend the Gaussian twice.
+    front = m("SUBTRACT", 1.0, b.node("ShaderNodeNewGeometry").outputs["Backfacing"])
+    alpha = b.product([alpha, visible, front])
+
+    emit = b.node("ShaderNodeEmission")
+    b.link(colour, emit.inputs["Color"])
     emit.inputs["Strength"].default_value = 1.0
-    transparent = b.node("ShaderNodeBsdfTransparent", 200, 100)
-    mix = b.node("ShaderNodeMixShader", 450, 200)
+    transparent = b.node("ShaderNodeBsdfTransparent")
+    mix = b.node("ShaderNodeMixShader")
     b.link(alpha, mix.inputs["Fac"])
     b.link(transparent.outputs[0], mix.inputs[1])
     b.link(emit.outputs[0], mix.inputs[2])
-    out = b.node("ShaderNodeOutputMaterial", 650, 200)
+    out = b.node("ShaderNodeOutputMaterial")
     b.link(mix.outputs[0], out.inputs["Surface"])
-    mat.surface_render_method = "BLENDED"
+    b.arrange()
+    # EEVEE: dithered (stochastic) transparency is order-independent, so the overlapping splats of
+    # one object composite in depth order as samples accumulate; "Blended" would sort per object.
+    mat.surface_render_method = "DITHERED"
     mat.use_backface_culling = True
     mat["gvae_nodes_version"] = NODES_VERSION
 
@@ -259,16 +548,21 @@ def _socket_id(ng, name: str) -> str:
 
 
 def add_splat_modifier(obj, *, scale_factor: float = DEFAULT_SCALE_FACTOR, fraction: float = 1.0,
-                       points_only: bool = False, min_opacity: float = 0.0):
+                       points_only: bool = False, min_opacity: float = 0.0, view_dependent: bool = True):
     """Give `obj` the splat Geometry Nodes modifier (and material), or update its inputs."""
-    ng = ensure_node_group()
+    ng = ensure_node_group(int(layout(obj.data)["sh_degree"]))
     mat = ensure_material()
     mod = obj.modifiers.get(MODIFIER_NAME)
     if mod is None or mod.type != "NODES":
         mod = obj.modifiers.new(MODIFIER_NAME, "NODES")
     mod.node_group = ng
-    values = {"Scale Factor": float(scale_factor), "Display Fraction": float(fraction),
-              "Points Only": bool(points_only), "Min Opacity": float(min_opacity), "Material": mat}
+    # The screen filter of the reference renderer's "auto" mode: Mip-Splatting's 2D filter for a
+    # cloud with a 3D filter, the classic dilation for one without.
+    mip = FILTER_KEY in obj.data.attributes
+    values = {"Scale Factor": float(scale_factor), "View-Dependent Colour": bool(view_dependent),
+              "Display Fraction": float(fraction), "Points Only": bool(points_only),
+              "Min Opacity": float(min_opacity), "Material": mat,
+              "Screen Filter": MIP_2D_VARIANCE if mip else CLASSIC_DILATION, "Compensate Screen Filter": mip}
     for name, value in values.items():
         mod[_socket_id(ng, name)] = value
     if mat.name not in obj.data.materials:

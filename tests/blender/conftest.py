@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +14,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIOS = Path(__file__).with_name("_scenarios.py")
+#: The Python (with a bpy module) that runs Blender: this one, or GVAE_BLENDER_PYTHON, a venv with
+#: another Blender version (`make test-blender-versions`).
+BLENDER_PYTHON = os.path.abspath(os.environ.get("GVAE_BLENDER_PYTHON") or sys.executable)
 
 
 def blender_ext() -> Path:
@@ -37,7 +41,7 @@ def run_scenario(name: str, tmp_path: Path, zip_path: Path | None, **args) -> di
             **args}
     args_path = tmp_path / f"{name}.args.json"
     args_path.write_text(json.dumps(args))
-    proc = subprocess.run([sys.executable, str(SCENARIOS), name, str(args_path)],
+    proc = subprocess.run([BLENDER_PYTHON, str(SCENARIOS), name, str(args_path)],
                           capture_output=True, text=True, timeout=150, cwd=tmp_path)
     assert proc.returncode == 0, f"scenario {name} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
     res = json.loads(Path(args["out"]).read_text())
