@@ -252,7 +252,8 @@ def write_report(doc: dict, out, *, command: str = "") -> Path:
           f"Ours-∇²'s output count, step by step: the plain 3DGS split, random selection with the model "
           f"(thinned to the count), duplicate-in-place (copies sharing the opacity).", "",
           f"**Rendering**: images are scored with the `{p['antialias']}` anti-aliasing mode (every cloud carries "
-          f"the 3D filter of the cameras it was trained with); the classic render (+0.3 px²) is beside it.", "",
+          f"the anti-aliasing size of the cameras it was trained with, `gvae_core.antialias`); the classic "
+          f"render (+0.3 px²) is beside it.", "",
           f"**Model**: {model.get('dir')}, geometry {model['sizes']['geometry'] / 1e6:.2f} MB + appearance "
           f"{model['sizes']['appearance'] / 1e6:.2f} MB (float32), trained on "
           f"{', '.join(model.get('train_scenes') or ['?'])}.", "",

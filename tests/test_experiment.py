@@ -67,7 +67,7 @@ def experiment(tmp_path_factory):
     protocol = Protocol("test", scene_profile="none", resolutions=(16, 24), iterations=(40, 30), higher=(36, 48),
                         higher_iterations=(20, 20), scenes=("ball",), seeds=(0,), steps=2,
                         train_overrides=dict(init_count=300, max_gaussians=3000, sh_degree=1), test_views=2,
-                        hessian_views=2, hessian_probes=1, knob_factors=(0.5, 1.0))
+                        hessian_views=2, knob_factors=(0.5, 1.0))
     run_dir = tmp / "run"
     train_progressive(scene, protocol.train_config(0), out_dir=run_dir, progress=False)
     run = SceneRun("ball", 0, scene, run_dir, protocol, {"scene": 0.0, "train": 0.0})
@@ -140,7 +140,7 @@ def _known_doc() -> dict:
                 for method in (OURS, RANDOM, DUPLICATE):
                     rows.append({**base, "method": method, "step": k, "chamfer": 2.2, "n_gaussians": 110, "added": 10})
     return {"protocol": {"name": "known", "resolutions": [10, 20], "higher": [30, 40], "steps": 2, "seeds": [0, 1],
-                         "budget": "auto", "scene_profile": "none", "antialias": "mip"},
+                         "budget": "auto", "scene_profile": "none", "antialias": "matched"},
             "model": {"dir": None, "sizes": {"geometry": 1000, "appearance": 2000}, "train_scenes": ["t"]},
             "knob": {"factor": 1.1, "psnr_2x": {"1": 29.0, "1.1": 29.4}, "scenes": ["t"]}, "split": "test",
             "started": "now", "seconds": 60.0, "rows": rows,
