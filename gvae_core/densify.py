@@ -35,10 +35,10 @@ def split_children(means, log_scales, rotmats, normals, n_children: int = 2):
     return means + offsets, log_scales - math.log(0.8 * n_children)
 
 
-def g_scale(width: int, height: int) -> torch.Tensor:
+def g_scale(width: int, height: int, device=None) -> torch.Tensor:
     """Pixel-to-NDC factor of screen-space gradients: d(ndc)/d(pixel) = 2/size, so a gradient
     with respect to pixels times size/2 is the gradient with respect to NDC."""
-    return torch.tensor([0.5 * width, 0.5 * height])
+    return torch.tensor([0.5 * width, 0.5 * height], device=device)
 
 
 class GaussianModel:
@@ -46,13 +46,16 @@ class GaussianModel:
     pruned with the Gaussians), lineage ids and stage anchors, densification statistics.
 
     `lrs`: learning rate per parameter group; `extent`: the scene extent the strategy's world-size
-    thresholds are relative to; `next_id`: the first id a new Gaussian gets."""
+    thresholds are relative to; `next_id`: the first id a new Gaussian gets; `device`: the torch
+    device of every tensor (random draws stay on the CPU generator, so a run is the same on any)."""
 
-    def __init__(self, cloud: GaussianCloud, ids, parents, lrs: dict[str, float], extent: float, next_id: int):
-        c = cloud.to_torch(dtype=torch.float32)
+    def __init__(self, cloud: GaussianCloud, ids, parents, lrs: dict[str, float], extent: float, next_id: int,
+                 device=None):
+        self.device = torch.device(device or "cpu")
+        c = cloud.to_torch(device=self.device, dtype=torch.float32)
         self.params = {name: getattr(c, name).detach().clone().requires_grad_(True) for name in PARAMS}
-        self.ids = torch.as_tensor(np.asarray(ids), dtype=torch.int64).clone()
-        self.parents = torch.as_tensor(np.asarray(parents), dtype=torch.int64).clone()
+        self.ids = torch.as_tensor(np.asarray(ids), dtype=torch.int64, device=self.device).clone()
+        self.parents = torch.as_tensor(np.asarray(parents), dtype=torch.int64, device=self.device).clone()
         self.next_id = int(next_id)
         self.extent = float(extent)
         self.optimizer = torch.optim.Adam(
@@ -68,14 +71,15 @@ class GaussianModel:
 
     def snapshot(self) -> GaussianCloud:
         """A detached numpy copy with int64 extras `gvae_id` and `gvae_parent`."""
-        c = GaussianCloud(**{n: p.detach() for n, p in self.params.items()}).numpy().copy()
-        return c.replace(extra={"gvae_id": self.ids.numpy().copy(), "gvae_parent": self.parents.numpy().copy()})
+        c = GaussianCloud(**{n: p.detach().cpu() for n, p in self.params.items()}).numpy().copy()
+        return c.replace(extra={"gvae_id": self.ids.cpu().numpy().copy(),
+                                "gvae_parent": self.parents.cpu().numpy().copy()})
 
     def reset_stats(self) -> None:
         n = len(self)
-        self.grad_accum = torch.zeros(n)
-        self.grad_count = torch.zeros(n)
-        self.max_radii = torch.zeros(n)
+        self.grad_accum = torch.zeros(n, device=self.device)
+        self.grad_count = torch.zeros(n, device=self.device)
+        self.max_radii = torch.zeros(n, device=self.device)
 
     def set_lr(self, name: str, lr: float) -> None:
         self.optimizer.param_groups[PARAMS.index(name)]["lr"] = lr
@@ -84,7 +88,7 @@ class GaussianModel:
                   width: int, height: int) -> None:
         """Accumulate the view-space positional gradient norm in NDC units (pixel gradient times
         half the image size, as the reference's 0.0002 threshold expects)."""
-        g = means2d_grad.detach()[:, :2] * g_scale(width, height)
+        g = means2d_grad.detach()[:, :2] * g_scale(width, height, self.device)
         norm = g.norm(dim=-1)
         self.grad_accum += torch.where(visible, norm, torch.zeros_like(norm))
         self.grad_count += visible.float()
@@ -104,7 +108,8 @@ class GaussianModel:
             if state:
                 for key in ("exp_avg", "exp_avg_sq"):
                     s = state[key][index]
-                    state[key] = torch.cat([s, torch.zeros((len(extra),) + tuple(s.shape[1:]), dtype=s.dtype)], 0)
+                    state[key] = torch.cat([s, torch.zeros((len(extra),) + tuple(s.shape[1:]), dtype=s.dtype,
+                                                         device=s.device)], 0)
                 self.optimizer.state[param] = state
             group["params"][0] = param
             self.params[name] = param
@@ -112,13 +117,13 @@ class GaussianModel:
     def append(self, new: dict[str, torch.Tensor], source_rows: torch.Tensor) -> None:
         """Add Gaussians born from rows `source_rows`: fresh ids, the source's stage anchor."""
         n_new = len(source_rows)
-        new_ids = torch.arange(self.next_id, self.next_id + n_new, dtype=torch.int64)
+        new_ids = torch.arange(self.next_id, self.next_id + n_new, dtype=torch.int64, device=self.device)
         self.next_id += n_new
         parents = self.parents[source_rows]
         self._edit(torch.arange(len(self)), new)
         self.ids = torch.cat([self.ids, new_ids])
         self.parents = torch.cat([self.parents, parents])
-        z = torch.zeros(n_new)
+        z = torch.zeros(n_new, device=self.device)
         self.grad_accum, self.grad_count = torch.cat([self.grad_accum, z]), torch.cat([self.grad_count, z])
         self.max_radii = torch.cat([self.max_radii, z])
 
@@ -144,11 +149,11 @@ class GaussianModel:
         p = {n: t.detach() for n, t in self.params.items()}
         src = rows.repeat(n_children)
         new = {n: t[src] for n, t in p.items()}
-        normals = torch.randn(new["scales"].shape, generator=generator)
+        normals = torch.randn(new["scales"].shape, generator=generator).to(self.device)
         rot = quaternions.to_rotmat(quaternions.normalize(new["quats"]))
         new["means"], new["scales"] = split_children(new["means"], new["scales"], rot, normals, n_children)
         self.append(new, src)
-        keep = torch.ones(len(self), dtype=torch.bool)
+        keep = torch.ones(len(self), dtype=torch.bool, device=self.device)
         keep[rows] = False
         self.keep(keep)
         return len(rows)
@@ -157,7 +162,7 @@ class GaussianModel:
         """Opacities above `value` come down to it; their Adam moments restart."""
         gi = PARAMS.index("opacities")
         old = self.params["opacities"]
-        new = torch.minimum(old.detach(), torch.tensor(opacity_logit(value))).requires_grad_(True)
+        new = torch.minimum(old.detach(), torch.tensor(opacity_logit(value), device=old.device)).requires_grad_(True)
         state = self.optimizer.state.pop(old, None)
         if state:
             state["exp_avg"] = torch.zeros_like(state["exp_avg"])
@@ -201,7 +206,7 @@ class DensifyStrategy:
                     chosen[torch.topk(score, room).indices] = True
                 clone_mask, split_mask = clone_mask & chosen, split_mask & chosen
         n_clone = model.clone(clone_mask)
-        pad = torch.zeros(len(model) - len(split_mask), dtype=torch.bool)
+        pad = torch.zeros(len(model) - len(split_mask), dtype=torch.bool, device=split_mask.device)
         n_split = model.split(torch.cat([split_mask, pad]), generator)
         prune = activate_opacities(model.params["opacities"].detach()) < self.prune_opacity
         if prune_large:

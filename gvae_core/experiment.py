@@ -46,7 +46,7 @@ from .metrics.geometry import MeshDistance, chamfer, read_mesh_ply
 from .metrics.image import image_scores
 from .ply import read_ply
 from .refinement import RefineResult, refine_steps
-from .rendering import RenderSettings, render
+from .rendering import RenderSettings, render, resolve_device
 from .rendering.reference import render_reference
 from .scenes import SPLITS, cache_dir, make_scene
 from .train import TrainConfig, train_progressive
@@ -157,7 +157,7 @@ def run_dir(name: str, protocol: Protocol, seed: int = 0, cache=None) -> Path:
 
 
 def prepare_scene(name: str, protocol: Protocol, *, seed: int = 0, cache=None, threads: int = 1,
-                  say: Callable[[str], None] = print) -> SceneRun:
+                  device=None, say: Callable[[str], None] = print) -> SceneRun:
     """Render the scene (cached) and train its run with 3DGS seed `seed` through every stage
     (cached, resumable)."""
     t0 = time.perf_counter()
@@ -169,7 +169,7 @@ def prepare_scene(name: str, protocol: Protocol, *, seed: int = 0, cache=None, t
     if done < len(config.resolutions):
         say(f"[{name} s{seed}] training {len(config.resolutions)} stages {config.resolutions} px "
             f"({done} done) into {out}")
-        train_progressive(scene_dir, config, out_dir=out, progress=False, threads=threads)
+        train_progressive(scene_dir, config, out_dir=out, progress=False, threads=threads, device=device)
     return SceneRun(name, seed, scene_dir, out, protocol, {"scene": t1 - t0, "train": time.perf_counter() - t1})
 
 
@@ -187,11 +187,12 @@ def scene_split(name: str) -> str:
 class Evaluator:
     """Scores clouds of one scene: Chamfer against its mesh (plain and opacity-weighted
     accuracy), PSNR/SSIM against its test views at each scale with the protocol's anti-aliasing
-    mode and with the classic render, NIQE of the 2x renders."""
+    mode and with the classic render, NIQE of the 2x renders; renders on `device`."""
 
-    def __init__(self, run: SceneRun, background=(1.0, 1.0, 1.0)):
+    def __init__(self, run: SceneRun, background=(1.0, 1.0, 1.0), device=None):
         p = run.protocol
         self.background = background
+        self.device = device
         self.modes = {"": p.antialias, "_classic": "classic"}
         self.mesh = MeshDistance(*read_mesh_ply(run.scene_dir / "mesh.ply"))
         self.surface = np.load(run.scene_dir / "gt_points.npy")
@@ -211,7 +212,8 @@ class Evaluator:
         for label in scales:
             for suffix, mode in self.modes.items():
                 niqe = not suffix and label == SCALES[-1]
-                s = image_scores(cloud, self.views[label], self.background, no_reference=niqe, antialias=mode)
+                s = image_scores(cloud, self.views[label], self.background, no_reference=niqe, antialias=mode,
+                                 device=self.device)
                 row[f"psnr_{label}{suffix}"] = s.psnr
                 row[f"ssim_{label}{suffix}"] = s.ssim
                 if niqe:
@@ -251,12 +253,12 @@ def render_timing(cloud, camera, antialias: str, repeats: int = 3, samples: int 
             "height": camera.height}
 
 
-def run_scene(run: SceneRun, model, knob: float = 1.0, *,
+def run_scene(run: SceneRun, model, knob: float = 1.0, *, device=None,
               say: Callable[[str], None] = print) -> list[dict]:
     """Every method and step on one prepared (scene, seed); one row per (method, step)."""
     p = run.protocol
     k = p.train_stage
-    evaluate = Evaluator(run)
+    evaluate = Evaluator(run, device=device)
     lineage = run.lineage(k + 1)
     base = run.stage_cloud(k)
     rows: list[dict] = []
@@ -313,17 +315,17 @@ def _brief(row: dict) -> str:
 
 # ----------------------------------------------------------------------------- the global knob
 
-def tune_knob(runs: Sequence[SceneRun], factors: Sequence[float]) -> dict:
+def tune_knob(runs: Sequence[SceneRun], factors: Sequence[float], device=None) -> dict:
     """The one global scale factor, chosen on `runs` (the training scenes): the factor whose
     unrefined clouds score the best mean PSNR at 2x with the protocol's render. Returns the
     factor and the table it was chosen from."""
     table = {f"{f:g}": [] for f in factors}
     for run in runs:
-        evaluate = Evaluator(run)
+        evaluate = Evaluator(run, device=device)
         base = run.stage_cloud(run.protocol.train_stage)
         for f in factors:
             s = image_scores(scaled(base, f), evaluate.views["2x"], evaluate.background, no_reference=False,
-                             antialias=evaluate.modes[""])
+                             antialias=evaluate.modes[""], device=device)
             table[f"{f:g}"].append(s.psnr)
     means = {f: float(np.mean(v)) for f, v in table.items()}
     best = max(means, key=means.get)
@@ -333,11 +335,13 @@ def tune_knob(runs: Sequence[SceneRun], factors: Sequence[float]) -> dict:
 # ----------------------------------------------------------------------------- the whole experiment
 
 def run_experiment(protocol: Protocol | str, *, model=None, scenes=None, seeds=None, cache=None,
-                   jobs: int | None = None, say: Callable[[str], None] = print) -> dict:
+                   jobs: int | None = None, device=None, say: Callable[[str], None] = print) -> dict:
     """The whole experiment: the knob's training-scene runs and every (scene, seed) prepared,
     the knob tuned, every (scene, seed) evaluated, `jobs` at a time in worker processes of one
-    torch thread each (default: one per core); returns the results document (protocol, model,
-    knob, per-run logs and timings, rows)."""
+    torch thread each (default: one per core, one on a GPU); returns the results document
+    (protocol, model, knob, per-run logs and timings, rows). `device`: where training and the
+    renders of the scores run ("cuda" on a GPU machine; the Hessian and the models stay on the
+    CPU)."""
     p = PROTOCOLS[protocol] if isinstance(protocol, str) else protocol
     model_dir = Path(model) if model is not None else default_model_dir()
     loaded = GaussianVAE.load(model_dir)
@@ -345,20 +349,22 @@ def run_experiment(protocol: Protocol | str, *, model=None, scenes=None, seeds=N
     knob_pairs = [(name, p.seeds[0]) for name in p.knob_scenes]
     started = time.time()
     t0 = time.perf_counter()
-    jobs = _job_count(jobs, len(pairs))
-    prepared = _map(prepare_job, [(n, s, p, cache) for n, s in dict.fromkeys(knob_pairs + pairs)], jobs, say)
+    device = str(resolve_device(device))
+    jobs = _job_count(jobs if jobs or device == "cpu" else 1, len(pairs))
+    prepared = _map(prepare_job, [(n, s, p, cache, device) for n, s in dict.fromkeys(knob_pairs + pairs)], jobs,
+                    say)
     runs = dict(zip(dict.fromkeys(knob_pairs + pairs), prepared))
     say(f"tuning the global scale knob on {', '.join(p.knob_scenes)}")
-    knob = tune_knob([runs[pair] for pair in knob_pairs], p.knob_factors)
+    knob = tune_knob([runs[pair] for pair in knob_pairs], p.knob_factors, device)
     say(f"knob: x{knob['factor']:g} (mean PSNR 2x by factor: "
         + ", ".join(f"{f}: {v:.2f}" for f, v in knob["psnr_2x"].items()) + ")")
-    results = _map(evaluate_job, [(runs[pair], model_dir, knob["factor"]) for pair in pairs], jobs, say)
+    results = _map(evaluate_job, [(runs[pair], model_dir, knob["factor"], device) for pair in pairs], jobs, say)
     doc = {"protocol": {**asdict(p), "train_config": p.train_config().to_dict()},
            "model": {"dir": str(model_dir), "sizes": loaded.sizes(),
                      "train_scenes": loaded.meta.get("train_scenes", []),
                      "held_out_scenes": loaded.meta.get("held_out_scenes", [])},
            "knob": knob, "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(started)), "runs": {},
-           "rows": [], "jobs": jobs, "split": _common_split(name for name, _ in pairs)}
+           "rows": [], "jobs": jobs, "device": device, "split": _common_split(name for name, _ in pairs)}
     for (name, seed), rows in zip(pairs, results):
         run = runs[(name, seed)]
         doc["rows"] += rows
@@ -374,12 +380,12 @@ def _common_split(names) -> str:
     return splits.pop() if len(splits) == 1 else "mixed"
 
 
-def prepare_job(name: str, seed: int, protocol: Protocol, cache=None, say=None) -> SceneRun:
-    return prepare_scene(name, protocol, seed=seed, cache=cache, threads=1, say=say or _print)
+def prepare_job(name: str, seed: int, protocol: Protocol, cache=None, device=None, say=None) -> SceneRun:
+    return prepare_scene(name, protocol, seed=seed, cache=cache, threads=1, device=device, say=say or _print)
 
 
-def evaluate_job(run: SceneRun, model_dir, knob: float, say=None) -> list[dict]:
-    return run_scene(run, GaussianVAE.load(model_dir), knob, say=say or _print)
+def evaluate_job(run: SceneRun, model_dir, knob: float, device=None, say=None) -> list[dict]:
+    return run_scene(run, GaussianVAE.load(model_dir), knob, device=device, say=say or _print)
 
 
 def prepare_scenes(names, protocol: Protocol, *, seed: int = 0, cache=None, jobs: int | None = None,

@@ -45,7 +45,7 @@ from .densify import DensifyStrategy, GaussianModel
 from .lineage import Lineage
 from .losses import photometric_loss, psnr
 from .ply import read_ply, write_ply
-from .rendering import RenderSettings, render
+from .rendering import RenderSettings, render, resolve_device
 
 #: Profiles: overrides of the `TrainConfig` defaults. `default` is the benchmark profile.
 PROFILES: dict[str, dict[str, Any]] = {
@@ -393,7 +393,7 @@ def evaluate_psnr(cloud: GaussianCloud, views, background, sh_degree: int, max_v
     with torch.no_grad():
         for i in pick:
             out = render(cloud, views.cameras[i], background=background, sh_degree=sh_degree, settings=settings)
-            values.append(min(psnr(out.image.clamp(0, 1), targets[i]), 100.0))
+            values.append(min(psnr(out.image.clamp(0, 1).cpu(), targets[i]), 100.0))
     return float(np.mean(values))
 
 
@@ -432,7 +432,7 @@ def _load_resume(out_dir: Path, config: TrainConfig):
 
 def train_progressive(data, config: TrainConfig | None = None, *, out_dir=None, test=None,
                       init_points=None, resume: bool = True, progress: bool = True,
-                      threads: int | None = None) -> TrainResult:
+                      threads: int | None = None, device=None) -> TrainResult:
     """Train 3DGS coarse-to-fine over `config.resolutions`, recording lineages.
 
     `data`: a NeRF-Synthetic scene directory, in-memory views (cameras, images, alphas; with
@@ -440,17 +440,21 @@ def train_progressive(data, config: TrainConfig | None = None, *, out_dir=None, 
     (N,3)/(N,6) initial points instead of random ones. With `out_dir`, stage PLYs, lineage.npz,
     log.json and run.json are written there after every stage and an interrupted run resumes
     (unless `resume` is False, which starts over). `threads`: torch CPU threads while training
-    (restored afterwards); on a busy machine 1 is often much faster than oversubscribing."""
+    (restored afterwards); on a busy machine 1 is often much faster than oversubscribing. `device`:
+    the torch device to train on (default the CPU; "cuda" with a CUDA build of torch and a GPU);
+    the random draws are the CPU's on any device."""
     previous_threads = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(max(1, int(threads)))
     try:
-        return _train(data, config or TrainConfig(), out_dir, test, init_points, resume, progress)
+        return _train(data, config or TrainConfig(), out_dir, test, init_points, resume, progress,
+                      resolve_device(device))
     finally:
         torch.set_num_threads(previous_threads)
 
 
-def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, progress: bool) -> TrainResult:
+def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, progress: bool,
+           device: torch.device) -> TrainResult:
     source = make_view_source(data, test)
     out = Path(out_dir) if out_dir is not None else None
     if out is not None:
@@ -490,9 +494,9 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         else:
             snap = lineage.snapshots[-1]
             cloud, ids, parents = snap.cloud, snap.ids, snap.ids  # survivors are their own anchors
-        model = GaussianModel(cloud, ids, parents, config.learning_rates(extent), extent, next_id)
+        model = GaussianModel(cloud, ids, parents, config.learning_rates(extent), extent, next_id, device)
         sched = config.stage_schedule(s)
-        targets = _targets(train_views, bg)
+        targets = _targets(train_views, bg).to(device)
         cams = train_views.cameras
         n_iter = sched["iterations"]
         counts = {"cloned": 0, "split": 0, "pruned": 0}
@@ -549,7 +553,7 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         lineage.set_normalization(*snap_cloud.normalization())
         next_id = model.next_id
         degree = config.sh_degree_at(global_iter)
-        torch_cloud = snap_cloud.replace(extra={size_key: final_size}).to_torch()
+        torch_cloud = snap_cloud.replace(extra={size_key: final_size}).to_torch(device=device)
         t1 = time.perf_counter()
         train_psnr = evaluate_psnr(torch_cloud, train_views, bg, degree, config.train_eval_views, settings)
         test_psnr = evaluate_psnr(torch_cloud, source("test", height), bg, degree, config.test_eval_views, settings)
@@ -578,7 +582,7 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
 
 
 def _model_filter(model: GaussianModel, cameras: list[Camera]) -> torch.Tensor:
-    return torch.from_numpy(filter_3d(model.params["means"].detach().numpy(), cameras))
+    return torch.from_numpy(filter_3d(model.params["means"].detach().cpu().numpy(), cameras)).to(model.device)
 
 
 def _stage_size(out: Path | None, stage: int, cloud: GaussianCloud, source, height: int, key: str,

@@ -214,6 +214,32 @@ def test_same_seed_same_result_from_scratch():
     assert len(a.cloud) != len(c.cloud) or not np.array_equal(a.cloud.means, c.cloud.means)
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA GPU and CUDA build of torch here (optional runtime)"))])
+def test_training_on_a_named_device(device):
+    """The device path (parameters, Adam state, densification statistics and edits, targets and
+    the filter on `device`; random draws from the CPU generator) trains the same run as the
+    default: bit for bit on the CPU, closely on a GPU (float reductions in another order). A device
+    this machine cannot use is refused before any work, naming it."""
+    pytest.importorskip("gvae_core.rendering")
+    cfg = TrainConfig(**{**TINY, "resolutions": (12, 18), "iterations": (60, 40), "antialias": "mip"})
+    default = train_progressive(synthetic_views, cfg, progress=False, threads=1)
+    named = train_progressive(synthetic_views, cfg, progress=False, threads=1, device=device)
+    assert [e["n_gaussians"] for e in named.log] == [e["n_gaussians"] for e in default.log]
+    assert sum(e["cloned"] + e["split"] + e["pruned"] for e in named.log) > 0  # densification ran there
+    if device == "cpu":
+        np.testing.assert_array_equal(named.cloud.means, default.cloud.means)
+        np.testing.assert_array_equal(named.cloud.extra[FILTER_KEY], default.cloud.extra[FILTER_KEY])
+    else:
+        np.testing.assert_allclose(named.cloud.means, default.cloud.means, atol=1e-3)
+    assert named.log[-1]["test_psnr"] == pytest.approx(default.log[-1]["test_psnr"], abs=0.05)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="'cuda'.*no CUDA GPU"):
+            train_progressive(synthetic_views, cfg, progress=False, device="cuda")
+    with pytest.raises(ValueError, match="unknown torch device 'gpu0'"):
+        train_progressive(synthetic_views, cfg, progress=False, device="gpu0")
+
+
 def test_added_config_fields_keep_existing_run_keys():
     """`antialias` at its default is left out of to_dict (run directories and experiment cache keys
     of existing runs stay valid); any other value is written and so changes the key."""

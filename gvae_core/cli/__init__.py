@@ -20,6 +20,9 @@ COMMAND_MODULES = (
     "report",
 )
 
+#: --device help of the commands that train or render.
+DEVICE_HELP = "torch device: cpu (default) or cuda[:N] (needs a CUDA build of torch and a GPU)"
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gvae", description="GaussianVAE: refine 3D Gaussian Splatting "

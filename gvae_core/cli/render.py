@@ -17,6 +17,7 @@ from ..antialias import (ANTIALIAS_MODES, DEFAULT_ANTIALIAS, DILATION_KEY, FILTE
                          with_training_cameras)
 from ..atomic import atomic_write
 from ..camera import Camera, orbit
+from . import DEVICE_HELP
 
 
 def register(subparsers) -> None:
@@ -35,6 +36,7 @@ def register(subparsers) -> None:
     p.add_argument("--background", default="0,0,0", help="background colour r,g,b in [0,1] (default 0,0,0)")
     p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), help="SH bands to use (default: all)")
     p.add_argument("--elevation", type=float, default=30.0, help="--orbit elevation in degrees (default 30)")
+    p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.add_argument("--sanitize", action="store_true", help="drop Gaussians with non-finite values")
     p.add_argument("--antialias", choices=ANTIALIAS_MODES, default=None,
                    help="classic: +0.3 px² in the rendered image's pixels (the reference 3DGS); matched: that "
@@ -113,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     # stall each other. Only effective when torch is not imported yet (the usual CLI case).
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from ..ply import read_ply
-    from ..rendering import RenderSettings, render
+    from ..rendering import RenderSettings, render, resolve_device
 
     background = _parse_background(args.background)
     if args.height is not None and args.height <= 0:
@@ -121,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
     if args.train_resolution is not None and args.train_resolution <= 0:
         raise ValueError(f"--train-resolution must be a positive image height, got {args.train_resolution}")
     train_cams = cameras_from_transforms(args.train_cameras)[0] if args.train_cameras is not None else None
+    device = resolve_device(args.device)
     cloud = read_ply(args.file, sanitize=args.sanitize)
     if args.transforms is not None:
         cams, names = cameras_from_transforms(args.transforms)
@@ -136,6 +139,7 @@ def run(args: argparse.Namespace) -> int:
         key = FILTER_KEY if args.trained == "mip" else DILATION_KEY
         print(f"{key} from {len(train_cams)} training camera(s) at {train_cams[0].width}x{train_cams[0].height}")
     settings = RenderSettings() if args.antialias is None else RenderSettings(antialias=args.antialias)
+    cloud = cloud.to_torch(device=device)
     from PIL import Image
 
     args.out.mkdir(parents=True, exist_ok=True)
@@ -143,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     for i, (cam, name) in enumerate(zip(cams, names)):
         start = time.perf_counter()
         out = render(cloud, cam, background=background, sh_degree=args.sh_degree, settings=settings)
-        pixels = (out.image.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+        pixels = (out.image.clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
         target = args.out / f"{i:0{width}d}_{Path(name).stem}.png"
         atomic_write(target, lambda f, p=pixels: Image.fromarray(p).save(f, format="PNG"))
         print(f"{target} ({cam.width}x{cam.height}, {time.perf_counter() - start:.2f} s)")

@@ -6,6 +6,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from . import DEVICE_HELP
 
 
 def register(subparsers) -> None:
@@ -32,7 +33,9 @@ def register(subparsers) -> None:
     p.add_argument("--cache-dir", type=Path, default=None, help="scene and run cache (default: $GVAE_CACHE_DIR "
                    "or ~/.cache/gvae)")
     p.add_argument("--jobs", type=int, default=None,
-                   help="runs processed at once, each in a process with one torch thread (default: one per core)")
+                   help="runs processed at once, each in a process with one torch thread (default: one per core; "
+                   "one with --device cuda)")
+    p.add_argument("--device", default=None, help="where training and the scoring renders run: " + DEVICE_HELP)
     p.set_defaults(func=run)
 
 
@@ -44,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     scenes = args.scenes or (SPLITS[args.split] if args.split else None)
     doc = run_experiment(args.profile, model=args.model, scenes=scenes, seeds=args.seeds, cache=args.cache_dir,
-                         jobs=args.jobs, say=lambda msg: print(msg, flush=True))
+                         jobs=args.jobs, device=args.device, say=lambda msg: print(msg, flush=True))
     command = "gvae report " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["report"] else \
         f"gvae report --profile {args.profile} --out {args.out}"
     path = write_report(doc, args.out, command=command)

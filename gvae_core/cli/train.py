@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
+from . import DEVICE_HELP
 
 
 def register(subparsers) -> None:
@@ -37,6 +38,7 @@ def register(subparsers) -> None:
     p.add_argument("--antialias", choices=("classic", "mip"),
                    help="classic (the reference 3DGS, default; stage PLYs get gvae_dilation_3D) or mip "
                    "(train with Mip-Splatting's 3D and 2D filters; stage PLYs get filter_3D)")
+    p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.add_argument("--restart", action="store_true", help="start over instead of resuming")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -77,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     points = _load_points(args.init_points) if args.init_points else None
     result = train_progressive(args.scene, config, out_dir=args.out, init_points=points,
                                resume=not args.restart, progress=not args.quiet,
-                               threads=args.threads)
+                               threads=args.threads, device=args.device)
     print(f"{'stage':>5} {'res':>5} {'iters':>6} {'s/it':>7} {'gaussians':>9} {'train dB':>8} "
           f"{'test dB':>8} {'peak MB':>8}")
     for e in result.log:

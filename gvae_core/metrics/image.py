@@ -29,22 +29,23 @@ class ImageScores:
 
 
 def render_views(cloud, views, background=(1.0, 1.0, 1.0), sh_degree: int | None = None,
-                 antialias: str | None = None) -> np.ndarray:
+                 antialias: str | None = None, device=None) -> np.ndarray:
     """(N,H,W,3) float32 renders of `cloud` from every camera of `views`, clamped to [0,1].
-    `antialias`: a `gvae_core.rendering.ANTIALIAS_MODES` mode (default: RenderSettings')."""
-    c = cloud.to_torch() if not cloud.is_torch else cloud
+    `antialias`: a `gvae_core.rendering.ANTIALIAS_MODES` mode (default: RenderSettings');
+    `device`: the torch device to render on (default: the cloud's, the CPU for numpy)."""
+    c = cloud.to_torch(device=device) if device is not None or not cloud.is_torch else cloud
     settings = RenderSettings() if antialias is None else RenderSettings(antialias=antialias)
     with torch.no_grad():
         return np.stack([render(c, cam, background=background, sh_degree=sh_degree, settings=settings)
-                         .image.clamp(0, 1).numpy() for cam in views.cameras])
+                         .image.clamp(0, 1).cpu().numpy() for cam in views.cameras])
 
 
 def image_scores(cloud, views, background=(1.0, 1.0, 1.0), *, no_reference: bool = True,
-                 images: np.ndarray | None = None, antialias: str | None = None) -> ImageScores:
+                 images: np.ndarray | None = None, antialias: str | None = None, device=None) -> ImageScores:
     """PSNR and SSIM of the renders against `views` composited on `background`, and the mean NIQE
     of the renders (skipped, NaN, when `no_reference` is False or the images are under 193 px).
-    `images`: renders made already (skips rendering); `antialias`: as for `render_views`."""
-    pred = (render_views(cloud, views, background, antialias=antialias) if images is None
+    `images`: renders made already (skips rendering); `antialias`, `device`: as for `render_views`."""
+    pred = (render_views(cloud, views, background, antialias=antialias, device=device) if images is None
             else np.asarray(images, np.float32))
     target = views.composite(background)
     p = [min(psnr(a, b), 100.0) for a, b in zip(pred, target)]

@@ -24,7 +24,7 @@ from .projection import Projected, project
 from .rasterize import composite, pack, tiles_to_image
 from .tiles import Binning, bin_gaussians
 
-__all__ = ["render", "RenderOutput", "RenderSettings", "ANTIALIAS_MODES", "antialias_parts"]
+__all__ = ["render", "RenderOutput", "RenderSettings", "ANTIALIAS_MODES", "antialias_parts", "resolve_device"]
 
 
 @dataclass
@@ -135,3 +135,19 @@ def render(cloud: GaussianCloud, camera: Camera, *, background=(0.0, 0.0, 0.0), 
                         means2d=proj.means2d, num_pairs=binning.num_pairs,
                         num_evaluations=binning.evaluations, tile_size=s.tile_size)
 
+
+def resolve_device(device=None):
+    """The torch device to train and render on (`None`: the CPU), refused with a clear error when
+    this machine or this torch build cannot use it (the pinned torch is a CPU build; a CUDA build
+    and a GPU are needed for "cuda")."""
+    try:
+        dev = torch.device(device or "cpu")
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(f"unknown torch device {device!r}: {exc}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r} requested, but this torch ({torch.__version__}) sees no CUDA GPU")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise ValueError(f"device {device!r} requested, but only {torch.cuda.device_count()} CUDA device(s)")
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"device {device!r}: only 'cpu' and 'cuda[:N]' are supported")
+    return dev
