@@ -105,10 +105,12 @@ class Protocol:
 
 
 PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
-    # Within 25 minutes on 2 cores from nothing: the test scenes, three seeds, small renders.
+    # Within 25 minutes on 2 cores from nothing: the test scenes, three seeds, small renders; the
+    # knob on the first two training scenes.
     Protocol("quick", scene_profile="small", resolutions=(50, 75, 100), iterations=(300, 200, 200),
              higher=(150, 200), higher_iterations=(200, 200),
-             train_overrides=dict(init_count=4000, max_gaussians=20_000), test_views=8),
+             train_overrides=dict(init_count=4000, max_gaussians=20_000), test_views=8,
+             knob_scenes=SPLITS["train"][:2]),
     # The benchmark profile (hours on 2 cores; runs resume).
     Protocol("full", scene_profile="default", resolutions=(100, 150, 200), iterations=(600, 400, 400),
              higher=(300, 400), higher_iterations=(400, 400), steps=4, test_views=10),
