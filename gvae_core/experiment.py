@@ -6,7 +6,8 @@ the real 1.5x and 2x images (the upper bound, the paper's 700p/800p columns). Fr
 training-resolution stage and its lineage only:
 - baselines: the unrefined cloud (`BASELINE`); the same with one global scale factor chosen on
   the training scenes only (`KNOB`); 3DGS trained on the real 1.5x and 2x images (`REAL`);
-- Ours (the models refine every Gaussian) and Ours-∇² (the Hessian budget) at +1..+steps;
+- Ours (the models refine every Gaussian) and Ours-∇² (the Hessian budget) at +1..+steps, and
+  `refine`'s default, Ours-∇² with the fidelity check (`DEFAULT`);
 - controls at Ours-∇²'s output count, step by step (`gvae_core.controls`): the plain 3DGS split,
   random selection with the model, and duplicate-in-place.
 Every cloud is scored by Chamfer distance of its centres to the ground-truth mesh (accuracy plain
@@ -40,6 +41,7 @@ import torch
 from .antialias import with_training_cameras
 from .controls import duplicate_control, split_control, thin_added
 from .datasets import load_nerf_synthetic
+from .fidelity import DEFAULT_TOLERANCE
 from .hessian import hessian_scores
 from .lineage import Lineage
 from .metrics.geometry import MeshDistance, chamfer, read_mesh_ply
@@ -55,6 +57,8 @@ from .vae import GaussianVAE, default_model_dir
 #: Methods in result rows.
 BASELINE, KNOB, REAL = "3dgs", "3dgs_knob", "3dgs_real"
 OURS, OURS_H = "ours", "ours_h"
+#: What `refine` does by default: Ours-∇² with the fidelity check (`gvae_core.fidelity`).
+DEFAULT = "refine"
 SPLIT, RANDOM, DUPLICATE = "split", "random", "duplicate"
 CONTROLS = (SPLIT, RANDOM, DUPLICATE)
 SCALES = ("1x", "1.5x", "2x")
@@ -284,7 +288,7 @@ def run_scene(run: SceneRun, model, knob: float = 1.0, *, device=None,
     scores = hessian_scores(base, hessian_cameras(run, p.hessian_views), views=0,
                             render_settings=RenderSettings(antialias=p.antialias)).numpy()
     hessian_s = time.perf_counter() - t0
-    common = dict(steps=p.steps, model=model, lineage=lineage, seed=run.seed)
+    common = dict(steps=p.steps, model=model, lineage=lineage, seed=run.seed, fidelity=None)
 
     def refined(method: str, results, **info) -> list[RefineResult]:
         out = []
@@ -296,6 +300,8 @@ def run_scene(run: SceneRun, model, knob: float = 1.0, *, device=None,
 
     refined(OURS, refine_steps(base, budget="all", **common))
     ours_h = refined(OURS_H, refine_steps(base, budget=p.budget, scores=scores, **common), hessian_s=hessian_s)
+    refined(DEFAULT, refine_steps(base, budget=p.budget, scores=scores, **{**common, "fidelity": DEFAULT_TOLERANCE}),
+            hessian_s=hessian_s)
     targets = [len(r.added) for r in ours_h]
     refined(SPLIT, split_control(base, scores, targets, seed=run.seed))
     refined(DUPLICATE, duplicate_control(base, scores, targets, seed=run.seed))

@@ -9,7 +9,9 @@ geometry only (children carry their parent's appearance, `carry_appearance`). Wi
 "all" every Gaussian is given to the models, which decide at every step. For a lineage, the
 existing slot nearest its last node updates that Gaussian in place; every other existing slot
 becomes a new Gaussian (appended after the input rows). Outputs are sanitised: finite, unit
-quaternions, log-scales and opacity logits inside finite ranges.
+quaternions, log-scales and opacity logits inside finite ranges. Last, every lineage whose
+Gaussians change the picture at the training sampling rate by more than `fidelity` is put back
+as it was (`gvae_core.fidelity`).
 """
 
 from __future__ import annotations
@@ -24,10 +26,13 @@ import torch
 
 from .budget import select_budget
 from .camera import Camera
+from .capture import default_views, scoring_views
 from .cloud import _FIELDS, GaussianCloud
+from .fidelity import DEFAULT_TOLERANCE, lineage_changes, revert_lineages, training_rate_views
 from .hessian import DEFAULT_RESOLUTION, DEFAULT_VIEWS, hessian_scores
 from .lineage import (APP_EXIST, GEO_EXIST, GEO_LOG_SCALE, GEO_POSITION, Lineage, appearance_features,
                       cloud_from_features, geometry_features)
+from .rendering import render
 from .resources import check_refine_memory
 from .vae import GaussianVAE, load_default_model
 from .vae.features import FEATURE_LOG_SCALE_RANGE, FEATURE_POSITION_LIMIT
@@ -38,7 +43,8 @@ class RefineResult:
     """The refined cloud (input rows first, in input order, then the added ones; extra properties
     as `GaussianCloud.append_children` gives them), which rows were added, each added row's
     ancestor row in the input, the step that added it, the input's Hessian scores, the input rows
-    the budget selected, seconds per part, and the lineage stage the input was matched to."""
+    the budget selected, seconds per part, the lineage stage the input was matched to, and the
+    selected rows whose lineages the fidelity check put back as they were."""
 
     cloud: GaussianCloud
     added: np.ndarray
@@ -49,6 +55,8 @@ class RefineResult:
     timings: dict[str, float] = field(default_factory=dict)
     #: The lineage stage the input was matched to (None without a lineage).
     stage: int | None = None
+    #: Selected input rows left as they were: their lineages changed the training-rate picture.
+    reverted: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def n_input(self) -> int:
@@ -57,7 +65,8 @@ class RefineResult:
     def summary(self) -> str:
         per_step = np.bincount(self.step, minlength=int(self.step.max(initial=0)) + 1)[1:]
         times = ", ".join(f"{k} {v * 1e3:.1f} ms" for k, v in self.timings.items())
-        return (f"{self.n_input} Gaussians in, {len(self.selected)} selected, {len(self.added)} added "
+        return (f"{self.n_input} Gaussians in, {len(self.selected)} selected, {len(self.reverted)} of them put "
+                f"back (fidelity), {len(self.added)} added "
                 f"(per step: {', '.join(str(int(c)) for c in per_step) or '-'}), {len(self.cloud)} out; {times}")
 
 
@@ -118,7 +127,8 @@ def _lineage_for(cloud: GaussianCloud, lineage: Lineage, stage: int | None) -> t
 def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
            cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, stage: int | None = None,
            seed: int = 0, progress: Callable[[float, str], None] | None = None, hessian_options: dict | None = None,
-           scores: Any = None, carry_appearance: bool = True, check_memory: bool = True) -> RefineResult:
+           scores: Any = None, carry_appearance: bool = True, check_memory: bool = True,
+           fidelity: float | None = DEFAULT_TOLERANCE) -> RefineResult:
     """Refine `cloud` by `steps` (>= 1) sequential model steps on the Gaussians the budget selects
     (see `select_budget`). `model`: a `GaussianVAE` or a model directory (default: the bundled
     one). `cameras`: the capture's cameras for the Hessian (`gvae_core.capture.load_cameras`; a
@@ -132,11 +142,14 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model:
     falls with every step; `reports/` has the ablation). `progress(fraction, message)` is called
     as the work goes on; an exception it raises stops the refine (how the Blender job cancels).
     `check_memory`: refuse, with `resources.NotEnoughMemoryError`, a cloud whose estimated peak
-    memory exceeds what is free. Raises ValueError on non-finite input rows."""
+    memory exceeds what is free. `fidelity`: the largest colour change (0..1) a lineage may make
+    at the training sampling rate, seen from the scoring views; lineages above it are put back as
+    they were (`gvae_core.fidelity`; None: keep everything the models did). Raises ValueError on
+    non-finite input rows."""
     (result,) = refine_steps(cloud, steps=steps, budget=budget, model=model, cameras=cameras, lineage=lineage,
                              stage=stage, seed=seed, progress=progress, hessian_options=hessian_options,
                              scores=scores, every_step=False, carry_appearance=carry_appearance,
-                             check_memory=check_memory)
+                             check_memory=check_memory, fidelity=fidelity)
     return result
 
 
@@ -144,7 +157,8 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
                  cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, stage: int | None = None,
                  seed: int = 0, progress: Callable[[float, str], None] | None = None,
                  hessian_options: dict | None = None, scores: Any = None, every_step: bool = True,
-                 carry_appearance: bool = True, check_memory: bool = True) -> Iterator[RefineResult]:
+                 carry_appearance: bool = True, check_memory: bool = True,
+                 fidelity: float | None = DEFAULT_TOLERANCE) -> Iterator[RefineResult]:
     """`refine`, yielding the result after every step (+1, +2, ...; each one the same as `refine`
     with that many steps and the same seed), or only after the last with `every_step=False`."""
     t_start = time.perf_counter()
@@ -209,6 +223,13 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
 
     gen = torch.Generator().manual_seed(int(seed))
     grow = _Growth(src, selected, hist_g, hist_a, scale)
+    check = None
+    if fidelity is not None and len(selected):
+        views = options.get("views", DEFAULT_VIEWS) or DEFAULT_VIEWS
+        resolution = options.get("resolution", DEFAULT_RESOLUTION)
+        cams = (scoring_views(cameras, views, resolution, src) if cameras is not None
+                else default_views(src, views, resolution, normalization=normalization))
+        check = _FidelityCheck(src, training_rate_views(src, cams), float(fidelity), options.get("render_settings"))
     for k in range(1, steps + 1):
         say(h1 + (0.97 - h1) * (k - 1) / steps, f"step {k}/{steps}: {len(grow.rows)} lineages")
         if len(grow.rows):
@@ -222,11 +243,42 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
                 say(0.97, "assembling the refined cloud")
             result = grow.result(scores, {**timings}, t_start)
             result.stage = used_stage
+            if check is not None:
+                say(0.97 if final else h1 + (0.97 - h1) * k / steps, "checking the training-resolution picture")
+                result = check(result)
             if final:
                 say(1.0, result.summary())
             suspended = time.perf_counter()
             yield result
             t_start += time.perf_counter() - suspended  # the caller's time is not ours
+
+
+class _FidelityCheck:
+    """Puts back the lineages of a result that change the picture at the training sampling rate by
+    more than `tolerance` (`gvae_core.fidelity`); renders the input once."""
+
+    def __init__(self, src: GaussianCloud, cameras: list[Camera], tolerance: float, settings):
+        if not tolerance >= 0.0:
+            raise ValueError(f"refine: fidelity must be a tolerance >= 0 or None, got {tolerance!r}")
+        self.src, self.cameras, self.tolerance, self.settings = src, cameras, tolerance, settings
+        self.before = None
+
+    def __call__(self, result: RefineResult) -> RefineResult:
+        t0 = time.perf_counter()
+        if self.before is None:
+            with torch.no_grad():
+                self.before = [render(self.src, cam, background=(1.0, 1.0, 1.0), settings=self.settings).image
+                               for cam in self.cameras]
+        change = lineage_changes(self.src, result.cloud, result.selected, result.added, result.parents,
+                                 self.cameras, settings=self.settings, before_images=self.before)
+        reverted = result.selected[change > self.tolerance]
+        cloud, kept = revert_lineages(self.src, result.cloud, result.n_input, result.parents, reverted)
+        n = result.n_input
+        timings = {**result.timings, "fidelity": time.perf_counter() - t0}
+        timings["total"] = timings.get("total", 0.0) + timings["fidelity"]
+        return RefineResult(cloud=cloud, added=np.arange(n, n + int(kept.sum()), dtype=np.int64),
+                            parents=result.parents[kept], step=result.step[kept], scores=result.scores,
+                            selected=result.selected, timings=timings, stage=result.stage, reverted=reverted)
 
 
 class _Growth:

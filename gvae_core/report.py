@@ -20,11 +20,11 @@ import numpy as np
 from scipy import stats
 
 from .atomic import atomic_write_text
-from .experiment import BASELINE, CONTROLS, DUPLICATE, KNOB, OURS, OURS_H, RANDOM, REAL, SPLIT, _finite
+from .experiment import BASELINE, CONTROLS, DEFAULT, DUPLICATE, KNOB, OURS, OURS_H, RANDOM, REAL, SPLIT, _finite
 
 METHOD_NAMES = {BASELINE: "3DGS, unrefined", KNOB: "3DGS, global scale knob", REAL: "3DGS on the real images",
                 OURS: "Ours (every Gaussian)", OURS_H: "Ours-∇²", SPLIT: "plain split", RANDOM: "random + model",
-                DUPLICATE: "duplicate in place"}
+                DUPLICATE: "duplicate in place", DEFAULT: "refine default (Ours-∇² + fidelity check)"}
 #: (row key, label, lower is better, relative to the unrefined cloud in %)
 METRICS = (("chamfer", "Chamfer", True, True), ("weighted_accuracy", "weighted accuracy", True, True),
            ("psnr_2x", "PSNR 2x", False, False), ("ssim_2x", "SSIM 2x", False, False))
@@ -119,7 +119,7 @@ def methods_table(res: Results) -> list[str]:
     cells = [("chamfer", True, 2), ("accuracy", True, 2), ("weighted_accuracy", True, 2), ("completeness", True, 2),
              ("psnr_1x", False, 2), ("psnr_2x", False, 2), ("psnr_2x_classic", False, 2), ("ssim_2x", False, 4)]
     entries = [(BASELINE, 0, None), (KNOB, 0, None), (REAL, 0, "1.5x"), (REAL, 0, "2x")]
-    entries += [(m, k, None) for m in (OURS, OURS_H, *CONTROLS) for k in res.steps]
+    entries += [(m, k, None) for m in (OURS, OURS_H, DEFAULT, *CONTROLS) for k in res.steps]
     for method, step, scale in entries:
         counts = [res.value(s, d, method, step, "n_gaussians", scale) for s, d in res.pairs]
         if not any(math.isfinite(c) for c in counts):
@@ -137,7 +137,7 @@ def scene_table(res: Results) -> list[str]:
     """PSNR at 2x per scene (mean over seeds) for the baselines and every method at +1."""
     cols = [(BASELINE, 0, None, "psnr_2x_classic", "3DGS classic"), (BASELINE, 0, None, "psnr_2x", "3DGS"),
             (KNOB, 0, None, "psnr_2x", "knob"), (REAL, 0, "2x", "psnr_2x", "3DGS real 2x")]
-    cols += [(m, 1, None, "psnr_2x", f"{METHOD_NAMES[m]} +1") for m in (OURS, OURS_H, *CONTROLS)]
+    cols += [(m, 1, None, "psnr_2x", f"{METHOD_NAMES[m]} +1") for m in (OURS, OURS_H, DEFAULT, *CONTROLS)]
     lines = ["| scene | " + " | ".join(c[-1] for c in cols) + " |", "|" + "---|" * (len(cols) + 1)]
     for scene in res.scenes:
         seeds = [d for s, d in res.pairs if s == scene]
@@ -175,7 +175,7 @@ def plots(doc: dict, res: Results, out: Path) -> list[str]:
     names = []
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, (key, label) in zip(axes, (("chamfer", "Chamfer"), ("weighted_accuracy", "weighted accuracy"))):
-        for method in (OURS, OURS_H, *CONTROLS):
+        for method in (OURS, OURS_H, DEFAULT, *CONTROLS):
             xs, ys = [1.0], [0.0]
             for k in res.steps:
                 n = [res.value(s, d, method, k, "n_gaussians") / res.value(s, d, BASELINE, 0, "n_gaussians")
@@ -250,7 +250,9 @@ def write_report(doc: dict, out, *, command: str = "") -> Path:
           f"bound). Refinement +1..+{p['steps']} from the training-resolution stage and its lineage only: Ours "
           f"refines every Gaussian, Ours-∇² those the Hessian budget `{p['budget']}` selects. Controls at "
           f"Ours-∇²'s output count, step by step: the plain 3DGS split, random selection with the model "
-          f"(thinned to the count), duplicate-in-place (copies sharing the opacity).", "",
+          f"(thinned to the count), duplicate-in-place (copies sharing the opacity). `refine`'s default is "
+          f"Ours-∇² with the fidelity check (lineages that change the picture at the training resolution put "
+          f"back, `gvae_core.fidelity`): its own rows, not a control.", "",
           f"**Rendering**: images are scored with the `{p['antialias']}` anti-aliasing mode (every cloud carries "
           f"the anti-aliasing size of the cameras it was trained with, `gvae_core.antialias`); the classic "
           f"render (+0.3 px²) is beside it.", "",

@@ -1,5 +1,9 @@
-"""Refinement: budgets, sequential steps, result consistency, degenerate inputs, the CLI."""
+"""Refinement: budgets, sequential steps, result consistency, degenerate inputs, the CLI.
 
+The mechanics of the steps are tested with random stand-in models and without the fidelity
+check (which would put most of what they do back); the check has its own tests, test_fidelity.py."""
+
+import functools
 import json
 import math
 
@@ -11,8 +15,14 @@ from gvae_core import Camera, GaussianCloud, refinement, resources
 from gvae_core.cli import main as gvae
 from gvae_core.lineage import Lineage
 from gvae_core.ply import read_ply, write_ply
-from gvae_core.refinement import RefineResult, refine, refine_steps
+from gvae_core.refinement import RefineResult
+from gvae_core.refinement import refine as checked_refine
+from gvae_core.refinement import refine_steps as checked_refine_steps
 from gvae_core.vae import GaussianVAE
+
+
+refine = functools.partial(checked_refine, fidelity=None)
+refine_steps = functools.partial(checked_refine_steps, fidelity=None)
 
 
 def _cloud(n=64, seed=0, degree=1) -> GaussianCloud:
@@ -254,7 +264,7 @@ def test_cli_refine_and_fit(tmp_path, capsys):
     _model(exist_logit=30.0).save(model_dir)
     write_ply(_cloud(n=50), tmp_path / "in.ply")
     code = gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "out.ply"), "--steps", "2", "--budget", "4",
-                 "--model", str(model_dir), "--views", "1", "--resolution", "16"])
+                 "--model", str(model_dir), "--views", "1", "--resolution", "16", "--fidelity", "off"])
     assert code == 0
     out = read_ply(tmp_path / "out.ply")
     c = 4  # slots
@@ -263,6 +273,12 @@ def test_cli_refine_and_fit(tmp_path, capsys):
     assert "4 selected" in text and "hessian" in text
     assert gvae(["refine", str(tmp_path / "missing.ply"), str(tmp_path / "x.ply"), "--model", str(model_dir)]) == 2
     assert gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "x.ply"), "--budget", "many"]) == 2
+    assert gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "x.ply"), "--fidelity", "-1"]) == 2
+    # With the fidelity check (the default), the random stand-in's lineages are put back
+    assert gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "x.ply"), "--steps", "2", "--budget", "4",
+                 "--model", str(model_dir), "--views", "1", "--resolution", "16", "--fidelity", "0"]) == 0
+    assert len(read_ply(tmp_path / "x.ply")) == 50 and "4 of them put back" in capsys.readouterr().out
+    (tmp_path / "x.ply").unlink()
     assert not (tmp_path / "x.ply").exists()
 
     lin = Lineage(np.zeros(3), 1.0)
@@ -360,7 +376,7 @@ def test_cli_refines_a_stage_of_a_longer_run_with_the_capture_cameras(tmp_path, 
                                                           "frames": frames}))
     out = tmp_path / "out.ply"
     base = ["refine", str(run / "stage_1.ply"), str(out), "--lineage", str(run / "lineage.npz"), "--model",
-            str(model_dir), "--budget", "4"]
+            str(model_dir), "--budget", "4", "--fidelity", "off"]
     assert gvae(base + ["--cameras", str(tmp_path / "transforms.json"), "--views", "3"]) == 0
     text = capsys.readouterr().out
     assert "IN.ply is stage 1" in text and "6 capture cameras" in text and "4 selected" in text

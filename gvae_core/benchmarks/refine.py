@@ -187,9 +187,9 @@ def _capture_scale(counts, repeats: int) -> None:
           f"`example_cloud(N)` (SH 3), torch threads {threads}; each size in a fresh process, "
           f"median of {repeats} (3M: 1); seconds:")
     print("\n| Gaussians | Hessian (project / bin / composite / sweep / moments / blocks / score) | features | model "
-          "| assemble | refine total (process CPU) | peak RSS (estimate) | selected | added "
+          "| assemble | fidelity check | refine total (process CPU) | peak RSS (estimate) | selected | kept | added "
           "| error: non-finite scores / out rows, changed unselected | load |")
-    print("|---:|---|---:|---:|---:|---|---|---:|---:|---|---:|")
+    print("|---:|---|---:|---:|---:|---:|---|---|---:|---:|---:|---|---:|")
     for n in counts:
         runs = 1 if n > 1_500_000 else repeats
         load0 = os.getloadavg()[0]
@@ -204,9 +204,14 @@ def _capture_scale(counts, repeats: int) -> None:
         parts = " / ".join(f"{h.get(k, 0.0):.2f}" for k in ("project", "bin", "composite", "sweep", "moments",
                                                                "blocks", "score"))
         print(f"| {n:,} | **{r['hessian']:.2f}** ({parts}) | {r['features']:.2f} | {r['model']:.2f} | "
-              f"{r['assemble']:.2f} | **{r['total']:.2f}** ({r['cpu']:.1f}) | {r['peak'] / 2 ** 30:.2f} GiB "
-              f"({r['estimate'] / 2 ** 30:.2f}) | {r['selected']:,} | {r['added']:,} | {r['bad_scores']} / "
+              f"{r['assemble']:.2f} | {r['fidelity']:.2f} | **{r['total']:.2f}** ({r['cpu']:.1f}) | "
+              f"{r['peak'] / 2 ** 30:.2f} GiB ({r['estimate'] / 2 ** 30:.2f}) | {r['selected']:,} | "
+              f"{r['selected'] - r['reverted']:,} | {r['added']:,} | {r['bad_scores']} / "
               f"{r['bad_rows']}, {r['changed']} | {load0:.1f}-{os.getloadavg()[0]:.1f} |", flush=True)
+
+
+#: Timed parts of a whole refine (RefineResult.timings).
+PARTS = ("hessian", "features", "model", "assemble", "fidelity", "total")
 
 
 def _one(n: int, repeats: int) -> dict:
@@ -219,16 +224,15 @@ def _one(n: int, repeats: int) -> dict:
         c0 = resource.getrusage(resource.RUSAGE_SELF)
         r = refine(cloud, steps=1, budget="auto", model=model, seed=0, hessian_options={"timings": parts})
         c1 = resource.getrusage(resource.RUSAGE_SELF)
-        rows.append({**{k: r.timings.get(k, 0.0) for k in ("hessian", "features", "model", "assemble", "total")},
+        rows.append({**{k: r.timings.get(k, 0.0) for k in PARTS},
                      "cpu": c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime, "hessian_parts": parts})
-    med = {k: statistics.median(row[k] for row in rows)
-           for k in ("hessian", "features", "model", "assemble", "total", "cpu")}
+    med = {k: statistics.median(row[k] for row in rows) for k in PARTS + ("cpu",)}
     med["hessian_parts"] = {k: statistics.median(row["hessian_parts"][k] for row in rows)
                             for k in rows[0]["hessian_parts"]}
     unsel = np.setdiff1d(np.arange(n), r.selected)
     changed = int((r.cloud.means[unsel] != cloud.means[unsel]).any(1).sum())
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * (1 if sys.platform == "darwin" else 1024)
-    return {**med, "selected": len(r.selected), "added": len(r.added), "peak": peak,
+    return {**med, "selected": len(r.selected), "reverted": len(r.reverted), "added": len(r.added), "peak": peak,
             "estimate": estimate_refine_memory(n, cloud.sh_degree, selected=len(r.selected)),
             "bad_scores": int((~np.isfinite(r.scores)).sum() + (r.scores < 0).sum()),
             "bad_rows": len(r.cloud.validate().nonfinite_rows), "changed": changed}

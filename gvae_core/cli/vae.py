@@ -59,6 +59,10 @@ def register(subparsers) -> None:
                    "them) (default: %(default)s)")
     r.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION,
                    help="Hessian view height in pixels (capture cameras are scaled down to it) (default: %(default)s)")
+    r.add_argument("--fidelity", default=None, metavar="TOL|off",
+                   help="largest colour change (0..1) a refined lineage may make at the training sampling rate; "
+                   "those above are put back as they were (default: gvae_core.fidelity.DEFAULT_TOLERANCE; "
+                   "off: keep everything the models did)")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--sanitize", action="store_true", help="drop non-finite Gaussians of IN.ply first")
     r.set_defaults(func=run_refine)
@@ -147,9 +151,11 @@ def run_refine(args: argparse.Namespace) -> int:
     from ..capture import load_cameras
     from ..lineage import Lineage
     from ..formats import read_splat_file, write_splat_file
+    from ..fidelity import DEFAULT_TOLERANCE
     from ..refinement import refine
 
     budget = parse_budget(args.budget)
+    fidelity = _parse_fidelity(args.fidelity, DEFAULT_TOLERANCE)
     t0 = time.perf_counter()
     cloud = read_splat_file(args.input, sanitize=args.sanitize)
     lineage = Lineage.load(args.lineage) if args.lineage is not None else None
@@ -158,7 +164,7 @@ def run_refine(args: argparse.Namespace) -> int:
     if args.stage is not None and lineage is None:
         raise ValueError("--stage needs --lineage")
     result = refine(cloud, steps=args.steps, budget=budget, model=args.model, lineage=lineage, stage=args.stage,
-                    cameras=cameras, seed=args.seed,
+                    cameras=cameras, seed=args.seed, fidelity=fidelity,
                     hessian_options={"views": args.views, "resolution": args.resolution})
     t0 = time.perf_counter()
     write_splat_file(result.cloud, args.output)
@@ -169,3 +175,18 @@ def run_refine(args: argparse.Namespace) -> int:
     print(result.summary())
     print(f"wrote {args.output} ({len(result.cloud)} Gaussians) in {time.perf_counter() - t0:.2f} s")
     return 0
+
+
+def _parse_fidelity(text: str | None, default: float) -> float | None:
+    """--fidelity: a tolerance >= 0, or "off" (None)."""
+    if text is None:
+        return default
+    if text.strip().lower() in ("off", "none"):
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value >= 0.0:
+        raise ValueError(f"--fidelity must be a tolerance >= 0 or 'off', got {text!r}")
+    return value

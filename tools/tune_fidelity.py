@@ -1,0 +1,89 @@
+"""Choose refine's fidelity tolerance on the validation scenes (how `DEFAULT_TOLERANCE` in
+gvae_core/fidelity.py was chosen).
+
+For each validation (scene, seed) of the quick protocol (training runs cached and shared with
+`make report`): the training-resolution cloud, its Hessian scores as the experiment computes
+them, Ours-∇² +1 and +2 without the check, then the check at each tolerance applied to those same
+results; PSNR at 1x and 2x (the protocol's render) and weighted accuracy against the unrefined
+cloud. One JSON line per pair, then a table.
+
+    python tools/tune_fidelity.py --out /tmp/fidelity.jsonl      # about 10 min on 2 cores
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import torch
+
+from gvae_core.experiment import PROTOCOLS, Evaluator, hessian_cameras, prepare_scene
+from gvae_core.fidelity import training_rate_views
+from gvae_core.hessian import hessian_scores
+from gvae_core.refinement import _FidelityCheck, refine_steps
+from gvae_core.rendering import RenderSettings
+from gvae_core.scenes import SPLITS
+from gvae_core.vae import load_default_model
+
+TOLERANCES = (0.0025, 0.005, 0.01, 0.02, 0.04)
+
+
+def pair(name: str, seed: int, model, protocol) -> dict:
+    run = prepare_scene(name, protocol, seed=seed)
+    evaluate = Evaluator(run)
+    base = run.stage_cloud(protocol.train_stage)
+    settings = RenderSettings(antialias=protocol.antialias)
+    cams = hessian_cameras(run, protocol.hessian_views)
+    scores = hessian_scores(base, cams, views=0, render_settings=settings).numpy()
+    row = {"scene": name, "seed": seed, "base": evaluate(base, scales=("1x", "2x"))}
+    results = refine_steps(base, steps=2, budget=protocol.budget, model=model, scores=scores, seed=seed,
+                           lineage=run.lineage(protocol.train_stage + 1), fidelity=None)
+    views = training_rate_views(base, cams)
+    for k, r in enumerate(results, 1):
+        row[f"raw{k}"] = evaluate(r.cloud, scales=("1x", "2x"))
+        for t in TOLERANCES:
+            g = _FidelityCheck(base, views, t, settings)(r)
+            row[f"{t}/{k}"] = {**evaluate(g.cloud, scales=("1x", "2x")), "reverted": len(g.reverted),
+                               "selected": len(g.selected), "added": len(g.added)}
+    return row
+
+
+def table(rows: list[dict]) -> list[str]:
+    lines = ["| tolerance | step | mean PSNR 2x change dB | worst pair dB | lineages kept | weighted acc. % |",
+             "|---|---|---|---|---|---|"]
+    for t in ("raw",) + TOLERANCES:
+        for k in (1, 2):
+            key = f"raw{k}" if t == "raw" else f"{t}/{k}"
+            d = [r[key]["psnr_2x"] - r["base"]["psnr_2x"] for r in rows]
+            acc = [100 * (r[key]["weighted_accuracy"] / r["base"]["weighted_accuracy"] - 1) for r in rows]
+            if t == "raw":
+                kept = "all"
+            else:
+                total = sum(r[key]["selected"] for r in rows)
+                kept = f"{sum(r[key]['selected'] - r[key]['reverted'] for r in rows) / total:.1%}"
+            lines.append(f"| {'none (Ours-∇²)' if t == 'raw' else t} | +{k} | {sum(d) / len(d):+.3f} | {min(d):+.3f} | "
+                         f"{kept} | {sum(acc) / len(acc):+.1f} |")
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenes", nargs="*", default=list(SPLITS["validation"]))
+    parser.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2])
+    parser.add_argument("--out", default=None, help="JSON lines file")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    model, protocol = load_default_model(), PROTOCOLS["quick"]
+    rows = []
+    for name in args.scenes:
+        for seed in args.seeds:
+            rows.append(pair(name, seed, model, protocol))
+            print(json.dumps(rows[-1]), flush=True)
+            if args.out:
+                with open(args.out, "a") as f:
+                    f.write(json.dumps(rows[-1]) + "\n")
+    print("\n".join(table(rows)))
+
+
+if __name__ == "__main__":
+    main()
