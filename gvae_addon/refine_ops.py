@@ -22,10 +22,10 @@ import time
 
 import bpy
 import numpy as np
-from bpy.props import IntProperty, StringProperty
+from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
 from bpy.types import Operator
 
-from gvae_core.budget import parse_budget
+from gvae_core.budget import DEFAULT_FIDELITY, parse_budget
 
 from . import convert, runtime
 
@@ -65,9 +65,10 @@ class RefineJob:
       it was. Also refuses to write when the object was deleted or its mesh replaced meanwhile.
     """
 
-    def __init__(self, obj, *, steps: int = 1, budget="auto", model=None, seed: int = 0, refine=None):
+    def __init__(self, obj, *, steps: int = 1, budget="auto", model=None, seed: int = 0,
+                 fidelity: float | None = DEFAULT_FIDELITY, refine=None):
         self.obj_name = obj.name
-        self.steps, self.budget, self.model, self.seed = steps, budget, model, seed
+        self.steps, self.budget, self.model, self.seed, self.fidelity = steps, budget, model, seed, fidelity
         self._refine = refine
         self.fraction, self.message = 0.0, "starting"
         self.result = None
@@ -133,7 +134,8 @@ class RefineJob:
         r, n_in = self.result, len(self.cloud)
         self.result = self.cloud = None  # the object holds it now
         self.info = {"before": n_in, "after": len(r.cloud), "added": len(r.added), "timings": dict(r.timings),
-                     "seconds": self.ended - self.started}
+                     "seconds": self.ended - self.started, "selected": len(getattr(r, "selected", ())),
+                     "put_back": len(getattr(r, "reverted", ()))}
         return self.info
 
     # ------------------------------------------------------------------ worker thread
@@ -146,7 +148,7 @@ class RefineJob:
     def _work(self, refine) -> None:
         try:
             self.result = refine(self.cloud, steps=self.steps, budget=self.budget, model=self.model, seed=self.seed,
-                                 progress=self._progress)
+                                 fidelity=self.fidelity, progress=self._progress)
         except RefineCancelled:
             self.result = None
         except BaseException as exc:  # reported on the main thread by finish()
@@ -162,8 +164,10 @@ RUNNING: dict[str, RefineJob] = {}
 def _report_text(info: dict) -> str:
     parts = ", ".join(f"{k} {v:.2f} s" for k, v in info["timings"].items()
                       if isinstance(v, (int, float)) and k != "total")
+    back = (f"; {info['put_back']} of {info['selected']} refined Gaussians put back by the fidelity check"
+            if info.get("put_back") else "")
     return (f"Refine: {info['before']} -> {info['after']} Gaussians (+{info['added']}) in {info['seconds']:.2f} s"
-            + (f" ({parts})" if parts else ""))
+            + back + (f" ({parts})" if parts else ""))
 
 
 def _redraw(context) -> None:
@@ -189,6 +193,12 @@ class GVAE_OT_refine(Operator):
     model: StringProperty(name="Model", default="", subtype="DIR_PATH",
                           description="Model folder (config.json + weights); empty for the bundled model")
     seed: IntProperty(name="Seed", default=0, min=0, description="Random seed (repeatable runs)")
+    fidelity_check: BoolProperty(name="Fidelity Check", default=True,
+                                 description="Put back what the models did wherever it changes the picture at the "
+                                 "training resolution (off: keep everything, which measurably lowers quality)")
+    fidelity: FloatProperty(name="Tolerance", default=DEFAULT_FIDELITY, min=0.0, max=1.0, precision=4,
+                            description="Largest colour change (0..1) a refined Gaussian may make at the "
+                            "training resolution")
 
     @classmethod
     def poll(cls, context):
@@ -202,7 +212,8 @@ class GVAE_OT_refine(Operator):
             model = bpy.path.abspath(self.model)
             if os.path.isfile(model):  # a file picked inside the model folder
                 model = os.path.dirname(model)
-        return RefineJob(context.active_object, steps=self.steps, budget=budget, model=model, seed=self.seed)
+        return RefineJob(context.active_object, steps=self.steps, budget=budget, model=model, seed=self.seed,
+                         fidelity=self.fidelity if self.fidelity_check else None)
 
     def execute(self, context):
         """Blocking: scripts and batch runs (`blender -b`)."""

@@ -23,6 +23,9 @@ class GVAE_Settings(PropertyGroup):
                                       ("FILE", "Folder", "A model folder (config.json + weights)")))
     model_path: StringProperty(name="Model Folder", subtype="DIR_PATH", default="")
     seed: IntProperty(name="Seed", default=0, min=0)
+    fidelity_check: BoolProperty(name="Fidelity Check", default=True,
+                                 description="Put back what the models did wherever it changes the picture at the "
+                                 "training resolution (off: keep everything, which measurably lowers quality)")
 
 
 class GVAE_PT_main(Panel):
@@ -93,6 +96,7 @@ class GVAE_PT_refine(Panel):
         if settings.model_source == "FILE":
             col.prop(settings, "model_path")
         col.prop(settings, "seed")
+        col.prop(settings, "fidelity_check")
         obj = context.active_object
         job = refine_ops.RUNNING.get(obj.name) if obj is not None else None
         if job is not None:
@@ -107,6 +111,7 @@ class GVAE_PT_refine(Panel):
         op.budget = "auto" if settings.budget_auto else f"{settings.budget_fraction:.6g}"
         op.model = settings.model_path if settings.model_source == "FILE" else ""
         op.seed = settings.seed
+        op.fidelity_check = settings.fidelity_check
         box = layout.box().column(align=True)
         for line in REFINE_NOTE:
             box.label(text=line)

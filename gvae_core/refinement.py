@@ -225,11 +225,7 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
     grow = _Growth(src, selected, hist_g, hist_a, scale)
     check = None
     if fidelity is not None and len(selected):
-        views = options.get("views", DEFAULT_VIEWS) or DEFAULT_VIEWS
-        resolution = options.get("resolution", DEFAULT_RESOLUTION)
-        cams = (scoring_views(cameras, views, resolution, src) if cameras is not None
-                else default_views(src, views, resolution, normalization=normalization))
-        check = _FidelityCheck(src, training_rate_views(src, cams), float(fidelity), options.get("render_settings"))
+        check = FidelityCheck.around(src, cameras, fidelity, options, normalization)
     for k in range(1, steps + 1):
         say(h1 + (0.97 - h1) * (k - 1) / steps, f"step {k}/{steps}: {len(grow.rows)} lineages")
         if len(grow.rows):
@@ -253,15 +249,27 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
             t_start += time.perf_counter() - suspended  # the caller's time is not ours
 
 
-class _FidelityCheck:
+class FidelityCheck:
     """Puts back the lineages of a result that change the picture at the training sampling rate by
     more than `tolerance` (`gvae_core.fidelity`); renders the input once."""
 
-    def __init__(self, src: GaussianCloud, cameras: list[Camera], tolerance: float, settings):
+    def __init__(self, src: GaussianCloud, cameras: list[Camera], tolerance: float, settings=None):
         if not tolerance >= 0.0:
             raise ValueError(f"refine: fidelity must be a tolerance >= 0 or None, got {tolerance!r}")
         self.src, self.cameras, self.tolerance, self.settings = src, cameras, tolerance, settings
         self.before = None
+
+    @classmethod
+    def around(cls, src: GaussianCloud, cameras, tolerance: float, hessian_options: dict | None = None,
+               normalization=None) -> FidelityCheck:
+        """The check `refine` makes: the Hessian's views (the capture's `cameras` picked and scaled
+        as for scoring, else views placed around the cloud) at the training sampling rate."""
+        options = hessian_options or {}
+        views = options.get("views", DEFAULT_VIEWS) or DEFAULT_VIEWS
+        resolution = options.get("resolution", DEFAULT_RESOLUTION)
+        cams = (scoring_views(cameras, views, resolution, src) if cameras is not None
+                else default_views(src, views, resolution, normalization=normalization or src.normalization()))
+        return cls(src, training_rate_views(src, cams), float(tolerance), options.get("render_settings"))
 
     def __call__(self, result: RefineResult) -> RefineResult:
         t0 = time.perf_counter()

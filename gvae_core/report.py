@@ -226,6 +226,11 @@ def knob_lines(doc: dict) -> list[str]:
             "| mean PSNR 2x (train scenes) | " + " | ".join(_fmt(v) for v in knob["psnr_2x"].values()) + " |"]
 
 
+def _cached(doc: dict) -> int:
+    """How many of the report's training runs were taken from the cache (trained in under 1 s)."""
+    return sum(1 for r in doc["runs"].values() if r.get("seconds", {}).get("train", 0.0) < 1.0)
+
+
 def write_report(doc: dict, out, *, command: str = "") -> Path:
     """results.json, README.md and the plots into `out`."""
     out = Path(out)
@@ -238,11 +243,12 @@ def write_report(doc: dict, out, *, command: str = "") -> Path:
     p, model = doc["protocol"], doc["model"]
     md = [f"# GaussianVAE: experiment report ({p['name']} profile)", "",
           f"Made by `{command or 'gvae report'}` on {doc['started']}, in {doc['seconds'] / 60:.1f} min on this "
-          f"machine (2 CPU cores, no GPU).", "",
+          f"machine (2 CPU cores, no GPU; {_cached(doc)} of the {len(doc['runs'])} training runs came from the "
+          f"cache).", "",
           (f"**Scenes**: the test split ({', '.join(res.scenes)}), looked at only for this report; no choice of "
            f"any kind was made on them." if split == "test" else
            f"**Scenes**: the {split} split ({', '.join(res.scenes)}): where choices are made; the test split's "
-           f"report is the one to quote.") + " **Seeds**: {', '.join(map(str, p['seeds']))} (3DGS training and "
+           f"report is the one to quote.") + f" **Seeds**: {', '.join(map(str, p['seeds']))} (3DGS training and "
           f"refinement), so every mean is over {len(res.pairs)} (scene, seed) pairs, ± its 95% interval.", "",
           f"**Protocol**: progressive 3DGS with lineage at {', '.join(map(str, p['resolutions']))} px (training "
           f"resolution {p['resolutions'][-1]} px; scenes rendered by Blender at the `{p['scene_profile']}` "

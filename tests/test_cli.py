@@ -116,11 +116,12 @@ def test_demo_refines_the_trained_example_and_compares_at_2x(tmp_path, capsys, m
     assert main(["demo", "--results", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     rows = [line for line in out.splitlines() if line.startswith("| ")]
-    assert rows[0] == "| view | unrefined | refined | change |" and len(rows) == 1 + 3 + 1  # head, 3 views, mean
-    before, after = (float(rows[-1].split(" | ")[k].split()[0]) for k in (1, 2))
-    assert 0 < before < 60 and 0 < after < 60
+    assert rows[0] == "| view | unrefined | refined | change | models, unchecked | change |"
+    assert len(rows) == 1 + 3 + 1  # head, 3 views, mean
+    before, after, unchecked = (float(rows[-1].split(" | ")[k].split()[0]) for k in (1, 2, 4))
+    assert 0 < before < 60 and 0 < after < 60 and 0 < unchecked < 60
     refined = read_ply(tmp_path / "out" / "refined.ply")
     assert len(refined) >= 400
     sheet = Image.open(tmp_path / "out" / "comparison.png")
     crop = demo.ZOOM * int(demo.CROP * 40)
-    assert sheet.size == (3 * 40 + 3 * crop, 3 * max(40, crop))  # a row per view: 3 panels, 3 crops
+    assert sheet.size == (4 * 40 + 4 * crop, 3 * max(40, crop))  # a row per view: 4 panels, 4 crops

@@ -3,9 +3,9 @@ gvae_core/fidelity.py was chosen).
 
 For each validation (scene, seed) of the quick protocol (training runs cached and shared with
 `make report`): the training-resolution cloud, its Hessian scores as the experiment computes
-them, Ours-∇² +1 and +2 without the check, then the check at each tolerance applied to those same
-results; PSNR at 1x and 2x (the protocol's render) and weighted accuracy against the unrefined
-cloud. One JSON line per pair, then a table.
+them, Ours-∇² +1 and +2 without the check, then the check `refine` makes (its default views) at
+each tolerance, applied to those same results; PSNR at 1x and 2x (the protocol's render) and
+weighted accuracy against the unrefined cloud. One JSON line per pair, then a table.
 
     python tools/tune_fidelity.py --out /tmp/fidelity.jsonl      # about 10 min on 2 cores
 """
@@ -18,9 +18,8 @@ import json
 import torch
 
 from gvae_core.experiment import PROTOCOLS, Evaluator, hessian_cameras, prepare_scene
-from gvae_core.fidelity import training_rate_views
 from gvae_core.hessian import hessian_scores
-from gvae_core.refinement import _FidelityCheck, refine_steps
+from gvae_core.refinement import FidelityCheck, refine_steps
 from gvae_core.rendering import RenderSettings
 from gvae_core.scenes import SPLITS
 from gvae_core.vae import load_default_model
@@ -38,11 +37,11 @@ def pair(name: str, seed: int, model, protocol) -> dict:
     row = {"scene": name, "seed": seed, "base": evaluate(base, scales=("1x", "2x"))}
     results = refine_steps(base, steps=2, budget=protocol.budget, model=model, scores=scores, seed=seed,
                            lineage=run.lineage(protocol.train_stage + 1), fidelity=None)
-    views = training_rate_views(base, cams)
+    checks = {t: FidelityCheck.around(base, None, t) for t in TOLERANCES}  # as refine(..., cameras=None)
     for k, r in enumerate(results, 1):
         row[f"raw{k}"] = evaluate(r.cloud, scales=("1x", "2x"))
         for t in TOLERANCES:
-            g = _FidelityCheck(base, views, t, settings)(r)
+            g = checks[t](r)
             row[f"{t}/{k}"] = {**evaluate(g.cloud, scales=("1x", "2x")), "reverted": len(g.reverted),
                                "selected": len(g.selected), "added": len(g.added)}
     return row

@@ -193,7 +193,7 @@ def _stand_in_module(fail: bool):
     calls = []
 
     def refine(cloud, *, steps=1, budget="auto", model=None, cameras=None, lineage=None, seed=0,
-               progress=None):
+               fidelity=None, progress=None):
         calls.append({"steps": steps, "budget": budget, "model": model, "seed": seed, "n": len(cloud)})
         if fail:
             raise ValueError("stand-in failure")
@@ -622,12 +622,14 @@ def scenario_refine_job(bpy, args: dict) -> dict:
     if not res["real_available"]:  # a Blender without torch: the rest needs it
         return res
     before = state()
-    real = refine_ops.RefineJob(bpy.data.objects[name], steps=1, budget=0.5, model=args["model"] or None).start()
+    real = refine_ops.RefineJob(bpy.data.objects[name], steps=1, budget=0.5, model=args["model"] or None,
+                                fidelity=None).start()
     real.cancel()
     real.wait(120)
     res["real_cancel"] = failure(bpy, real.finish)
     res["real_cancel_state_same"] = state() == before
-    real = refine_ops.RefineJob(bpy.data.objects[name], steps=1, budget=0.5, model=args["model"] or None).start()
+    real = refine_ops.RefineJob(bpy.data.objects[name], steps=1, budget=0.5, model=args["model"] or None,
+                                fidelity=None).start()
     real_polls = drive(real)
     res["real_messages"] = sorted({p[1] for p in real_polls})[:5]
     info = real.finish()
@@ -676,14 +678,18 @@ def scenario_refine_job(bpy, args: dict) -> dict:
                            "vertices": len(bpy.data.objects[name].data.vertices)}
 
     # 7. invoke without a user interface (background): runs to the end like execute
-    res["invoke"] = sorted(bpy.ops.gvae.refine("INVOKE_DEFAULT", steps=1, budget="0.5", model=args["model"]))
+    res["invoke"] = sorted(bpy.ops.gvae.refine("INVOKE_DEFAULT", steps=1, budget="0.5", model=args["model"],
+                                               fidelity_check=False))
     res["invoke_vertices"] = len(bpy.data.objects[name].data.vertices)
+    # the fidelity check reaches the core: at tolerance 0 the untrained model's work is all put back
+    bpy.ops.gvae.refine(steps=1, budget="0.5", model=args["model"], fidelity=0.0)
+    res["checked_vertices"] = len(bpy.data.objects[name].data.vertices)
 
     # 8. one undo step: undo brings the object back as it was before the refine, redo refines again
     # (called as a button does: with the undo push that scripts leave out by default)
     bpy.ops.ed.undo_push(message="before refine")
     before = len(bpy.data.objects[name].data.vertices)
-    bpy.ops.gvae.refine("EXEC_DEFAULT", True, steps=1, budget="0.5", model=args["model"])
+    bpy.ops.gvae.refine("EXEC_DEFAULT", True, steps=1, budget="0.5", model=args["model"], fidelity_check=False)
     after = len(bpy.data.objects[name].data.vertices)
     bpy.ops.ed.undo()
     undone = len(bpy.data.objects[name].data.vertices)

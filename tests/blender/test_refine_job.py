@@ -54,5 +54,6 @@ def test_refine_job_progress_cancel_failure_and_modal_events(extension_zip, tmp_
     assert f["vertices"] > res["real_after"]
     # invoke without a window runs to the end, like execute
     assert res["invoke"] == ["FINISHED"] and res["invoke_vertices"] > f["vertices"]
+    assert res["checked_vertices"] == res["invoke_vertices"]  # the fidelity check, tolerance 0: all put back
     before, after, undone, redone = res["undo"]
     assert after > before and undone == before and redone == after  # one undo step
