@@ -20,8 +20,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .antialias import CLASSIC_DILATION, DILATION_KEY, FILTER_3D_VARIANCE, FILTER_KEY, max_sampling_rate
 from .budget import DEFAULT_FIDELITY
-from .antialias import CLASSIC_DILATION, DILATION_KEY, FILTER_3D_VARIANCE, FILTER_KEY, _camera_rate
 from .camera import Camera
 from .cloud import _FIELDS, GaussianCloud
 from .conventions import NEAR_PLANE
@@ -39,11 +39,14 @@ __all__ = ["DEFAULT_TOLERANCE", "training_rate_views", "lineage_changes", "rever
 DEFAULT_TOLERANCE = DEFAULT_FIDELITY
 
 
-def training_rate_views(cloud: GaussianCloud, cameras: Sequence[Camera], min_height: int = 16) -> list[Camera]:
+def training_rate_views(cloud: GaussianCloud, cameras: Sequence[Camera], min_height: int = 16,
+                        max_height: int = 1024) -> list[Camera]:
     """`cameras` rescaled so that each samples the Gaussians it sees as the training cameras did:
     image height times the median over those Gaussians of (training rate / this camera's rate),
     the training rate read from the cloud's `filter_3D` or `gvae_dilation_3D` (rate = sqrt(variance)
-    / size). Without either size the cameras are returned as they are."""
+    / size), kept within [min_height, max_height] (a capture trained at 4K is checked at 1024 px:
+    coarser than its training, so the check is more lenient there, and affordable). Without
+    either size the cameras are returned as they are."""
     key, variance = ((FILTER_KEY, FILTER_3D_VARIANCE) if FILTER_KEY in cloud.extra
                      else (DILATION_KEY, CLASSIC_DILATION) if DILATION_KEY in cloud.extra else (None, None))
     if key is None:
@@ -53,10 +56,10 @@ def training_rate_views(cloud: GaussianCloud, cameras: Sequence[Camera], min_hei
     train_rate = np.where(size > 0, math.sqrt(variance) / np.maximum(size, 1e-30), 0.0)
     out = []
     for cam in cameras:
-        rate = _camera_rate(means, cam, NEAR_PLANE, 0.0)
+        rate = max_sampling_rate(means, [cam], margin=0.0)
         seen = (rate > 0) & (train_rate > 0) & np.isfinite(train_rate)
         factor = float(np.median(train_rate[seen] / rate[seen])) if seen.any() else 1.0
-        out.append(cam.scaled(max(min_height, int(round(cam.height * factor)))))
+        out.append(cam.scaled(min(max_height, max(min_height, int(round(cam.height * factor))))))
     return out
 
 

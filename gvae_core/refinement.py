@@ -263,7 +263,8 @@ class FidelityCheck:
     def around(cls, src: GaussianCloud, cameras, tolerance: float, hessian_options: dict | None = None,
                normalization=None) -> FidelityCheck:
         """The check `refine` makes: the Hessian's views (the capture's `cameras` picked and scaled
-        as for scoring, else views placed around the cloud) at the training sampling rate."""
+        as for scoring, else views placed around the cloud; DEFAULT_VIEWS of them when the Hessian
+        takes all, views=0, which would cost two renders each) at the training sampling rate."""
         options = hessian_options or {}
         views = options.get("views", DEFAULT_VIEWS) or DEFAULT_VIEWS
         resolution = options.get("resolution", DEFAULT_RESOLUTION)

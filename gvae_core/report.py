@@ -32,6 +32,13 @@ METRICS = (("chamfer", "Chamfer", True, True), ("weighted_accuracy", "weighted a
 ALTERNATIVES = (*CONTROLS, BASELINE, KNOB)
 
 
+def _nanmean(values) -> float:
+    """Mean of the finite values; NaN (without numpy's warning) when there are none."""
+    a = np.asarray(values, np.float64)
+    a = a[np.isfinite(a)]
+    return float(a.mean()) if len(a) else float("nan")
+
+
 def mean_ci(values) -> tuple[float, float]:
     """Mean and the half-width of its 95% interval (Student t); NaN values are left out."""
     v = np.asarray([x for x in values if x is not None and math.isfinite(x)], np.float64)
@@ -125,7 +132,7 @@ def methods_table(res: Results) -> list[str]:
         if not any(math.isfinite(c) for c in counts):
             continue
         row = [METHOD_NAMES[method] + (f" {scale}" if scale else ""), f"+{step}" if step else "–",
-               f"{np.nanmean(counts):.0f}"]
+               f"{_nanmean(counts):.0f}"]
         for key, relative, digits in cells:
             row.append(_fmt(*mean_ci([res.change(s, d, method, step, key, relative, scale) for s, d in res.pairs]),
                             digits, True))
@@ -141,7 +148,7 @@ def scene_table(res: Results) -> list[str]:
     lines = ["| scene | " + " | ".join(c[-1] for c in cols) + " |", "|" + "---|" * (len(cols) + 1)]
     for scene in res.scenes:
         seeds = [d for s, d in res.pairs if s == scene]
-        vals = [np.nanmean([res.value(scene, d, m, k, key, scale) for d in seeds]) for m, k, scale, key, _ in cols]
+        vals = [_nanmean([res.value(scene, d, m, k, key, scale) for d in seeds]) for m, k, scale, key, _ in cols]
         lines.append(f"| {scene} | " + " | ".join(_fmt(v) for v in vals) + " |")
     return lines
 
@@ -180,12 +187,12 @@ def plots(doc: dict, res: Results, out: Path) -> list[str]:
             for k in res.steps:
                 n = [res.value(s, d, method, k, "n_gaussians") / res.value(s, d, BASELINE, 0, "n_gaussians")
                      for s, d in res.pairs]
-                xs.append(float(np.nanmean(n)))
+                xs.append(float(_nanmean(n)))
                 ys.append(mean_ci([res.change(s, d, method, k, key, True) for s, d in res.pairs])[0])
             ax.plot(xs, ys, "o-", label=METHOD_NAMES[method])
         for method, marker in ((KNOB, "s"), (REAL, "^")):
             for scale in ((None,) if method == KNOB else ("1.5x", "2x")):
-                n = np.nanmean([res.value(s, d, method, 0, "n_gaussians", scale)
+                n = _nanmean([res.value(s, d, method, 0, "n_gaussians", scale)
                                 / res.value(s, d, BASELINE, 0, "n_gaussians") for s, d in res.pairs])
                 y = mean_ci([res.change(s, d, method, 0, key, True, scale) for s, d in res.pairs])[0]
                 ax.plot([n], [y], marker, label=METHOD_NAMES[method] + (f" {scale}" if scale else ""))

@@ -39,6 +39,7 @@ def test_views_at_the_training_sampling_rate(add):
         one = add(_cloud(), _cameras(40)[k:k + 1])
         assert {DILATION_KEY, FILTER_KEY} & set(one.extra)
         assert training_rate_views(one, _cameras(160)[k:k + 1])[0].height == 40
+        assert training_rate_views(one, _cameras(160)[k:k + 1], max_height=30)[0].height == 30
     heights = [v.height for v in training_rate_views(add(_cloud(), _cameras(40)), _cameras(160))]
     assert all(40 <= h <= 48 for h in heights), heights
     assert [v.height for v in training_rate_views(_cloud(), _cameras(160))] == [160, 160, 160]  # no size: as given

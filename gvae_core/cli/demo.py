@@ -70,7 +70,6 @@ def run_trained(folder: Path, args: argparse.Namespace) -> int:
     print(f"trained example {folder}: {len(cloud)} Gaussians, SH degree {cloud.sh_degree}; ground truth: "
           f"{len(views)} test views at {views.cameras[0].height} px")
     result = refine(cloud, steps=args.steps, budget="auto", progress=lambda f, msg: print(f"  [{f:4.0%}] {msg}"))
-    print(result.summary())
     unchecked = refine(cloud, steps=args.steps, budget="auto", scores=result.scores, fidelity=None)
     out: Path = args.results
     out.mkdir(parents=True, exist_ok=True)
