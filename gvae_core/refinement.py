@@ -24,6 +24,7 @@ from collections.abc import Callable, Iterator, Sequence
 import numpy as np
 import torch
 
+from .antialias import DILATION_KEY, FILTER_KEY, with_dilation_3d
 from .budget import select_budget
 from .camera import Camera
 from .capture import default_views, scoring_views
@@ -138,8 +139,8 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model:
     its `gvae_id`s and positions, `Lineage.stage_of`; later stages are not used). `scores`:
     precomputed Hessian scores (skips scoring). `carry_appearance`: after the first step the model
     changes geometry only, every child taking its parent's colour, SH and opacity (fed its own
-    predictions, the model's appearance changes compound and PSNR above the training resolution
-    falls with every step; `reports/` has the ablation). `progress(fraction, message)` is called
+    predictions, the model's appearance changes compounded and PSNR above the training resolution
+    fell with every step in the v1 experiment). `progress(fraction, message)` is called
     as the work goes on; an exception it raises stops the refine (how the Blender job cancels).
     `check_memory`: refuse, with `resources.NotEnoughMemoryError`, a cloud whose estimated peak
     memory exceeds what is free. `fidelity`: the largest colour change (0..1) a lineage may make
@@ -264,13 +265,18 @@ class FidelityCheck:
                normalization=None) -> FidelityCheck:
         """The check `refine` makes: the Hessian's views (the capture's `cameras` picked and scaled
         as for scoring, else views placed around the cloud; DEFAULT_VIEWS of them when the Hessian
-        takes all, views=0, which would cost two renders each) at the training sampling rate."""
+        takes all, views=0, which would cost two renders each) at the training sampling rate: the
+        cloud's stored anti-aliasing size says what it was, else the capture's cameras at their
+        full size do (a cloud from another tool with its cameras), else the views stay as they are."""
         options = hessian_options or {}
         views = options.get("views", DEFAULT_VIEWS) or DEFAULT_VIEWS
         resolution = options.get("resolution", DEFAULT_RESOLUTION)
         cams = (scoring_views(cameras, views, resolution, src) if cameras is not None
                 else default_views(src, views, resolution, normalization=normalization or src.normalization()))
-        return cls(src, training_rate_views(src, cams), float(tolerance), options.get("render_settings"))
+        rate_of = src
+        if cameras is not None and not {FILTER_KEY, DILATION_KEY} & set(src.extra):
+            rate_of = with_dilation_3d(src, list(cameras))
+        return cls(src, training_rate_views(rate_of, cams), float(tolerance), options.get("render_settings"))
 
     def __call__(self, result: RefineResult) -> RefineResult:
         t0 = time.perf_counter()

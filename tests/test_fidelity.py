@@ -10,7 +10,7 @@ import torch
 from gvae_core import Camera, GaussianCloud
 from gvae_core.antialias import DILATION_KEY, FILTER_KEY, with_dilation_3d, with_filter_3d
 from gvae_core.fidelity import lineage_changes, revert_lineages, training_rate_views
-from gvae_core.refinement import refine
+from gvae_core.refinement import FidelityCheck, refine
 from gvae_core.rendering import render
 from gvae_core.vae import GaussianVAE
 
@@ -43,6 +43,19 @@ def test_views_at_the_training_sampling_rate(add):
     heights = [v.height for v in training_rate_views(add(_cloud(), _cameras(40)), _cameras(160))]
     assert all(40 <= h <= 48 for h in heights), heights
     assert [v.height for v in training_rate_views(_cloud(), _cameras(160))] == [160, 160, 160]  # no size: as given
+
+
+def test_the_check_reads_the_training_rate_from_the_capture_cameras():
+    """A cloud without a stored size, refined with its capture's cameras (512 px, scored at 256 px):
+    the check renders at the cameras' own 512 px, the rate the cloud was trained at; with a size,
+    the size decides; without either, the scoring views as they are."""
+    cams = _cameras(512)
+    plain = _cloud()
+    check = FidelityCheck.around(plain, cams, 0.01)  # each Gaussian's rate: the nearest camera's
+    assert len(check.cameras) == 3 and all(512 <= c.height <= 600 for c in check.cameras), check.cameras
+    sized = with_dilation_3d(_cloud(), _cameras(64))
+    assert all(64 <= c.height <= 75 for c in FidelityCheck.around(sized, cams, 0.01).cameras)
+    assert {c.height for c in FidelityCheck.around(plain, None, 0.01, {"resolution": 48}).cameras} == {48}
 
 
 def _reference_changes(before, after, roots, added, added_roots, cameras, window=3):
