@@ -43,7 +43,8 @@ from .conventions import LOG_SCALE_RANGE, SH_C1 as SH_C1_, SH_C2 as SH_C2_, SH_C
 from .rendering import RenderSettings, render
 from .rendering import projection as pj
 from .rendering.projection import Projected, project
-from .rendering.rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN, composite, pack, pair_table
+from .rendering.rasterize import (ALPHA_MAX, T_MIN, _alpha_and_transmittance, _block_pairs, _tile_centres,
+                                  _weights, composite, pack, pair_table)
 from .rendering.tiles import bin_gaussians
 
 BLOCK = 6  # position (3) + log-scale (3)
@@ -115,14 +116,11 @@ def _gauss_newton_sweep(pairs: torch.Tensor, binning, acc: torch.Tensor, block: 
     mono2t = mono_t[:_P2].contiguous()
     dummy = pairs.shape[0] - 1
     gids = torch.cat([binning.gaussian_ids, binning.gaussian_ids.new_full((1,), -1)])
-    below_min = float(torch.nextafter(torch.tensor(ALPHA_MIN, dtype=dt), torch.tensor(0.0, dtype=dt)))
-    below_t = float(torch.nextafter(torch.tensor(T_MIN, dtype=dt), torch.tensor(0.0, dtype=dt)))
     # pixels of the border tiles past the image's edge are composited but not part of the image
     local = torch.arange(p)
     for tiles, kmax in _tile_groups(binning, block, budget):
         b = tiles.shape[0]
-        cx = (tiles % binning.tiles_x).to(dt) * ts + ts / 2.0
-        cy = (tiles // binning.tiles_x).to(dt) * ts + ts / 2.0
+        cx, cy = _tile_centres(tiles, binning, dt)
         inside = (((tiles % binning.tiles_x)[:, None] * ts + local % ts < width)
                   & ((tiles // binning.tiles_x)[:, None] * ts + local // ts < height)).to(dt)  # (B, P)
         start, count = binning.offsets[tiles], binning.counts[tiles]
@@ -137,27 +135,14 @@ def _gauss_newton_sweep(pairs: torch.Tensor, binning, acc: torch.Tensor, block: 
                 if active.numel() == 0:
                     break
             kb = min(block, kmax - k0)
-            kk = torch.arange(k0, k0 + kb)
-            pos = start[active][None, :] + kk[:, None]
-            ids = torch.where(kk[:, None] < count[active][None, :], pos, torch.full_like(pos, dummy)).reshape(-1)
+            ids = _block_pairs(start[active], count[active], k0, kb, dummy).reshape(-1)
             gd = pairs.index_select(0, ids).reshape(kb, -1, pairs.shape[1])
-            mu = gd[..., 0] - cx[active]
-            mv = gd[..., 1] - cy[active]
-            a, bb, c = gd[..., 2], gd[..., 3], gd[..., 4]
-            # the exponent as the renderer computes it: a quadratic in tile-local pixel coordinates
-            c0 = torch.log(gd[..., 5]) - 0.5 * a * mu * mu - bb * mu * mv - 0.5 * c * mv * mv
-            coef = torch.stack([c0, a * mu + bb * mv, bb * mu + c * mv, -0.5 * a, -bb, -0.5 * c], -1)
-            alpha = torch.mm(coef.reshape(-1, _P2), mono2t).reshape(kb, -1, p)
-            alpha.exp_().clamp_(max=ALPHA_MAX)
-            torch.nn.functional.threshold_(alpha, below_min, 0.0)
+            # alpha and transmittance exactly as the renderer computes them
             was_done = done[active]
             t_prev = trans[active]
-            tr = torch.empty((kb + 1,) + t_prev.shape, dtype=dt)
-            tr[0] = torch.where(was_done, torch.zeros_like(t_prev), t_prev)
-            for k in range(kb):
-                torch.addcmul(tr[k], tr[k], alpha[k], value=-1.0, out=tr[k + 1])
-            kept = torch.nn.functional.threshold(tr[1:], below_t, 2.0)
-            w = torch.sub(tr[:-1], kept).clamp_(min=0.0)  # (kb, B, P)
+            t0 = torch.where(was_done, torch.zeros_like(t_prev), t_prev)
+            alpha, tr, mu, mv = _alpha_and_transmittance(gd, cx[active], cy[active], mono2t, t0)
+            w, kept = _weights(tr)  # (kb, B, P)
             if k0 + block < kmax:
                 trans[active] = torch.where(was_done, t_prev, torch.minimum(tr[0], kept.amin(0)))
                 done[active] = was_done | (tr[-1] < T_MIN)
