@@ -24,7 +24,6 @@ object, or inside a scene that surrounds its centre, `surround_radius`).
 
 from __future__ import annotations
 
-import json
 import math
 import struct
 import warnings
@@ -36,7 +35,7 @@ from PIL import Image, UnidentifiedImageError
 
 from .camera import Camera
 from .cloud import GaussianCloud
-from .datasets import DatasetError
+from .datasets import DatasetError, read_transforms
 
 __all__ = ["load_cameras", "read_colmap_cameras", "COLMAP_MODELS", "scoring_views", "default_views",
            "surround_radius", "DEFAULT_VIEWS", "DEFAULT_RESOLUTION"]
@@ -420,13 +419,7 @@ def _pose_line(line: str):
 # ------------------------------------------------------------------------- transforms.json
 
 def _load_transforms(path: Path) -> list[Camera]:
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: malformed JSON: {exc}") from None
-    frames = meta.get("frames") if isinstance(meta, dict) else None
-    if not isinstance(frames, list) or not frames:
-        raise DatasetError(f"{path}: malformed: expected an object with a non-empty 'frames' list")
+    meta, frames = read_transforms(path)
     model = str(meta.get("camera_model", "OPENCV")).upper()
     if "FISHEYE" in model:
         raise DatasetError(f"{path}: camera_model {model} is not supported (pinhole cameras only)")

@@ -68,6 +68,19 @@ class Views:
         return (self.images * a + bg * (1.0 - a)).astype(np.float32, copy=False)
 
 
+def read_transforms(path: Path) -> tuple[dict, list]:
+    """A transforms JSON (NeRF-Synthetic, Instant-NGP, nerfstudio) and its non-empty 'frames'
+    list; DatasetError naming the file when it is not one."""
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: malformed JSON: {exc}") from None
+    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if not isinstance(frames, list) or not frames:
+        raise DatasetError(f"{path}: malformed: expected an object with a non-empty 'frames' list")
+    return meta, frames
+
+
 def load_nerf_synthetic(root, split: str = "train", resolution: int | None = None) -> Views:
     """Read `root/transforms_{split}.json` and its images.
 
@@ -77,13 +90,7 @@ def load_nerf_synthetic(root, split: str = "train", resolution: int | None = Non
     meta_path = root / f"transforms_{split}.json"
     if not meta_path.is_file():
         raise DatasetError(f"{meta_path}: missing (no {split!r} split in {root})")
-    try:
-        meta = json.loads(meta_path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{meta_path}: malformed JSON: {exc}") from None
-    frames = meta.get("frames") if isinstance(meta, dict) else None
-    if not isinstance(frames, list) or not frames:
-        raise DatasetError(f"{meta_path}: malformed: expected an object with a non-empty 'frames' list")
+    meta, frames = read_transforms(meta_path)
     try:
         angle_x = float(meta["camera_angle_x"])
     except (KeyError, TypeError, ValueError):
