@@ -17,6 +17,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.corruption import EDITS, corrupt
+
 from gvae_core import GaussianCloud, PlyError, read_ply, read_splat_file, write_ply
 from gvae_core.cli import main
 from gvae_core.conventions import LOG_SCALE_RANGE, SH_C0, rgb_to_dc
@@ -479,33 +481,14 @@ def test_truncated_files_raise_ply_error(tmp_path, seed_files, fmt):
         assert str(path) in str(exc.value), (cut, str(exc.value))
 
 
-edits = st.lists(st.tuples(st.sampled_from(["flip", "set", "cut", "insert", "delete"]),
-                           st.floats(0, 1), st.integers(0, 255)), min_size=1, max_size=4)
-
-
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(fmt=st.sampled_from(sorted(SUFFIX)), ops=edits)
+@given(fmt=st.sampled_from(sorted(SUFFIX)), ops=EDITS)
 def test_property_corruption_only_raises_ply_error(tmp_path, seed_files, fmt, ops):
     if fmt not in seed_files:
         return
-    data = bytearray(seed_files[fmt])
-    for op, where, value in ops:
-        # Half the edits hit the first 64 bytes (headers, signatures), where parsing is most delicate.
-        pos = int(where * (min(64, len(data)) if value % 2 else len(data))) % max(1, len(data))
-        if not data and op in ("flip", "set"):
-            continue
-        if op == "flip":
-            data[pos] ^= 1 << (value % 8)
-        elif op == "set":
-            data[pos] = value
-        elif op == "cut":
-            del data[pos:]
-        elif op == "insert":
-            data[pos:pos] = bytes([value]) * (1 + value % 3)
-        else:
-            del data[pos:pos + 1 + value % 5]
+    data = seed_files[fmt]
     path = tmp_path / ("c" + SUFFIX[fmt])
-    path.write_bytes(bytes(data))
+    path.write_bytes(corrupt(data, ops, head_len=min(64, len(data))))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:

@@ -11,6 +11,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.corruption import EDITS, corrupt
+
 from gvae_core import GaussianCloud, PlyError, read_ply, write_ply
 
 K_OF_DEGREE = {0: 0, 1: 3, 2: 8, 3: 15}
@@ -348,32 +350,12 @@ def seed_files(tmp_path_factory):
     return _seed_files(tmp_path_factory)
 
 
-edits = st.lists(st.tuples(st.sampled_from(["flip", "set", "cut", "insert", "delete"]),
-                           st.floats(0, 1), st.integers(0, 255)), min_size=1, max_size=4)
-
-
 @settings(max_examples=250, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(which=st.integers(0, 1), ops=edits)
+@given(which=st.integers(0, 1), ops=EDITS)
 def test_property_corruption_only_raises_ply_error(tmp_path, seed_files, which, ops):
-    data = bytearray(seed_files[which])
-    head_len = data.index(b"end_header") + 11
-    for op, where, value in ops:
-        # Half the edits hit the header, where parsing is most delicate.
-        pos = int(where * (head_len if value % 2 else len(data))) % max(1, len(data))
-        if not data and op in ("flip", "set"):
-            continue
-        if op == "flip":
-            data[pos] ^= 1 << (value % 8)
-        elif op == "set":
-            data[pos] = value
-        elif op == "cut":
-            del data[pos:]
-        elif op == "insert":
-            data[pos:pos] = bytes([value]) * (1 + value % 3)
-        else:
-            del data[pos:pos + 1 + value % 5]
+    data = seed_files[which]
     path = tmp_path / "c.ply"
-    path.write_bytes(bytes(data))
+    path.write_bytes(corrupt(data, ops, head_len=data.index(b"end_header") + 11))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
