@@ -182,21 +182,16 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
             layout.prop(self, prop)
 
 
-class EXPORT_SCENE_OT_gaussian_splat(Operator, ExportHelper):
-    """Export the active splat object as a 3D Gaussian Splatting PLY file"""
+class _SplatExport(ExportHelper):
+    """What the splat exporters share: the active splat object, Apply Transform, and execute()
+    (the format follows the file name, `gvae_core.formats.write_splat_file`)."""
 
-    bl_idname = "export_scene.gaussian_splat"
-    bl_label = "Export Gaussian Splat"
     bl_options = {"REGISTER", "PRESET"}
 
-    filename_ext = ".ply"
-    filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
     apply_transform: BoolProperty(
         name="Apply Transform", default=False,
         description="Write positions, rotations and scales in world space (uniform scale only; "
         "view-dependent SH colour is not rotated)")
-    write_step: BoolProperty(name="Write Refine Step", default=False,
-                             description="Also write the gvae_step attribute as an int property")
 
     @classmethod
     def poll(cls, context):
@@ -218,26 +213,27 @@ class EXPORT_SCENE_OT_gaussian_splat(Operator, ExportHelper):
         return {"FINISHED"}
 
 
-class EXPORT_SCENE_OT_gaussian_splat_spz(Operator, ExportHelper):
+class EXPORT_SCENE_OT_gaussian_splat(_SplatExport, Operator):
+    """Export the active splat object as a 3D Gaussian Splatting PLY file"""
+
+    bl_idname = "export_scene.gaussian_splat"
+    bl_label = "Export Gaussian Splat"
+
+    filename_ext = ".ply"
+    filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
+    write_step: BoolProperty(name="Write Refine Step", default=False,
+                             description="Also write the gvae_step attribute as an int property")
+
+
+class EXPORT_SCENE_OT_gaussian_splat_spz(_SplatExport, Operator):
     """Export the active splat object as a Niantic .spz file (compressed: 8-bit colours, rotations and SH)"""
 
     bl_idname = "export_scene.gaussian_splat_spz"
     bl_label = "Export Gaussian Splat (.spz)"
-    bl_options = {"REGISTER", "PRESET"}
 
     filename_ext = ".spz"
     filter_glob: StringProperty(default="*.spz", options={"HIDDEN"})
-    apply_transform: BoolProperty(
-        name="Apply Transform", default=False,
-        description="Write positions, rotations and scales in world space (uniform scale only; "
-        "view-dependent SH colour is not rotated)")
     write_step = False  # .spz holds no extra properties such as gvae_step
-
-    @classmethod
-    def poll(cls, context):
-        return convert.is_splat(context.active_object)
-
-    execute = EXPORT_SCENE_OT_gaussian_splat.execute  # the PLY exporter's, writing .spz for a .spz path
 
 
 class GVAE_FH_gaussian_splat(bpy.types.FileHandler):
