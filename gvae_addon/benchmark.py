@@ -17,9 +17,8 @@ import bpy
 import numpy as np
 
 import gvae_addon
-from mathutils import Matrix
 
-from gvae_addon import convert, nodes
+from gvae_addon import convert, nodes, render_setup
 from gvae_core.examples import random_cloud
 from gvae_core.ply import read_ply, write_ply
 
@@ -196,15 +195,8 @@ def render_main(ply: str, camera_json: str, out_dir: str) -> int:
     t0 = time.perf_counter()
     bpy.ops.import_scene.gaussian_splat(filepath=ply)
     out = {"import_s": time.perf_counter() - t0, "n": len(bpy.context.active_object.data.vertices), "renders": {}}
-    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
-    scene.collection.objects.link(cam)
-    scene.camera = cam
-    cam.matrix_world = Matrix(cam_args["c2w"])
-    cam.data.sensor_fit = "HORIZONTAL"
-    cam.data.angle_x = cam_args["fov_x"]
-    cam.data.clip_start = 0.01
+    render_setup.add_camera(scene, cam_args["c2w"], cam_args["fov_x"], cam_args["width"], cam_args["height"])
     r = scene.render
-    r.resolution_x, r.resolution_y, r.resolution_percentage = cam_args["width"], cam_args["height"], 100
     r.engine = "CYCLES"
     r.film_transparent = True
     r.threads_mode, r.threads = "FIXED", 2

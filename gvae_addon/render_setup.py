@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import bpy
 from bpy.app.handlers import persistent
+from mathutils import Matrix
 
 from . import nodes
 
@@ -31,6 +32,22 @@ VIEW_TRANSFORM = "Standard"
 #: (Cycles' default) -> 12.9 dB, 64 -> 23.2 dB, 128 -> 37.8 dB, 256 -> 47.5 dB.
 TRANSPARENT_BOUNCES = 256
 FOCAL_INPUT = "Focal Length (px)"
+
+
+def add_camera(scene, c2w, fov_x: float, width: int, height: int):
+    """A new scene camera at camera-to-world `c2w` (4x4, Blender's convention, as
+    `gvae_core.camera.Camera.to_blender_c2w` gives it) with horizontal field of view `fov_x`
+    (radians), the scene rendering width x height at 100%: a capture's camera in Blender."""
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    cam.matrix_world = Matrix(c2w)
+    cam.data.sensor_fit = "HORIZONTAL"
+    cam.data.angle_x = fov_x
+    cam.data.clip_start = 0.01
+    r = scene.render
+    r.resolution_x, r.resolution_y, r.resolution_percentage = width, height, 100
+    return cam
 
 
 def camera_focal_px(scene) -> float:

@@ -382,19 +382,9 @@ def _splat_inputs(obj, values: dict) -> list[str]:
 
 def _camera(bpy, args: dict):
     """The scene camera at args["c2w"] (Blender convention) with horizontal field of view fov_x."""
-    from mathutils import Matrix
+    from bl_ext.user_default.gaussian_vae.gvae_addon.render_setup import add_camera
 
-    scene = bpy.context.scene
-    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
-    scene.collection.objects.link(cam)
-    scene.camera = cam
-    cam.matrix_world = Matrix(args["c2w"])
-    cam.data.sensor_fit = "HORIZONTAL"
-    cam.data.angle_x = args["fov_x"]
-    cam.data.clip_start = 0.01
-    scene.render.resolution_x, scene.render.resolution_y = args["width"], args["height"]
-    scene.render.resolution_percentage = 100
-    return cam
+    return add_camera(bpy.context.scene, args["c2w"], args["fov_x"], args["width"], args["height"])
 
 
 def scenario_display(bpy, args: dict) -> dict:
