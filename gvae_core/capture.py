@@ -249,6 +249,13 @@ class _Reader:
         self.pos += size
         return values
 
+    def count(self, what: str) -> int:
+        """A uint64 count of records (`what`: "cameras", "images") that the file could hold."""
+        (n,) = self.read("Q", f"the {what[:-1]} count")
+        if n > len(self.data):
+            raise DatasetError(f"{self.path}: corrupt: {n} {what} in a {len(self.data)}-byte file")
+        return n
+
     def string(self, what: str) -> str:
         end = self.data.find(b"\0", self.pos)
         if end < 0:
@@ -272,9 +279,7 @@ def read_colmap_cameras(path) -> dict[int, tuple[str, int, int, np.ndarray]]:
     out: dict[int, tuple[str, int, int, np.ndarray]] = {}
     if path.suffix == ".bin":
         r = _Reader(path)
-        (count,) = r.read("Q", "the camera count")
-        if count > len(r.data):
-            raise DatasetError(f"{path}: corrupt: {count} cameras in a {len(r.data)}-byte file")
+        count = r.count("cameras")
         for k in range(count):
             cam_id, model_id, width, height = r.read("iiQQ", f"camera {k}")
             if model_id not in COLMAP_MODELS:
@@ -357,9 +362,7 @@ def _colmap_images(path: Path, intrinsics: dict) -> list[Camera]:
     found: list[tuple[int, Camera]] = []
     if path.suffix == ".bin":
         r = _Reader(path)
-        (count,) = r.read("Q", "the image count")
-        if count > len(r.data):
-            raise DatasetError(f"{path}: corrupt: {count} images in a {len(r.data)}-byte file")
+        count = r.count("images")
         for k in range(count):
             image_id, *pose, cam_id = r.read("I7di", f"image {k}")
             name = r.string(f"the name of image {image_id}")
