@@ -173,8 +173,7 @@ def read_ply(path, *, sanitize: bool = False) -> GaussianCloud:
     where = str(path)
     size = path.stat().st_size
     with open(path, "rb") as f:
-        raw = _read_header_bytes(f, where)
-        header = _parse_header(raw, where)
+        header = read_header(f, where)
         vertex, skip_bytes, skip_values = _locate_vertex(header, where)
         _check_properties([name for name, _ in vertex.props], where)
         n = vertex.count
