@@ -13,7 +13,9 @@ import gvae_core.refinement
 import gvae_core.rendering.reference
 from gvae_core import Camera, GaussianCloud
 from gvae_core.rendering import RenderOutput, RenderSettings, render
+from gvae_core.rendering.projection import project
 from gvae_core.rendering.reference import render_reference
+from gvae_core.rendering.tiles import _sort_key, bin_gaussians
 
 BG = (0.25, 0.5, 0.8)
 FIELDS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
@@ -87,6 +89,28 @@ def test_tiling_is_invisible():
         img = render(cloud, cam, background=BG,
                      settings=RenderSettings(tile_size=ts, exact_tiles=exact, block=block, budget=budget)).image
         assert (img - base).abs().max() < 2e-5  # float32 rounding only: no Gaussian lost
+
+
+def test_binning_in_chunks_and_by_integer_depth_keys_changes_nothing():
+    x = torch.tensor([3.0, -0.0, 0.0, -2.5, float("inf"), -float("inf"), 1e-40, -1e-40, 7.0, 3.0])
+    for dtype in (torch.float32, torch.float64):
+        v = x.to(dtype)
+        assert torch.equal(torch.sort(_sort_key(v), stable=True).indices[[0, 1, 6, 7, 8, 9]],
+                           torch.sort(v, stable=True).indices[[0, 1, 6, 7, 8, 9]])  # (-0.0 and 0.0 tie as floats)
+        assert torch.equal(v[torch.sort(_sort_key(v), stable=True).indices], torch.sort(v).values)
+    cloud = random_cloud(500, 0, seed=10)
+    cam = camera(53, 41)
+    c = cloud.to_torch()
+    p = project(c.means, c.scales, c.quats, c.opacities, c.sh_dc, c.sh_rest, cam, 0)
+    whole = bin_gaussians(p.means2d, p.footprint, p.depths, p.visible, cam.width, cam.height, 8)
+    parts = bin_gaussians(p.means2d, p.footprint, p.depths, p.visible, cam.width, cam.height, 8, chunk=7)
+    assert whole.num_pairs > 500
+    assert torch.equal(whole.gaussian_ids, parts.gaussian_ids) and torch.equal(whole.offsets, parts.offsets)
+    # within each tile, front to back
+    depth = p.depths[whole.gaussian_ids]
+    for t in range(len(whole.counts)):
+        seg = depth[whole.offsets[t]:whole.offsets[t + 1]]
+        assert (seg[1:] >= seg[:-1]).all()
 
 
 def test_numpy_and_torch_clouds_render_the_same():
