@@ -25,9 +25,10 @@ from .budget import DEFAULT_FIDELITY
 from .camera import Camera
 from .cloud import _FIELDS, GaussianCloud
 from .conventions import NEAR_PLANE
-from .rendering import RenderSettings, render
+from .rendering import RenderSettings
+from .rendering.frames import Frame, make_frame, redraw
 
-__all__ = ["DEFAULT_TOLERANCE", "training_rate_views", "lineage_changes", "revert_lineages"]
+__all__ = ["DEFAULT_TOLERANCE", "training_rate_views", "changed_rows", "lineage_changes", "revert_lineages"]
 
 #: Largest mean absolute colour change (0..1, over a 3x3 pixel window at the training sampling
 #: rate) a lineage may make. Chosen on the validation scenes only (chair, tableware; seeds 0-2;
@@ -81,14 +82,31 @@ def _sample(change: np.ndarray, cam: Camera, points: np.ndarray) -> np.ndarray:
     return out
 
 
+def changed_rows(before: GaussianCloud, after: GaussianCloud) -> np.ndarray:
+    """Rows of `after` that draw differently from `before`'s row of the same index: the rows whose
+    parameters or anti-aliasing size differ, and the rows past `before`'s end."""
+    n = len(before)
+    if len(after) < n:
+        raise ValueError(f"fidelity: the refined cloud has fewer rows ({len(after)}) than the input ({n})")
+    diff = np.zeros(n, bool)
+    for name in _FIELDS:
+        diff |= (np.asarray(getattr(after, name))[:n] != np.asarray(getattr(before, name))).reshape(n, -1).any(1)
+    for key in (FILTER_KEY, DILATION_KEY):
+        if key in before.extra and key in after.extra:
+            diff |= (np.asarray(after.extra[key])[:n] != np.asarray(before.extra[key])).reshape(n, -1).any(1)
+        elif key in before.extra or key in after.extra:
+            diff[:] = True
+    return np.concatenate([np.flatnonzero(diff), np.arange(n, len(after))])
+
+
 def lineage_changes(before: GaussianCloud, after: GaussianCloud, roots: np.ndarray, added: np.ndarray,
                     added_roots: np.ndarray, cameras: Sequence[Camera], *, settings: RenderSettings | None = None,
-                    window: int = 3, before_images: list | None = None) -> np.ndarray:
+                    window: int = 3, frames: list[Frame | None] | None = None) -> np.ndarray:
     """(len(roots),) the largest colour change, over `cameras` and over the lineage's Gaussians
     (the root's input and refined centres, and every added row whose root it is), between renders
     of `before` and `after`. `roots`: input rows the refine grew; `added`, `added_roots`: rows of
-    `after` it added and the input row each descends from. `before_images`: renders of `before`
-    made already (one per camera)."""
+    `after` it added and the input row each descends from. `frames`: `before`'s frames at `cameras`
+    made already (None where not); `after` is drawn by redrawing them."""
     roots = np.asarray(roots, np.int64)
     index = np.full(len(before), -1, np.int64)
     index[roots] = np.arange(len(roots))
@@ -99,11 +117,14 @@ def lineage_changes(before: GaussianCloud, after: GaussianCloud, roots: np.ndarr
     m = len(roots)
     worst = np.zeros(m)
     settings = settings or RenderSettings()
+    frames = list(frames) if frames is not None else [None] * len(cameras)
+    changed = changed_rows(before, after)
+    white = (1.0, 1.0, 1.0)
     with torch.no_grad():
         for i, cam in enumerate(cameras):
-            img_b = (before_images[i] if before_images is not None
-                     else render(before, cam, background=(1.0, 1.0, 1.0), settings=settings).image)
-            img_a = render(after, cam, background=(1.0, 1.0, 1.0), settings=settings).image
+            frame = frames[i] or make_frame(before, cam, settings)
+            img_b = frame.image(white)
+            img_a = redraw(frame, after, changed).image(white)
             values = _sample(_change_map(img_b.clamp(0, 1), img_a.clamp(0, 1), window), cam, points)
             np.maximum(worst, np.maximum(values[:m], values[m:2 * m]), out=worst)
             np.maximum.at(worst, owner, values[2 * m:])

@@ -44,7 +44,8 @@ from .rendering import RenderSettings, render
 from .rendering import projection as pj
 from .rendering.projection import Projected, project
 from .rendering.rasterize import (ALPHA_MAX, T_MIN, _alpha_and_transmittance, _block_pairs, _tile_centres,
-                                  _weights, composite, pack, pair_table)
+                                  _weights, composite, pack, pair_table, tiles_to_image)
+from .rendering.frames import Frame
 from .rendering.tiles import bin_gaussians
 
 BLOCK = 6  # position (3) + log-scale (3)
@@ -439,9 +440,11 @@ def _project(f: dict, camera: Camera, degree: int, dt, aa: _Antialias, chunk: in
 
 def _accumulate_view(f: dict, camera: Camera, degree: int, settings: RenderSettings, scale: float,
                      out: torch.Tensor, aa: _Antialias, timings: dict | None = None,
-                     work: torch.Tensor | None = None, chunk: int = 1 << 16) -> torch.Tensor | None:
+                     work: torch.Tensor | None = None, chunk: int = 1 << 16,
+                     frames: list | None = None, rows: torch.Tensor | None = None) -> torch.Tensor | None:
     """Add this view's packed blocks into `out` (21, N) float64. `work`: the (N, 34) float64
-    moment buffer of a previous view, reused (returned for the next)."""
+    moment buffer of a previous view, reused (returned for the next). `frames`: a list that gets
+    the view's `Frame`, its table row i drawing cloud row `rows[i]`."""
     dt = settings.dtype
     clock = _Clock(timings)
     with torch.no_grad():
@@ -450,30 +453,40 @@ def _accumulate_view(f: dict, camera: Camera, degree: int, settings: RenderSetti
         binning = bin_gaussians(proj.means2d, proj.footprint, proj.depths, proj.visible, camera.width, camera.height,
                                 settings.tile_size, exact=settings.exact_tiles)
         clock("bin")
-        if binning.num_pairs == 0:
-            return work
         table = pack(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
         del proj
-        acc = composite(table, binning, block=settings.block, budget=settings.budget)
+        pairs = pair_table(table, binning)  # (for the compositing and the sweep)
+        acc = composite(table, binning, block=settings.block, budget=settings.budget, pairs=pairs)
+        if frames is not None:
+            frames.append(Frame(camera, settings, table, binning, rows,
+                                tiles_to_image(acc, binning, camera.height, camera.width)))
         clock("composite")
+        if binning.num_pairs == 0:
+            return work
         if work is None or work.shape != (out.shape[1], _NMOM):
             work = torch.zeros((out.shape[1], _NMOM), dtype=torch.float64)
         else:
             work.zero_()
         mom = work
-        _gauss_newton_sweep(pair_table(table, binning), binning, acc, settings.block, settings.budget, mom,
+        _gauss_newton_sweep(pairs, binning, acc, settings.block, settings.budget, mom,
                             camera.width, camera.height)
-        del acc, binning
+        del acc, binning, pairs
         clock("sweep")
-        rows = (mom[:, -1] > 0).nonzero().squeeze(1)
+        seen = (mom[:, -1] > 0).nonzero().squeeze(1)
         clock("moments")
-        for i in range(0, len(rows), chunk):
-            r = rows[i:i + chunk]
+        for i in range(0, len(seen), chunk):
+            r = seen[i:i + chunk]
             blocks = _gaussian_blocks(f, r, mom.index_select(0, r).T.contiguous(), table.index_select(0, r)[:, 6:9],
                                       camera, degree, dt, scale, aa)
             out.index_add_(1, r, blocks)
         clock("blocks")
     return work
+
+
+def scoring_settings(render_settings: RenderSettings | None = None) -> RenderSettings:
+    """The settings the Hessian renders its views with: the given ones, else the renderer's with
+    TILE_SIZE tiles."""
+    return render_settings or RenderSettings(tile_size=TILE_SIZE)
 
 
 def _packed_to_blocks(packed: torch.Tensor) -> torch.Tensor:
@@ -486,7 +499,8 @@ def _packed_to_blocks(packed: torch.Tensor) -> torch.Tensor:
 
 def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, views: int, resolution: int,
                     render_settings: RenderSettings | None, normalization,
-                    progress: Callable[[float, str], None] | None, timings: dict | None = None) -> torch.Tensor:
+                    progress: Callable[[float, str], None] | None, timings: dict | None = None,
+                    frames: list | None = None) -> torch.Tensor:
     n = len(cloud)
     out = torch.zeros((len(_TRIU[0]), n), dtype=torch.float64)
     if n == 0:
@@ -494,7 +508,7 @@ def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, view
     normalization = normalization or cloud.normalization()
     cams = (scoring_views(cameras, views, resolution, cloud) if cameras is not None
             else default_views(cloud, views or DEFAULT_VIEWS, resolution, normalization=normalization))
-    settings = render_settings or RenderSettings(tile_size=TILE_SIZE)
+    settings = scoring_settings(render_settings)
     aa = _Antialias.of(cloud, settings)
     # Work on the Gaussians in Morton order: neighbours in space are neighbours in memory, which
     # makes the per-Gaussian gathers and sums of every view several times faster.
@@ -505,7 +519,8 @@ def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, view
     for k, cam in enumerate(cams):
         if progress is not None:
             progress(k / len(cams), f"Hessian view {k + 1}/{len(cams)}")
-        work = _accumulate_view(f, cam, cloud.sh_degree, settings, float(normalization[1]), out, aa, timings, work)
+        work = _accumulate_view(f, cam, cloud.sh_degree, settings, float(normalization[1]), out, aa, timings, work,
+                                frames=frames, rows=order)
     del work, f
     result = torch.empty_like(out)
     result[:, order] = out
@@ -662,13 +677,16 @@ def scores_from_blocks(blocks: torch.Tensor, score: str = "logdet", ridge: float
 def hessian_scores(cloud: GaussianCloud, cameras: Sequence[Camera] | None = None, *, views: int = DEFAULT_VIEWS,
                    resolution: int = DEFAULT_RESOLUTION, score: str = "logdet", ridge: float = 1e-2,
                    render_settings: RenderSettings | None = None, normalization=None, progress=None,
-                   timings: dict | None = None) -> torch.Tensor:
+                   timings: dict | None = None, frames: list | None = None) -> torch.Tensor:
     """(N,) finite, non-negative per-Gaussian scores from the exact Gauss-Newton blocks
     (`hessian_blocks`, same arguments); see the module docstring. `timings`: a dict that gets the
-    seconds spent per part (project, bin, composite, sweep, moments, blocks, score)."""
+    seconds spent per part (project, bin, composite, sweep, moments, blocks, score); `frames`: a
+    list that gets each view's `rendering.frames.Frame` of the cloud, composited (the scores need
+    the compositing; keeping it costs about 70 bytes a Gaussian a view)."""
     if score not in ("logdet", "trace"):
         raise ValueError(f"hessian: score must be 'logdet' or 'trace', got {score!r}")
-    packed = _hessian_packed(cloud, cameras, views, resolution, render_settings, normalization, progress, timings)
+    packed = _hessian_packed(cloud, cameras, views, resolution, render_settings, normalization, progress, timings,
+                             frames)
     clock = _Clock(timings)
     scores = scores_from_packed(packed, score, ridge)
     clock("score")

@@ -30,11 +30,11 @@ from .camera import Camera
 from .capture import default_views, scoring_views
 from .cloud import _FIELDS, GaussianCloud
 from .fidelity import DEFAULT_TOLERANCE, lineage_changes, revert_lineages, training_rate_views
-from .hessian import DEFAULT_RESOLUTION, DEFAULT_VIEWS, hessian_scores
+from .hessian import DEFAULT_RESOLUTION, DEFAULT_VIEWS, hessian_scores, scoring_settings
 from .lineage import (APP_EXIST, GEO_EXIST, GEO_LOG_SCALE, GEO_POSITION, Lineage, appearance_features,
                       cloud_from_features, geometry_features)
-from .rendering import render
-from .resources import check_refine_memory
+from .rendering.frames import Frame, make_frame
+from .resources import check_refine_memory, reuse_freed_memory
 from .vae import GaussianVAE, load_default_model
 from .vae.features import FEATURE_LOG_SCALE_RANGE, FEATURE_POSITION_LIMIT
 
@@ -147,10 +147,11 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model:
     at the training sampling rate, seen from the scoring views; lineages above it are put back as
     they were (`gvae_core.fidelity`; None: keep everything the models did). Raises ValueError on
     non-finite input rows."""
-    (result,) = refine_steps(cloud, steps=steps, budget=budget, model=model, cameras=cameras, lineage=lineage,
-                             stage=stage, seed=seed, progress=progress, hessian_options=hessian_options,
-                             scores=scores, every_step=False, carry_appearance=carry_appearance,
-                             check_memory=check_memory, fidelity=fidelity)
+    with reuse_freed_memory():  # one scope over all the parts: memory is handed back once, at the end
+        (result,) = refine_steps(cloud, steps=steps, budget=budget, model=model, cameras=cameras, lineage=lineage,
+                                 stage=stage, seed=seed, progress=progress, hessian_options=hessian_options,
+                                 scores=scores, every_step=False, carry_appearance=carry_appearance,
+                                 check_memory=check_memory, fidelity=fidelity)
     return result
 
 
@@ -208,9 +209,12 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
     if scores is None and budget == "all":
         scores = np.zeros(n, np.float32)  # every Gaussian is refined: nothing to rank
     normalization = src.normalization()  # the frame of Hessian positions and of lineages without history
+    # the input as the Hessian's views composited it, for the fidelity check
+    frames: list | None = [] if fidelity is not None else None
     if scores is None:
-        scores = hessian_scores(src, cameras, normalization=normalization,
-                                progress=lambda f, message: say(h0 + (h1 - h0) * f, message), **options)
+        with reuse_freed_memory():
+            scores = hessian_scores(src, cameras, normalization=normalization, frames=frames,
+                                    progress=lambda f, message: say(h0 + (h1 - h0) * f, message), **options)
     scores = np.nan_to_num(np.asarray(scores.detach().cpu() if torch.is_tensor(scores) else scores,
                                       np.float32).reshape(-1), nan=0.0, posinf=0.0, neginf=0.0)
     if len(scores) != n:
@@ -226,24 +230,28 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
     grow = _Growth(src, selected, hist_g, hist_a, scale)
     check = None
     if fidelity is not None and len(selected):
-        check = FidelityCheck.around(src, cameras, fidelity, options, normalization)
+        check = FidelityCheck.around(src, cameras, fidelity, options, normalization, frames or ())
+    del frames  # the check keeps the ones it uses
     for k in range(1, steps + 1):
-        say(h1 + (0.97 - h1) * (k - 1) / steps, f"step {k}/{steps}: {len(grow.rows)} lineages")
-        if len(grow.rows):
-            # The budget chose these Gaussians to densify at the first step; later steps (and
-            # every step with "all") let the model decide, lineage by lineage.
-            grow.step(k, model, None if budget == "all" or k > 1 else np.ones(len(grow.rows), bool), gen,
-                      more=k < steps, carry_appearance=carry_appearance and k > 1)
-        if every_step or k == steps:
-            final = k == steps
-            if final:
-                say(0.97, "assembling the refined cloud")
-            result = grow.result(scores, {**timings}, t_start)
-            result.stage = used_stage
-            if check is not None:
-                say(0.97 if final else h1 + (0.97 - h1) * k / steps, "checking the training-resolution picture")
-                result = check(result)
-            if final:
+        result = None
+        with reuse_freed_memory():  # (not held while the caller has the result)
+            say(h1 + (0.97 - h1) * (k - 1) / steps, f"step {k}/{steps}: {len(grow.rows)} lineages")
+            if len(grow.rows):
+                # The budget chose these Gaussians to densify at the first step; later steps (and
+                # every step with "all") let the model decide, lineage by lineage.
+                grow.step(k, model, None if budget == "all" or k > 1 else np.ones(len(grow.rows), bool), gen,
+                          more=k < steps, carry_appearance=carry_appearance and k > 1)
+            if every_step or k == steps:
+                if k == steps:
+                    say(0.97, "assembling the refined cloud")
+                result = grow.result(scores, {**timings}, t_start)
+                result.stage = used_stage
+                if check is not None:
+                    say(0.97 if k == steps else h1 + (0.97 - h1) * k / steps,
+                        "checking the training-resolution picture")
+                    result = check(result)
+        if result is not None:
+            if k == steps:
                 say(1.0, result.summary())
             suspended = time.perf_counter()
             yield result
@@ -252,22 +260,28 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
 
 class FidelityCheck:
     """Puts back the lineages of a result that change the picture at the training sampling rate by
-    more than `tolerance` (`gvae_core.fidelity`); renders the input once."""
+    more than `tolerance` (`gvae_core.fidelity`); keeps the input's frames, made once (or by the
+    Hessian), and redraws them with each result's changes."""
 
-    def __init__(self, src: GaussianCloud, cameras: list[Camera], tolerance: float, settings=None):
+    def __init__(self, src: GaussianCloud, cameras: list[Camera], tolerance: float, settings=None,
+                 frames: Sequence[Frame] = ()):
         if not tolerance >= 0.0:
             raise ValueError(f"refine: fidelity must be a tolerance >= 0 or None, got {tolerance!r}")
-        self.src, self.cameras, self.tolerance, self.settings = src, cameras, tolerance, settings
-        self.before = None
+        self.src, self.cameras, self.tolerance = src, cameras, tolerance
+        self.settings = scoring_settings(settings)
+        self.frames = [next((f for f in frames if _same_view(f.camera, cam) and f.settings == self.settings), None)
+                       for cam in cameras]
 
     @classmethod
     def around(cls, src: GaussianCloud, cameras, tolerance: float, hessian_options: dict | None = None,
-               normalization=None) -> FidelityCheck:
+               normalization=None, frames: Sequence[Frame] = ()) -> FidelityCheck:
         """The check `refine` makes: the Hessian's views (the capture's `cameras` picked and scaled
         as for scoring, else views placed around the cloud; DEFAULT_VIEWS of them when the Hessian
         takes all, views=0, which would cost two renders each) at the training sampling rate: the
         cloud's stored anti-aliasing size says what it was, else the capture's cameras at their
-        full size do (a cloud from another tool with its cameras), else the views stay as they are."""
+        full size do (a cloud from another tool with its cameras), else the views stay as they are.
+        `frames`: the input's frames that the Hessian made (`hessian_scores`), used where a view is
+        the same instead of projecting and binning the input again."""
         options = hessian_options or {}
         views = options.get("views", DEFAULT_VIEWS) or DEFAULT_VIEWS
         resolution = options.get("resolution", DEFAULT_RESOLUTION)
@@ -276,16 +290,14 @@ class FidelityCheck:
         rate_of = src
         if cameras is not None and not {FILTER_KEY, DILATION_KEY} & set(src.extra):
             rate_of = with_dilation_3d(src, list(cameras))
-        return cls(src, training_rate_views(rate_of, cams), float(tolerance), options.get("render_settings"))
+        return cls(src, training_rate_views(rate_of, cams), float(tolerance), options.get("render_settings"),
+                   frames)
 
     def __call__(self, result: RefineResult) -> RefineResult:
         t0 = time.perf_counter()
-        if self.before is None:
-            with torch.no_grad():
-                self.before = [render(self.src, cam, background=(1.0, 1.0, 1.0), settings=self.settings).image
-                               for cam in self.cameras]
+        self.frames = [f or make_frame(self.src, cam, self.settings) for f, cam in zip(self.frames, self.cameras)]
         change = lineage_changes(self.src, result.cloud, result.selected, result.added, result.parents,
-                                 self.cameras, settings=self.settings, before_images=self.before)
+                                 self.cameras, settings=self.settings, frames=self.frames)
         reverted = result.selected[change > self.tolerance]
         cloud, kept = revert_lineages(self.src, result.cloud, result.n_input, result.parents, reverted)
         n = result.n_input
@@ -294,6 +306,12 @@ class FidelityCheck:
         return RefineResult(cloud=cloud, added=np.arange(n, n + int(kept.sum()), dtype=np.int64),
                             parents=result.parents[kept], step=result.step[kept], scores=result.scores,
                             selected=result.selected, timings=timings, stage=result.stage, reverted=reverted)
+
+
+def _same_view(a: Camera, b: Camera) -> bool:
+    """Whether two cameras draw the same image."""
+    return ((a.width, a.height, a.fx, a.fy, a.cx, a.cy) == (b.width, b.height, b.fx, b.fy, b.cx, b.cy)
+            and np.array_equal(a.world_to_cam, b.world_to_cam))
 
 
 class _Growth:

@@ -5,16 +5,25 @@ refused at once with the estimate in the message, instead of being killed (or sw
 machine to a halt) minutes later. The estimate is linear in the counts it depends on, with the
 coefficients measured by `python -m gvae_core.benchmarks refine` (which prints the estimate
 beside the measured peak), rounded up. numpy only.
+
+`reuse_freed_memory` is the other half of working at capture scale: a scope in which the memory
+of freed arrays is kept for the next ones instead of being handed back to the system and faulted
+in again page by page.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import os
 import sys
+import threading
+from collections.abc import Iterator
 
 from .conventions import SH_REST_COUNTS
 
-__all__ = ["NotEnoughMemoryError", "available_memory", "estimate_refine_memory", "check_refine_memory"]
+__all__ = ["NotEnoughMemoryError", "available_memory", "estimate_refine_memory", "check_refine_memory",
+           "reuse_freed_memory"]
 
 #: Bytes of the Python process with torch and the models loaded, before any cloud.
 BASE_BYTES = 600 << 20
@@ -29,9 +38,9 @@ HESSIAN_PER_PIXEL = 400
 #: Bytes per lineage given to the models, per step (features, model activations, children).
 MODEL_PER_LINEAGE = 4000
 #: Measured (`python -m gvae_core.benchmarks refine`, example clouds, SH degree 3, budget auto,
-#: three refines in one process): peaks of 0.74 GiB at 100k Gaussians, 2.40 GiB at 1M, 5.3 GiB at
-#: 3M; with the counts the budget selected these give 0.82, 2.67 and 6.8 GiB (3.1 GiB for 1M before
-#: scoring, when half the cloud is the most 'auto' can select).
+#: three refines in one process, fidelity check on): peaks of 0.61 GiB at 100k Gaussians, 2.44 GiB
+#: at 1M, 5.6 GiB at 3M; with the counts the budget selected these give 0.82, 2.67 and 6.8 GiB
+#: (3.1 GiB for 1M before scoring, when half the cloud is the most 'auto' can select).
 
 
 class NotEnoughMemoryError(ValueError):
@@ -105,3 +114,65 @@ def check_refine_memory(n: int, sh_degree: int = 3, **kwargs) -> int:
             f"{_gib(free)} is available; refine a smaller part of the cloud (or a lower SH degree), use a smaller "
             f"budget or fewer/smaller Hessian views, or close other programs")
     return need
+
+
+# glibc's mallopt parameters (malloc.h)
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4
+#: What glibc's own adaptive thresholds grow to once large blocks have been freed (64-bit): blocks
+#: from 32 MiB on are mapped, the heap is trimmed past twice that. Set on leaving the scope.
+_GROWN_MMAP_THRESHOLD = 32 << 20
+_DEFAULT_MMAP_MAX = 65536
+
+
+def _glibc():
+    """The C library when it is glibc (which has mallopt and malloc_trim), else None."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(None)
+        libc.gnu_get_libc_version  # noqa: B018 - only glibc has it
+        return libc if hasattr(libc, "mallopt") and hasattr(libc, "malloc_trim") else None
+    except (OSError, AttributeError):
+        return None
+
+
+class _AllocatorScope:
+    """The process's one allocator policy: counted, so that nested scopes (a refine inside a
+    larger job) hand memory back only when the outermost one ends."""
+
+    def __init__(self):
+        self.depth = 0
+        self.lock = threading.Lock()
+
+    @contextlib.contextmanager
+    def __call__(self) -> Iterator[bool]:
+        libc = _glibc()
+        if libc is None:
+            yield False
+            return
+        with self.lock:
+            self.depth += 1
+            if self.depth == 1:
+                libc.mallopt(_M_MMAP_MAX, 0)
+                libc.mallopt(_M_TRIM_THRESHOLD, 2 ** 31 - 1)
+        try:
+            yield True
+        finally:
+            with self.lock:
+                self.depth -= 1
+                if self.depth == 0:
+                    libc.mallopt(_M_MMAP_MAX, _DEFAULT_MMAP_MAX)
+                    libc.mallopt(_M_MMAP_THRESHOLD, _GROWN_MMAP_THRESHOLD)
+                    libc.mallopt(_M_TRIM_THRESHOLD, 2 * _GROWN_MMAP_THRESHOLD)
+                    libc.malloc_trim(0)
+
+
+#: Within: arrays freed by the C allocator stay in the process for the next ones (no separate
+#: mapping per large block, no trimming), so a sequence of large temporaries -- per-view tile
+#: pairs, tables and images of a million Gaussians -- faults its pages in once instead of every
+#: time (measured on the 1M-Gaussian refine: BENCHMARKS.md, "Refinement at capture scale"). When
+#: the outermost scope ends, the allocator is set to what its adaptive thresholds grow to anyway
+#: and the unused memory is handed back (`malloc_trim`), so nothing stays held. The context value
+#: says whether it could act (glibc only; elsewhere the scope does nothing). Process-wide: other
+#: threads allocate the same way meanwhile (a matter of speed, never of results).
+reuse_freed_memory = _AllocatorScope()

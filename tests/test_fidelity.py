@@ -9,7 +9,7 @@ import torch
 
 from gvae_core import Camera, GaussianCloud
 from gvae_core.antialias import DILATION_KEY, FILTER_KEY, with_dilation_3d, with_filter_3d
-from gvae_core.fidelity import lineage_changes, revert_lineages, training_rate_views
+from gvae_core.fidelity import changed_rows, lineage_changes, revert_lineages, training_rate_views
 from gvae_core.refinement import FidelityCheck, refine
 from gvae_core.rendering import render
 from gvae_core.vae import GaussianVAE
@@ -102,6 +102,19 @@ def test_lineage_changes_and_putting_lineages_back():
     assert kept.tolist() == [False, True] and len(cloud) == len(before) + 1
     np.testing.assert_array_equal(cloud.means[:24], before.means)
     np.testing.assert_array_equal(cloud.opacities[24], after.opacities[25])
+
+
+def test_changed_rows_are_the_rows_that_draw_differently():
+    before = with_dilation_3d(_cloud(), _cameras(48))
+    after = GaussianCloud.concat([before, before.select(np.array([2]))])
+    assert changed_rows(before, after).tolist() == [24]
+    after.quats[4, 1] = 0.5
+    after.extra[DILATION_KEY][9] *= 2.0
+    after.extra["gvae_id"] = np.arange(len(after))  # not drawn: not a change
+    assert changed_rows(before, after).tolist() == [4, 9, 24]
+    assert len(changed_rows(_cloud(), before)) == len(before)  # a drawn size appeared: every row
+    with pytest.raises(ValueError, match="fewer rows"):
+        changed_rows(after, before)
 
 
 def _stand_in(exist_logit=30.0) -> GaussianVAE:

@@ -3,7 +3,8 @@
 `render(cloud, camera)` follows "Rendering semantics" in DESIGN.md; `reference.render_reference`
 is the slow float64 per-pixel loop it is tested against. Stages: `projection` (per Gaussian;
 positions relative to the camera in float64, the rest in the working dtype), `tiles` (exact
-footprint-tile binning, depth order), `rasterize` (blocked compositing, recomputing backward).
+footprint-tile binning, depth order), `rasterize` (blocked compositing, recomputing backward);
+`frames` keeps a view's table and tile lists to redraw it after a few Gaussians changed.
 
 On a machine shared with other work, run with OMP_WAIT_POLICY=PASSIVE in the environment (set
 before torch is imported): spinning OpenMP threads otherwise stall each other (measured 20x).
@@ -24,7 +25,8 @@ from .projection import Projected, project
 from .rasterize import composite, pack, tiles_to_image
 from .tiles import Binning, bin_gaussians
 
-__all__ = ["render", "RenderOutput", "RenderSettings", "ANTIALIAS_MODES", "antialias_parts", "resolve_device"]
+__all__ = ["render", "project_cloud", "RenderOutput", "RenderSettings", "ANTIALIAS_MODES", "antialias_parts",
+           "resolve_device"]
 
 
 @dataclass
@@ -97,6 +99,26 @@ def _size(cloud: GaussianCloud, key: str, device) -> torch.Tensor:
     return size.reshape(-1)
 
 
+def project_cloud(cloud: GaussianCloud, camera: Camera, settings: RenderSettings, *, sh_degree: int | None = None,
+                  device=None) -> Projected:
+    """The projection stage of `render` (same arguments): every Gaussian of `cloud` through `camera`
+    with the anti-aliasing of `settings`."""
+    if not isinstance(camera, Camera):
+        raise ValueError(f"render: camera must be a gvae_core.Camera, got {type(camera).__name__}")
+    degree = cloud.sh_degree if sh_degree is None else int(sh_degree)
+    if not 0 <= degree <= 3:
+        raise ValueError(f"render: sh_degree must be 0..3, got {sh_degree}")
+    degree = min(degree, cloud.sh_degree)
+    mode = resolve_antialias(settings.antialias, cloud)
+    f = {name: _field(getattr(cloud, name), device) for name in
+         ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")}
+    dev = f["means"].device
+    filter_3d = _size(cloud, FILTER_KEY, dev) if mode == "mip" and FILTER_KEY in cloud.extra else None
+    dilation_3d = _size(cloud, DILATION_KEY, dev) if mode == "matched" else None
+    return project(f["means"], f["scales"], f["quats"], f["opacities"], f["sh_dc"], f["sh_rest"], camera, degree,
+                   dtype=settings.dtype, filter_3d=filter_3d, mip_2d=mode == "mip", dilation_3d=dilation_3d)
+
+
 def render(cloud: GaussianCloud, camera: Camera, *, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
            device=None, settings: RenderSettings | None = None) -> RenderOutput:
     """Render `cloud` (numpy or torch; gradients reach every torch field that requires grad)
@@ -104,21 +126,8 @@ def render(cloud: GaussianCloud, camera: Camera, *, background=(0.0, 0.0, 0.0), 
     `settings.antialias` says how the cloud's stored anti-aliasing sizes are used
     (`gvae_core.antialias`: "filter_3D" in the "mip" mode, "gvae_dilation_3D" in "matched")."""
     s = settings or RenderSettings()
-    if not isinstance(camera, Camera):
-        raise ValueError(f"render: camera must be a gvae_core.Camera, got {type(camera).__name__}")
-    degree = cloud.sh_degree if sh_degree is None else int(sh_degree)
-    if not 0 <= degree <= 3:
-        raise ValueError(f"render: sh_degree must be 0..3, got {sh_degree}")
-    degree = min(degree, cloud.sh_degree)
-    mode = resolve_antialias(s.antialias, cloud)
-    f = {name: _field(getattr(cloud, name), device) for name in
-         ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")}
-    dev = f["means"].device
-    filter_3d = _size(cloud, FILTER_KEY, dev) if mode == "mip" and FILTER_KEY in cloud.extra else None
-    dilation_3d = _size(cloud, DILATION_KEY, dev) if mode == "matched" else None
-    proj: Projected = project(f["means"], f["scales"], f["quats"], f["opacities"], f["sh_dc"],
-                              f["sh_rest"], camera, degree, dtype=s.dtype, filter_3d=filter_3d,
-                              mip_2d=mode == "mip", dilation_3d=dilation_3d)
+    proj = project_cloud(cloud, camera, s, sh_degree=sh_degree, device=device)
+    dev = proj.means2d.device
     h, w = camera.height, camera.width
     binning: Binning = bin_gaussians(proj.means2d, proj.footprint, proj.depths, proj.visible, w, h,
                                      s.tile_size, exact=s.exact_tiles)

@@ -226,13 +226,13 @@ class RasterizeFunction(torch.autograd.Function):
         return grad_table, None, None, None
 
 
-def _forward_all(table, binning: Binning, block: int, budget: int) -> torch.Tensor:
+def _forward_all(table, binning: Binning, block: int, budget: int, pairs=None) -> torch.Tensor:
     ntiles = binning.tiles_x * binning.tiles_y
     p = binning.tile_size ** 2
     acc = torch.zeros((ntiles, NFEAT, p), dtype=table.dtype, device=table.device)
     evaluations = 0
     with torch.no_grad():
-        pairs = pair_table(table.detach(), binning)
+        pairs = pair_table(table.detach(), binning) if pairs is None else pairs
         for tiles, kmax in tile_groups(binning, block, budget):
             acc[tiles], ev = _run_group(pairs, binning, tiles, kmax, block)
             evaluations += ev
@@ -275,8 +275,9 @@ def differentiable_composite(table, binning: Binning, block: int, budget: int) -
 
 
 def composite(table, binning: Binning, *, block: int = 64, budget: int = 1 << 21,
-              backward: str = "recompute") -> torch.Tensor:
-    """Accumulated features (tiles, 5, P) = Σ w·[r, g, b, depth, 1] per pixel, in tile layout."""
+              backward: str = "recompute", pairs: torch.Tensor | None = None) -> torch.Tensor:
+    """Accumulated features (tiles, 5, P) = Σ w·[r, g, b, depth, 1] per pixel, in tile layout.
+    `pairs`: `pair_table(table, binning)` when the caller made it already (used without autograd)."""
     if backward not in ("recompute", "autograd"):
         raise ValueError(f"backward must be 'recompute' or 'autograd', got {backward!r}")
     binning.evaluations = 0
@@ -284,7 +285,7 @@ def composite(table, binning: Binning, *, block: int = 64, budget: int = 1 << 21
         return differentiable_composite(table, binning, block, budget)
     if table.requires_grad and torch.is_grad_enabled():
         return RasterizeFunction.apply(table, binning, block, budget)
-    return _forward_all(table, binning, block, budget)
+    return _forward_all(table, binning, block, budget, pairs)
 
 
 def tiles_to_image(acc: torch.Tensor, binning: Binning, height: int, width: int) -> torch.Tensor:
