@@ -1,6 +1,7 @@
 """Blender side of `make bench` (gvae_core/benchmarks/blender.py runs this in a subprocess with the
 bpy module: `python -m gvae_addon.benchmark N REPEATS`). Registers the add-on from the source
-tree, times its operators on an N-Gaussian SH-3 PLY and prints one JSON line. `... render PLY
+tree, times its operators (import, export, Refine) on an N-Gaussian SH-3 PLY and prints one JSON
+line. `... render PLY
 CAMERA.json OUT_DIR`: Cycles renders of an imported PLY (`render_main`)."""
 
 from __future__ import annotations
@@ -144,6 +145,23 @@ def main() -> int:
             dst.unlink()
         out["export_s"] = statistics.median(t_exp)
         out["export_identical"] = bool(same)
+
+        # Refine as a batch run or script calls it (the operator's execute: the object read, refined
+        # by gvae_core.refine in the job's worker thread, written back; the first Refine of a session
+        # also imports torch and loads the model), then the core's refine of the same cloud on this
+        # thread. In that order: once this thread has run torch's parallel loops, their OpenMP
+        # threads slow a worker thread's own (measured: twice the time).
+        before = len(obj.data.vertices)
+        t0 = time.perf_counter()
+        status = bpy.ops.gvae.refine()
+        out["refine_s"] = time.perf_counter() - t0
+        out["refine_status"] = sorted(status)
+        out["refine_added"] = len(bpy.context.active_object.data.vertices) - before
+        from gvae_core.refinement import refine  # noqa: PLC0415 - imported by the operator above
+        t0 = time.perf_counter()
+        core = refine(read_ply(src))
+        out["refine_core_s"] = time.perf_counter() - t0
+        out["refine_core_added"] = len(core.added)
 
         # Context: the add-on's own parts, and Blender's C++ PLY importer (no splat set-up).
 

@@ -63,6 +63,9 @@ class RefineJob:
     - `finish()` (main thread, once done): write the result into the object and return counts and
       timings; raises RefineCancelled when cancelled, or the worker's error, leaving the object as
       it was. Also refuses to write when the object was deleted or its mesh replaced meanwhile.
+
+    Only the worker thread runs torch: once the main thread has run torch's parallel loops, their
+    idle OpenMP threads make the worker's twice as slow (measured on two cores).
     """
 
     def __init__(self, obj, *, steps: int = 1, budget="auto", model=None, seed: int = 0,

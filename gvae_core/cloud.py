@@ -260,11 +260,13 @@ class GaussianCloud:
         return GaussianCloud(**fields, extra=extra)
 
     def numpy(self) -> GaussianCloud:
-        """numpy copy (float32 parameters, detached from any autograd graph)."""
+        """numpy form: float32 parameters, detached from any autograd graph, every array C-contiguous
+        (strided views, such as the columns of one packed block, are copied: the whole-cloud work of
+        refine is several times slower on them; arrays already in this form are shared)."""
 
         def conv(x, float32: bool):
             a = x.detach().cpu().numpy() if is_torch(x) else np.asarray(x)
-            return a.astype(np.float32, copy=False) if float32 else a
+            return np.ascontiguousarray(a.astype(np.float32, copy=False) if float32 else a)
 
         fields = {name: conv(getattr(self, name), True) for name in _FIELDS}
         extra = {k: conv(v, False) for k, v in self.extra.items()}

@@ -75,6 +75,22 @@ def test_torch_round_trip_keeps_values_and_extra_dtypes():
         GaussianCloud.concat([c, t])
 
 
+def test_numpy_form_is_contiguous_and_shares_what_already_is():
+    """Columns of one packed block (what the Blender add-on reads) become contiguous arrays."""
+    n = 50
+    block = np.random.default_rng(0).normal(size=(n, 16)).astype(np.float32)
+    packed = GaussianCloud(means=np.ascontiguousarray(block[:, :3]), scales=block[:, 3:6], quats=block[:, 6:10],
+                           opacities=block[:, 10], sh_dc=block[:, 11:14], sh_rest=np.zeros((n, 0, 3), np.float32),
+                           extra={"gvae_id": np.arange(2 * n)[::2]})
+    assert not packed.scales.flags["C_CONTIGUOUS"]
+    c = packed.numpy()
+    for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
+        assert getattr(c, name).flags["C_CONTIGUOUS"]
+        np.testing.assert_array_equal(getattr(c, name), getattr(packed, name))
+    assert c.extra["gvae_id"].flags["C_CONTIGUOUS"] and c.extra["gvae_id"].tolist() == list(range(0, 2 * n, 2))
+    assert c.means is packed.means  # already in form: shared, not copied
+
+
 def test_validate_and_sanitize():
     c = make_cloud(n=8)
     c.means[2, 1] = np.nan

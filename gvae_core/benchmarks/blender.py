@@ -6,7 +6,8 @@ difference between the object's attributes and the written cloud, and the instan
 the evaluated object (one per Gaussian expected); for export, whether every written file was
 byte-identical to the imported one. Blender's own C++ PLY importer (vertices and attributes, no
 splat set-up) is timed on the same file for scale. Goals (issue 7): import <= 1.5 s and export
-<= 1.5 s, instances included.
+<= 1.5 s, instances included. Refine (issue 18) is timed once through the operator as a batch run
+calls it, beside the core's refine of the same cloud.
 
 Then (`run_render`) what the user sees and what it costs: a Cycles render of the renderer
 benchmark's 100k scene at 400 px, imported with the default options, with its PSNR and
@@ -54,6 +55,10 @@ def run(args) -> None:
         ("import, then count instances", r["import_instances_s"], imp_err),
         ("  part: re-evaluate the modifier", r["reevaluate_s"], f"{r['instances']} instances"),
         ("export operator (atomic write)", r["export_s"], exp_err),
+        ("Refine operator, defaults (execute; first Refine: imports torch)", r["refine_s"],
+         f"{'/'.join(r['refine_status'])}, {r['refine_added']:+,} Gaussians"),
+        ("  for scale: gvae_core.refine of the same cloud", r["refine_core_s"],
+         f"{r['refine_core_added']:+,} Gaussians"),
         ("  part: read_ply", r["read_ply_s"], "(inside import)"),
         ("  part: mesh_from_cloud", r["mesh_from_cloud_s"], "(inside import)"),
         ("Blender wm.ply_import (no splat set-up)", r["native_ply_import_s"],
