@@ -43,8 +43,8 @@ from .conventions import LOG_SCALE_RANGE, SH_C1 as SH_C1_, SH_C2 as SH_C2_, SH_C
 from .rendering import RenderSettings, render
 from .rendering import projection as pj
 from .rendering.projection import Projected, project
-from .rendering.rasterize import (ALPHA_MAX, T_MIN, _alpha_and_transmittance, _block_pairs, _tile_centres,
-                                  _weights, composite, pack, pair_table, tiles_to_image)
+from .rendering.rasterize import (ALPHA_MAX, T_MIN, _alpha_and_transmittance, _tile_centres, _weights, composite,
+                                  live_blocks, pack, pair_table, tiles_to_image)
 from .rendering.frames import Frame
 from .rendering.tiles import bin_gaussians
 
@@ -128,15 +128,8 @@ def _gauss_newton_sweep(pairs: torch.Tensor, binning, acc: torch.Tensor, block: 
         trans = torch.ones((b, p), dtype=dt)
         done = torch.zeros((b, p), dtype=torch.bool)
         rest = acc[tiles][:, :3].permute(1, 0, 2).contiguous()  # (3, B, P): colour still to come
-        active = torch.arange(b)
-        for k0 in range(0, kmax, block):
-            alive = (count[active] > k0) & ~done[active].all(1)
-            if not bool(alive.all()):
-                active = active[alive]
-                if active.numel() == 0:
-                    break
-            kb = min(block, kmax - k0)
-            ids = _block_pairs(start[active], count[active], k0, kb, dummy).reshape(-1)
+        for active, k0, kb, ids in live_blocks(start, count, done, kmax, block, dummy):
+            ids = ids.reshape(-1)
             gd = pairs.index_select(0, ids).reshape(kb, -1, pairs.shape[1])
             # alpha and transmittance exactly as the renderer computes them
             was_done = done[active]

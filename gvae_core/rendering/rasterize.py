@@ -91,6 +91,21 @@ def _block_pairs(start, count, k0, kb, dummy):
     return torch.where(kk[:, None] < count[None, :], pos, torch.full_like(pos, dummy))
 
 
+def live_blocks(start, count, done, kmax: int, block: int, dummy: int):
+    """The blocks of list positions a group of tiles composites, front to back: (active tiles,
+    k0, kb, pair indices (kb, B_active)). Tiles drop out once their lists end or all their pixels
+    have stopped; `done` (B, P) is read as the caller updates it in place."""
+    active = torch.arange(start.shape[0], device=start.device)
+    for k0 in range(0, kmax, block):
+        alive = (count[active] > k0) & ~done[active].all(1)
+        if not bool(alive.all()):
+            active = active[alive]
+            if active.numel() == 0:
+                return
+        kb = min(block, kmax - k0)
+        yield active, k0, kb, _block_pairs(start[active], count[active], k0, kb, dummy)
+
+
 def pair_table(table: torch.Tensor, binning: Binning) -> torch.Tensor:
     """(M+1, 11): the table row of each tile-Gaussian pair in list order, then the dummy row."""
     out = torch.empty((binning.num_pairs + 1, table.shape[1]), dtype=table.dtype, device=table.device)
@@ -146,16 +161,8 @@ def _run_group(pairs, binning, tiles, kmax, block, gvec=None, grad_pairs=None, a
     acc = torch.zeros((b, NFEAT, p), dtype=dt, device=dev) if forward else None
     if not forward:
         rest = (gvec * acc_fwd).sum(1)  # Σ_j v_j w_j over the whole list: what lies behind
-    active = torch.arange(b, device=dev)
     evaluations = 0
-    for k0 in range(0, kmax, block):
-        alive = (count[active] > k0) & ~done[active].all(1)
-        if not bool(alive.all()):
-            active = active[alive]
-            if active.numel() == 0:
-                break
-        kb = min(block, kmax - k0)
-        ids = _block_pairs(start[active], count[active], k0, kb, dummy)
+    for active, k0, kb, ids in live_blocks(start, count, done, kmax, block, dummy):
         gd = table.index_select(0, ids.reshape(-1)).reshape(kb, -1, NCOL)  # (kb, B, 11)
         evaluations += ids.numel() * p
         was_done = done[active]
