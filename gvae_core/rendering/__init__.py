@@ -25,7 +25,7 @@ from .projection import Projected, project
 from .rasterize import composite, pack, tiles_to_image
 from .tiles import Binning, bin_gaussians
 
-__all__ = ["render", "project_cloud", "RenderOutput", "RenderSettings", "ANTIALIAS_MODES", "antialias_parts",
+__all__ = ["render", "prepare_view", "RenderOutput", "RenderSettings", "ANTIALIAS_MODES", "antialias_parts",
            "resolve_device"]
 
 
@@ -99,10 +99,10 @@ def _size(cloud: GaussianCloud, key: str, device) -> torch.Tensor:
     return size.reshape(-1)
 
 
-def project_cloud(cloud: GaussianCloud, camera: Camera, settings: RenderSettings, *, sh_degree: int | None = None,
-                  device=None) -> Projected:
-    """The projection stage of `render` (same arguments): every Gaussian of `cloud` through `camera`
-    with the anti-aliasing of `settings`."""
+def prepare_view(cloud: GaussianCloud, camera: Camera, settings: RenderSettings, *, sh_degree: int | None = None,
+                 device=None) -> tuple[Projected, Binning, torch.Tensor]:
+    """What `render` (same arguments) composites: every Gaussian of `cloud` projected through
+    `camera` with the anti-aliasing of `settings`, its tile lists and the packed table."""
     if not isinstance(camera, Camera):
         raise ValueError(f"render: camera must be a gvae_core.Camera, got {type(camera).__name__}")
     degree = cloud.sh_degree if sh_degree is None else int(sh_degree)
@@ -115,8 +115,11 @@ def project_cloud(cloud: GaussianCloud, camera: Camera, settings: RenderSettings
     dev = f["means"].device
     filter_3d = _size(cloud, FILTER_KEY, dev) if mode == "mip" and FILTER_KEY in cloud.extra else None
     dilation_3d = _size(cloud, DILATION_KEY, dev) if mode == "matched" else None
-    return project(f["means"], f["scales"], f["quats"], f["opacities"], f["sh_dc"], f["sh_rest"], camera, degree,
+    proj = project(f["means"], f["scales"], f["quats"], f["opacities"], f["sh_dc"], f["sh_rest"], camera, degree,
                    dtype=settings.dtype, filter_3d=filter_3d, mip_2d=mode == "mip", dilation_3d=dilation_3d)
+    binning = bin_gaussians(proj.means2d, proj.footprint, proj.depths, proj.visible, camera.width, camera.height,
+                            settings.tile_size, exact=settings.exact_tiles)
+    return proj, binning, pack(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
 
 
 def render(cloud: GaussianCloud, camera: Camera, *, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
@@ -126,12 +129,9 @@ def render(cloud: GaussianCloud, camera: Camera, *, background=(0.0, 0.0, 0.0), 
     `settings.antialias` says how the cloud's stored anti-aliasing sizes are used
     (`gvae_core.antialias`: "filter_3D" in the "mip" mode, "gvae_dilation_3D" in "matched")."""
     s = settings or RenderSettings()
-    proj = project_cloud(cloud, camera, s, sh_degree=sh_degree, device=device)
+    proj, binning, table = prepare_view(cloud, camera, s, sh_degree=sh_degree, device=device)
     dev = proj.means2d.device
     h, w = camera.height, camera.width
-    binning: Binning = bin_gaussians(proj.means2d, proj.footprint, proj.depths, proj.visible, w, h,
-                                     s.tile_size, exact=s.exact_tiles)
-    table = pack(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
     acc = composite(table, binning, block=s.block, budget=s.budget, backward=s.backward)
     acc = tiles_to_image(acc, binning, h, w)
     bg = torch.as_tensor(background, dtype=s.dtype, device=dev).reshape(3)

@@ -17,9 +17,9 @@ import torch
 
 from ..camera import Camera
 from ..cloud import GaussianCloud
-from . import RenderSettings, project_cloud
-from .rasterize import composite, pack, tiles_to_image
-from .tiles import Binning, _sort_key, bin_gaussians
+from . import RenderSettings, prepare_view
+from .rasterize import composite, tiles_to_image
+from .tiles import Binning, _sort_key
 
 __all__ = ["Frame", "make_frame", "redraw"]
 
@@ -56,10 +56,7 @@ def make_frame(cloud: GaussianCloud, camera: Camera, settings: RenderSettings | 
     """The frame of `cloud` seen through `camera` (no gradients; `device` as for `render`)."""
     s = settings or RenderSettings()
     with torch.no_grad():
-        proj = project_cloud(cloud, camera, s, device=device)
-        binning = bin_gaussians(proj.means2d, proj.footprint, proj.depths, proj.visible, camera.width,
-                                camera.height, s.tile_size, exact=s.exact_tiles)
-        table = pack(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
+        _, binning, table = prepare_view(cloud, camera, s, device=device)
     return Frame(camera, s, table, binning, torch.arange(len(cloud), device=table.device))
 
 
@@ -87,10 +84,7 @@ def redraw(frame: Frame, cloud: GaussianCloud, rows) -> Frame:
         gone = gone[gone >= 0]
         drop = torch.zeros(len(frame.table), dtype=torch.bool, device=dev)
         drop[gone] = True
-        proj = project_cloud(cloud.select(rows.numpy()), cam, s, device=dev)
-        new = bin_gaussians(proj.means2d, proj.footprint, proj.depths, proj.visible, cam.width, cam.height,
-                            s.tile_size, exact=s.exact_tiles)
-        fresh = pack(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
+        _, new, fresh = prepare_view(cloud.select(rows.numpy()), cam, s, device=dev)
         first = len(frame.table) - 1  # the new rows go between the kept ones and the dummy
         table = torch.cat([frame.table[:-1], fresh[:-1].to(frame.table.dtype), frame.table[-1:]])
         table_rows = torch.cat([frame.rows, rows.to(dev)])
