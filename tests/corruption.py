@@ -1,6 +1,11 @@
 """Random byte edits of a file for the property tests of the readers (test_ply, test_formats)."""
 
+import warnings
+
+import numpy as np
 from hypothesis import strategies as st
+
+from gvae_core.ply import PlyError
 
 #: Up to four edits: (kind, where in 0..1, a byte value that also picks sizes and the region).
 EDITS = st.lists(st.tuples(st.sampled_from(["flip", "set", "cut", "insert", "delete"]),
@@ -26,3 +31,16 @@ def corrupt(data: bytes, ops, head_len: int) -> bytes:
         else:
             del data[pos:pos + 1 + value % 5]
     return bytes(data)
+
+
+def read_or_refuse(read, path) -> None:
+    """`read(path)` of a corrupted file either raises PlyError naming the file or gives a cloud
+    with only finite values (warnings about what it sanitised are expected)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            cloud = read(path)
+        except PlyError as exc:
+            assert str(path) in str(exc)
+        else:
+            assert all(np.isfinite(a).all() for a in cloud.arrays().values())

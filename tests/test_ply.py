@@ -3,7 +3,6 @@
 import os
 import subprocess
 import sys
-import warnings
 
 import numpy as np
 import plyfile
@@ -11,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tests.corruption import EDITS, corrupt
+from tests.corruption import EDITS, corrupt, read_or_refuse
 
 from gvae_core import GaussianCloud, PlyError, read_ply, write_ply
 
@@ -356,11 +355,4 @@ def test_property_corruption_only_raises_ply_error(tmp_path, seed_files, which, 
     data = seed_files[which]
     path = tmp_path / "c.ply"
     path.write_bytes(corrupt(data, ops, head_len=data.index(b"end_header") + 11))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        try:
-            cloud = read_ply(path)
-        except PlyError as exc:
-            assert str(path) in str(exc)
-        else:
-            assert all(np.isfinite(a).all() for a in cloud.arrays().values())
+    read_or_refuse(read_ply, path)
