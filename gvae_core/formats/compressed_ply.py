@@ -134,8 +134,9 @@ def _unorm(packed: np.ndarray, shift: int, bits: int) -> np.ndarray:
 
 
 def _lerp(lo: np.ndarray, hi: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """lo (1 - t) + hi t, exactly lo at t = 0 and hi at t = 1 (also when the other bound is infinite)."""
     with np.errstate(invalid="ignore", over="ignore"):
-        return lo * (1.0 - t) + hi * t
+        return np.where(t == 1.0, hi, np.where(t == 0.0, lo, lo * (1.0 - t) + hi * t))
 
 
 def _decode(data: dict[str, np.ndarray], where: str):
