@@ -22,6 +22,8 @@ def setup(args: dict):
     os.makedirs(home, exist_ok=True)
     if args.get("block_torch"):
         sys.modules["torch"] = None  # as in a Blender without torch: `import torch` fails
+    if args.get("block_pillow"):
+        sys.modules["PIL"] = None  # as in Blender, which bundles no Pillow
     os.environ["HOME"] = home
     os.environ["BLENDER_USER_RESOURCES"] = os.path.join(home, "blender")
     import bpy
@@ -40,7 +42,8 @@ def counts(bpy) -> dict:
     return {"objects": sorted(o.name for o in bpy.data.objects),
             "meshes": sorted(m.name for m in bpy.data.meshes),
             "materials": sorted(m.name for m in bpy.data.materials),
-            "node_groups": sorted(g.name for g in bpy.data.node_groups)}
+            "node_groups": sorted(g.name for g in bpy.data.node_groups),
+            "images": sorted(i.name for i in bpy.data.images)}
 
 
 def evaluated(bpy, obj) -> dict:
@@ -337,12 +340,13 @@ def scenario_cycles(bpy, args: dict) -> dict:
 
 
 def scenario_formats(bpy, args: dict) -> dict:
-    """File > Import of every splat format (one file at a time, then all at once), File > Export to .spz,
-    bad files of each format, and the drag-and-drop file handler's extensions."""
+    """File > Import of every splat format (one file at a time, then all at once; a SOG folder's
+    meta.json), File > Export to .spz and .sog, bad files of each format, and the drag-and-drop file
+    handler's extensions."""
     import numpy as np
 
     res: dict = {"imported": {}}
-    for name, path in args["files"].items():
+    for name, path in {**args["files"], "sog_folder": args["sog_folder"]}.items():
         before = counts(bpy)
         bpy.ops.import_scene.gaussian_splat(filepath=path)
         obj = bpy.context.active_object
@@ -357,6 +361,15 @@ def scenario_formats(bpy, args: dict) -> dict:
     res["export_spz_poll"] = bpy.ops.export_scene.gaussian_splat_spz.poll()
     res["export_spz"] = sorted(bpy.ops.export_scene.gaussian_splat_spz(filepath=args["export_spz"]))
     res["export_ply"] = sorted(bpy.ops.export_scene.gaussian_splat(filepath=args["export_ply"]))
+    sog_obj = bpy.data.objects[res["imported"]["sog"]["object"]]
+    spz_obj.select_set(False)
+    sog_obj.select_set(True)
+    bpy.context.view_layer.objects.active = sog_obj
+    images = counts(bpy)["images"]
+    res["export_sog"] = sorted(bpy.ops.export_scene.gaussian_splat_sog(filepath=args["export_sog"]))
+    np.savez(args["out"] + ".exported_sog_object.npz", **attributes(sog_obj))
+    res["images_left"] = sorted(set(counts(bpy)["images"]) - set(images))
+    res["images"] = counts(bpy)["images"]
     res["bad"] = {name: failure(bpy, lambda p=path: bpy.ops.import_scene.gaussian_splat(filepath=p))
                   for name, path in args["bad"].items()}
     files = [{"name": os.path.basename(p)} for p in args["files"].values()]
