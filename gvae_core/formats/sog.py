@@ -54,7 +54,6 @@ from __future__ import annotations
 import io
 import json
 import math
-import warnings
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -66,7 +65,7 @@ from ..atomic import atomic_write
 from ..cloud import GaussianCloud
 from ..conventions import SH_DEGREE_OF_REST, SH_REST_COUNTS
 from ..ply import PlyError, drop_nonfinite
-from ._codec import dropped_extras, opacity_codes, refuse_nonfinite, unorm_codes
+from ._codec import opacity_codes, unorm_codes, writable
 from ._quantize import codebook_1d, kmeans
 
 __all__ = ["WebpCodec", "pillow_webp", "read_sog", "write_sog", "is_sog_name", "looks_like_sog",
@@ -442,11 +441,7 @@ def write_sog(cloud: GaussianCloud, path, *, webp: WebpCodec | None = None, mort
     (PlyError); extra properties are not stored (a warning says so)."""
     path = Path(path)
     where = str(path)
-    c = cloud.numpy()
-    refuse_nonfinite(c, where)
-    extras = dropped_extras(c, "SOG", where)
-    if extras:
-        warnings.warn(extras, stacklevel=2)
+    c = writable(cloud, "SOG", where)
     webp = webp or pillow_webp()
     images, meta = encode_sog(c, morton=morton, iterations=iterations, seed=seed)
     files = {name: webp.encode(rgba) for name, rgba in images.items()}

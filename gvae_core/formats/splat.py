@@ -34,7 +34,7 @@ from ..atomic import atomic_write
 from ..cloud import GaussianCloud
 from ..conventions import activate_scales, dc_to_rgb, rgb_to_dc
 from ..ply import PlyError, drop_nonfinite
-from ._codec import OPACITY_OF_CODE, dropped_extras, opacity_codes, refuse_nonfinite, unorm_codes
+from ._codec import OPACITY_OF_CODE, opacity_codes, unorm_codes, writable
 
 __all__ = ["RECORD", "read_splat", "write_splat", "looks_like_splat"]
 
@@ -93,14 +93,10 @@ def write_splat(cloud: GaussianCloud, path) -> Path:
     stored (a warning says so when there are any); non-finite rows are refused (PlyError)."""
     path = Path(path)
     where = str(path)
-    c = cloud.numpy()
-    refuse_nonfinite(c, where)
+    c = writable(cloud, ".splat", where)
     if c.sh_degree:
         warnings.warn(f"{where}: .splat holds no view-dependent colour; the SH degree {c.sh_degree} "
                       "coefficients are not written", stacklevel=2)
-    extras = dropped_extras(c, ".splat", where)
-    if extras:
-        warnings.warn(extras, stacklevel=2)
     rec = np.empty(len(c), RECORD)
     rec["position"] = c.means
     rec["scale"] = activate_scales(c.scales)
