@@ -398,6 +398,22 @@ def test_bad_scenes_name_the_file_and_the_problem(tmp_path):
         read_splat_file(tmp_path / "empty")
 
 
+def test_detection_tells_json_from_splat_records(tmp_path):
+    """A meta.json whose size is a whole number of 32-byte records is SOG; a .splat whose first byte
+    happens to be '{' is a .splat."""
+    meta, images, _ = hand_scene()
+    path = folder(tmp_path / "scene", meta, images)
+    text = path.read_text()
+    path.write_text(text + " " * (-len(text) % 32))
+    assert path.stat().st_size % 32 == 0 and detect_format(path) == "sog"
+    cloud = make_cloud(n=4, degree=0)
+    cloud.means[0, 0] = np.frombuffer(b"{\x00\x80\x3f", "<f4")[0]  # 1.0000147, its low byte '{'
+    data = quiet(write_splat_file, cloud, tmp_path / "a.splat").read_bytes()
+    assert data[:1] == b"{"
+    (tmp_path / "a.bin").write_bytes(data)
+    assert detect_format(tmp_path / "a.splat") == detect_format(tmp_path / "a.bin") == "splat"
+
+
 @pytest.fixture(scope="module")
 def seed_sog(tmp_path_factory) -> bytes:
     return write_sog(make_cloud(n=300, degree=1, seed=7), tmp_path_factory.mktemp("sog") / "s.sog").read_bytes()

@@ -1,7 +1,8 @@
 """Files both ways with the real PlayCanvas splat-transform (SuperSplat's converter), from the npm registry.
 
-`@playcanvas/splat-transform@3.7.0` is installed once into a cache folder ($GVAE_CACHE_DIR or
-~/.cache/gvae, then npm/splat-transform-3.7.0; about 215 MB, 10-30 s) and run with node on a cloud of
+`@playcanvas/splat-transform@3.7.0` is installed once into a cache folder
+(`gvae_core.benchmarks.splat_transform`: $GVAE_CACHE_DIR or ~/.cache/gvae, then
+npm/splat-transform-3.7.0; about 215 MB, 10-30 s) and run with node on a cloud of
 hard values (unnormalised and zero quaternions, extreme scales and opacities, a point 3000 units out,
 SH degree 3). Skipped, saying so, only where node or npm are missing.
 
@@ -17,9 +18,6 @@ SH degree 3). Skipped, saying so, only where node or npm are missing.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import subprocess
 import warnings
 import zipfile
 from concurrent.futures import ThreadPoolExecutor
@@ -32,49 +30,20 @@ from scipy.spatial import cKDTree
 from tests.test_formats import make_cloud, quat_error, sigmoid
 
 from gvae_core import GaussianCloud, read_splat_file, write_ply
+from gvae_core.benchmarks.splat_transform import Unavailable, convert
+from gvae_core.benchmarks.splat_transform import command as splat_transform_command
 from gvae_core.formats import write_compressed_ply, write_sog, write_spz
 from gvae_core.formats import _quantize as quantize
 from gvae_core.formats.spz import read_spz_header
-
-VERSION = "3.7.0"
-PACKAGE = f"@playcanvas/splat-transform@{VERSION}"
-
-
-def cache_dir() -> Path:
-    base = os.environ.get("GVAE_CACHE_DIR") or os.path.join(os.path.expanduser("~"), ".cache", "gvae")
-    return Path(base) / "npm" / f"splat-transform-{VERSION}"
 
 
 @pytest.fixture(scope="module")
 def splat_transform() -> list[str]:
     """The command that runs splat-transform (installed into the cache folder on first use)."""
-    node, npm = shutil.which("node"), shutil.which("npm")
-    if not node or not npm:
-        pytest.skip("node and npm are needed to install and run splat-transform; "
-                    f"{'node' if not node else 'npm'} is not on PATH")
-    root = cache_dir()
-    cli = Path("node_modules", "@playcanvas", "splat-transform", "bin", "cli.mjs")
-    if not (root / cli).exists():
-        tmp = root.with_name(f"{root.name}.{os.getpid()}.tmp")
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
-        proc = subprocess.run([npm, "install", "--prefix", str(tmp), "--no-audit", "--no-fund", "--no-package-lock",
-                               "--ignore-scripts", "--loglevel=error", PACKAGE],
-                              capture_output=True, text=True, timeout=600)
-        assert proc.returncode == 0, f"npm install {PACKAGE} failed:\n{proc.stdout}\n{proc.stderr}"
-        try:
-            os.replace(tmp, root)
-        except OSError:  # another run installed it meanwhile
-            shutil.rmtree(tmp, ignore_errors=True)
-    return [node, str(root / cli)]
-
-
-def run(st: list[str], src: Path, dst: Path, *options: str) -> Path:
-    proc = subprocess.run([*st, "-w", "-q", "-g", "cpu", *options, str(src), str(dst)],
-                          capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0 and dst.exists(), \
-        f"splat-transform {src.name} -> {dst.name}:\n{proc.stdout}{proc.stderr}"
-    return dst
+    try:
+        return splat_transform_command()
+    except Unavailable as exc:
+        pytest.skip(f"node and npm are needed to install and run splat-transform: {exc}")
 
 
 def quiet_read(path) -> GaussianCloud:
@@ -135,11 +104,11 @@ def files(splat_transform, tmp_path_factory) -> dict:
                  ("theirs", "sog"): (ours["ply"], folder / "st.sog")})
     out = {"cloud": cloud, "ours": ours, "read_by_st": {}, "theirs": {}}
     with ThreadPoolExecutor(2) as pool:  # node starts in about a second: two at a time
-        for (group, name), path in zip(jobs, pool.map(lambda job: run(st, *job), jobs.values())):
+        for (group, name), path in zip(jobs, pool.map(lambda job: convert(st, *job), jobs.values())):
             out[group][name] = path
         then = {"ply_of_compressed": (out["theirs"]["compressed"], folder / "st_of_st_compressed.ply"),
                 "ply_of_sog": (out["theirs"]["sog"], folder / "st_of_st_sog.ply")}
-        out["theirs"].update(zip(then, pool.map(lambda job: run(st, *job), then.values())))
+        out["theirs"].update(zip(then, pool.map(lambda job: convert(st, *job), then.values())))
     return out
 
 

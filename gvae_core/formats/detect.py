@@ -2,9 +2,9 @@
 
 The first bytes decide: "ply" and a header with a `chunk` element and `packed_position` vertices is
 SuperSplat's compressed PLY, any other PLY the reference layout (`read_ply`); gzip (`1f 8b`) or
-"NGSP" is .spz; a zip (`PK`), JSON text or a folder holding `meta.json` is a SOG scene. Without a
-signature a file is a .splat when its extension says so, or when its size is a whole number of
-32-byte records whose first ones look like Gaussians; else a .ply goes to `read_ply` (which says
+"NGSP" is .spz; a file named .splat is a .splat; a zip (`PK`), a JSON object or a folder holding
+`meta.json` is a SOG scene; a file without a signature is a .splat when its size is a whole number
+of 32-byte records whose first ones look like Gaussians; else a .ply goes to `read_ply` (which says
 what is wrong with it), and anything else is refused. Writing goes by the file name
 (`output_format`), which must be one of WRITE_NAMES.
 """
@@ -56,9 +56,11 @@ def detect_format(path) -> str:
             return "compressed_ply" if is_compressed_ply_header(read_header(f, where)) else "ply"
     if head.startswith(GZIP_MAGIC) or head.startswith(MAGIC):
         return "spz"
+    if path.suffix.lower() == ".splat":
+        return "splat"
     if looks_like_sog(path, head):
         return "sog"
-    if path.suffix.lower() == ".splat" or looks_like_splat(head, size):
+    if looks_like_splat(head, size):
         return "splat"
     if path.suffix.lower() == ".ply":
         return "ply"  # read_ply says what is wrong with it

@@ -37,11 +37,16 @@ same values. Writing (`write_sog`): rows in Morton order of their positions (as 
 neighbours in the images compress better; `morton=False` keeps the cloud's order), codes rounded to
 nearest (splat-transform truncates, which doubles the error), codebooks by `_quantize.codebook_1d`
 and the SH palette by `_quantize.kmeans` (M = 1024 * min(64, 2**floor(log2(N / 1024))) entries, as
-splat-transform; seeded: the same cloud gives the same file). Errors on the trained chair of
-examples/trained (11,130 Gaussians, SH 3; splat-transform 3.7.0 on the same cloud in brackets; see
-README): position (|x| + 1) * (max - min) / 131070 per axis at most; rotation 1/255/sqrt 2 ~ 0.0028
-per component at most (0.0055); log-scale and f_dc: their codebook's, RMS about 0.002 and 0.004;
-opacity 0.5/255 after the sigmoid (1/255); f_rest: the palette's, RMS below 0.001.
+splat-transform; seeded: the same cloud gives the same file). Bounds: position (|x| + 1) times
+half a step, (max - min) / 131070, of its axis; rotation 1/255/sqrt 2 ~ 0.0028 for the three smaller
+components, three times that for the largest (derived from them); opacity 0.5/255 after the
+sigmoid; log-scale and f_dc the nearest codebook entry. Measured on the trained chair of
+examples/trained (11,130 Gaussians, SH 3; `python -m gvae_core.benchmarks sog`), RMS / largest
+error, splat-transform 3.7.0's on the same cloud in brackets: position 6.3e-6 / 2.0e-5 (1.3e-5 /
+4.1e-5), rotation 0.0014 / 0.0028 (0.0028 / 0.0055), log-scale 0.0034 / 0.017 (0.0033 / 0.016),
+opacity 0.0012 / 0.0020 (0.0022 / 0.0039), f_dc 0.0030 / 0.017 (0.0029 / 0.015), f_rest 0.00089 /
+0.013 (0.00085 / 0.013): half its error where it truncates, 3-5% more where its codebooks (a
+histogram dynamic program) and its one-level k-means do better.
 Extra properties are not stored (a warning says so); non-finite rows are refused.
 
 The WebP images go through a `WebpCodec`: Pillow's by default (`pillow_webp`; lossless, keeping
@@ -113,7 +118,9 @@ def pillow_webp() -> WebpCodec:
 
     def encode(rgba: np.ndarray) -> bytes:
         buf = io.BytesIO()
-        Image.fromarray(np.ascontiguousarray(rgba, np.uint8), "RGBA").save(buf, "WEBP", lossless=True, exact=True)
+        # quality (effort) 50, method 2: the size of the default (80, 4) on SOG's images, 3x faster
+        Image.fromarray(np.ascontiguousarray(rgba, np.uint8), "RGBA").save(buf, "WEBP", lossless=True, exact=True,
+                                                                            quality=50, method=2)
         return buf.getvalue()
 
     return WebpCodec("Pillow", decode, encode)
@@ -128,11 +135,12 @@ def is_sog_name(path) -> bool:
 
 def looks_like_sog(path, head: bytes) -> bool:
     """Whether a file (or folder) starting with `head` is a SOG scene: a folder with meta.json, a
-    zip, or JSON text."""
+    zip, or the start of a JSON object ('{' then a key or '}')."""
     path = Path(path)
     if path.is_dir():
         return (path / META_NAME).is_file()
-    return head.startswith(ZIP_MAGIC) or head.lstrip(b" \t\r\n\xef\xbb\xbf").startswith(b"{")
+    text = head.lstrip(b" \t\r\n\xef\xbb\xbf")
+    return head.startswith(ZIP_MAGIC) or (text[:1] == b"{" and text[1:].lstrip(b" \t\r\n")[:1] in (b'"', b"}"))
 
 
 # ------------------------------------------------------------------------------------ read
