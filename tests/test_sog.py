@@ -390,7 +390,7 @@ def test_bad_scenes_name_the_file_and_the_problem(tmp_path):
         z.writestr("readme.txt", "hello")
     with pytest.raises(PlyError, match="bundle has no meta.json"):
         read_splat_file(tmp_path / "other.sog")
-    (tmp_path / "j.json").write_text("{ not json")
+    (tmp_path / "j.json").write_text('{"version": 2, "count"')
     with pytest.raises(PlyError, match="not valid JSON"):
         read_splat_file(tmp_path / "j.json")
     (tmp_path / "empty").mkdir()
