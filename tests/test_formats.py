@@ -570,6 +570,10 @@ def test_cli_refine_reads_every_format(tmp_path, capsys, monkeypatch):
         for field, value in back.arrays().items():
             np.testing.assert_array_equal(getattr(seen[-1], field), value, err_msg=field)
         np.testing.assert_array_equal(read_ply(tmp_path / "out.ply").means, back.means)
+    # an OUT name no format is written under is refused before the input is read or refined
+    calls = len(seen)
+    assert main(["refine", str(src), str(tmp_path / "out.xyz"), "--budget", "all"]) == 2
+    assert "cannot tell which splat format" in capsys.readouterr().err and len(seen) == calls
 
 
 def test_cli_convert_between_formats(tmp_path, capsys):
