@@ -8,7 +8,8 @@ builds and validates the zip with Blender's own `blender_ext.py` (from the bpy m
 e.g. from `pip download torch==2.13.0 --only-binary=:all: --platform ... --python-version 3.11 -d DIR`)
 for offline installs; the zip is then marked for that platform only. DIR may hold the wheels for
 several Pythons (`--python-version 3.11` and `3.13` into the same DIR): Blender installs those for its
-own. The zip's Blender versions are narrowed to those whose Python has a torch wheel in DIR.
+own (from 4.5 on; such a zip is marked for 4.5 and later). The zip's Blender versions are narrowed to
+those whose Python has a torch wheel in DIR.
 """
 
 from __future__ import annotations
@@ -41,6 +42,10 @@ __all__ = ["register", "unregister"]
 
 #: The Python of each Blender series from that version on: 4.2 to 5.0 run 3.11, 5.1 and later 3.13.
 BLENDER_PYTHONS = (("4.2.0", (3, 11)), ("5.1.0", (3, 13)))
+#: The first series that installs only the bundled wheels of its own Python (4.5.15 does; 4.2.0
+#: filters by platform only and may take a torch built for another Python): a zip with wheels for
+#: several Pythons starts there.
+FILTERS_PYTHON = "4.5.0"
 
 # Wheel platform tag fragment -> Blender platform name.
 _PLATFORMS = (("manylinux", "x86_64", "linux-x64"), ("manylinux", "aarch64", "linux-arm64"),
@@ -106,7 +111,8 @@ def blender_range(pythons: set[tuple[int, int]], vmin: str, vmax: str | None) ->
                          f"Blender versions ({runs})")
     last = series[-1][0] + 1
     hi = [v for v in (vmax, BLENDER_PYTHONS[last][0] if last < len(BLENDER_PYTHONS) else None) if v]
-    lo, hi = max(vmin, series[0][1], key=_version), min(hi, key=_version, default=None)
+    lo = max(vmin, series[0][1], *([FILTERS_PYTHON] if len(series) > 1 else []), key=_version)
+    hi = min(hi, key=_version, default=None)
     if hi is not None and _version(lo) >= _version(hi):
         raise SystemExit(f"--torch-wheels: Python {sorted(pythons)} is not that of any Blender from {vmin} "
                          f"to {vmax}")

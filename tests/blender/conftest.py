@@ -21,11 +21,13 @@ BLENDER_PYTHON = os.path.abspath(os.environ.get("GVAE_BLENDER_PYTHON") or sys.ex
 
 
 @functools.cache
-def blender_python_version() -> tuple[int, int]:
-    """(major, minor) of the Python that runs Blender."""
-    out = subprocess.run([BLENDER_PYTHON, "-c", "import sys; print(*sys.version_info[:2])"], capture_output=True,
-                         text=True, check=True).stdout
-    return tuple(int(v) for v in out.split())
+def blender_versions() -> tuple[tuple[int, int], tuple[int, ...]]:
+    """((major, minor) of the Python that runs Blender, the bpy module's version), without
+    starting Blender."""
+    code = "import sys, importlib.metadata as m; print(*sys.version_info[:2]); print(m.version('bpy'))"
+    py, bpy = subprocess.run([BLENDER_PYTHON, "-c", code], capture_output=True, text=True,
+                             check=True).stdout.split("\n")[:2]
+    return tuple(int(v) for v in py.split()), tuple(int(v) for v in bpy.split("."))
 
 
 @functools.cache
@@ -40,7 +42,7 @@ def requires_blender_torch() -> None:
     the CPU build from local disk for Python 3.11; for the Python 3.13 of Blender 5.1+ the package
     index has only the CUDA build of Linux torch, over 0.5 GB before the CUDA libraries)."""
     if not blender_python_has("torch"):
-        major, minor = blender_python_version()
+        major, minor = blender_versions()[0]
         pytest.skip(f"no PyTorch in the Python {major}.{minor} that runs Blender ({BLENDER_PYTHON}): "
                     + ("no CPU torch wheel for cp313 is available here (PyPI's Linux torch is the CUDA build)"
                        if (major, minor) >= (3, 13) else "install torch==2.13.0 (CPU) there"))
