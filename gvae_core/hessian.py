@@ -252,10 +252,9 @@ def _gaussian_blocks(f: dict, rows: torch.Tensor, mom: torch.Tensor, colors: tor
     iz = 1.0 / z
     u, v = x * iz, y * iz
     fx, fy = camera.fx, camera.fy
-    lim_x = pj.FOV_CLAMP * 0.5 * camera.width / fx
-    lim_y = pj.FOV_CLAMP * 0.5 * camera.height / fy
-    uc, vc = u.clamp(-lim_x, lim_x), v.clamp(-lim_y, lim_y)
-    free_u, free_v = (u.abs() < lim_x).to(dt), (v.abs() < lim_y).to(dt)
+    lo_x, hi_x, lo_y, hi_y = pj.fov_limits(camera)
+    uc, vc = u.clamp(lo_x, hi_x), v.clamp(lo_y, hi_y)
+    free_u, free_v = ((u > lo_x) & (u < hi_x)).to(dt), ((v > lo_y) & (v < hi_y)).to(dt)
     iz2 = iz * iz
     j00, j11, j02, j12 = fx * iz, fy * iz, -fx * uc * iz, -fy * vc * iz
     dj00_z, dj11_z = -fx * iz2, -fy * iz2

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -12,6 +13,7 @@ import gvae_core
 import gvae_core.refinement
 import gvae_core.rendering.reference
 from gvae_core import Camera, GaussianCloud
+from gvae_core.examples import example_cloud
 from gvae_core.rendering import RenderOutput, RenderSettings, render
 from gvae_core.rendering.projection import project
 from gvae_core.rendering.reference import render_reference
@@ -339,3 +341,25 @@ def test_recomputing_backward_keeps_memory_bounded():
     n, pixels = len(cloud), 96 * 72
     assert saved["recompute"] < 200 * n + 20 * pixels + 11 * out.num_pairs
     assert saved["autograd"] > pairs_x_pixels > 3 * saved["recompute"], (saved, pairs_x_pixels)
+
+
+def test_a_crop_of_a_camera_draws_the_same_pixels():
+    # The Jacobian's clamp follows the image's own extent (the image widened by 15% of its size on
+    # each side), so a crop of a camera (principal point moved, smaller image: what training on
+    # patches renders) draws the pixels of the whole view, up to Gaussians centred far outside
+    # the crop, which it clamps and the whole view does not; the reference renderer agrees.
+    cloud = example_cloud(500, seed=2)
+    cam = Camera.look_at((3.0, 1.0, 1.8), width=64, height=64)
+    whole = render(cloud, cam).image.numpy()
+
+    def crop(x0, y0, w, h):
+        return dataclasses.replace(cam, cx=cam.cx - x0, cy=cam.cy - y0, width=w, height=h)
+
+    np.testing.assert_allclose(render(cloud, crop(8, 8, 48, 48)).image.numpy(), whole[8:56, 8:56], atol=1e-5)
+    for x0, y0 in ((0, 0), (40, 8), (17, 33)):
+        part = render(cloud, crop(x0, y0, 24, 20)).image.numpy()
+        assert np.abs(part - whole[y0:y0 + 20, x0:x0 + 24]).mean() < 2e-4
+    pixels = np.array([[3, 5], [10, 20]])
+    ref = render_reference(cloud, crop(40, 8, 24, 20), pixels=pixels)[0]
+    np.testing.assert_allclose(render(cloud, crop(40, 8, 24, 20)).image.numpy()[pixels[:, 0], pixels[:, 1]], ref,
+                               atol=1e-5)

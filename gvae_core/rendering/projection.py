@@ -33,7 +33,8 @@ FILTER_3D_RANGE = (math.exp(2.0 * LOG_SCALE_RANGE[0]), math.exp(LOG_SCALE_RANGE[
 #: Below this, sqrt(det Σ2D / det(Σ2D + s I)) is taken at this value (it leaves the Gaussian far
 #: under 1/255 anyway); keeps the square root's derivative finite for degenerate footprints.
 MIP_2D_RATIO_FLOOR = 1e-12
-#: The projected centre is clamped to this many half fields of view, for the Jacobian only.
+#: The projected centre is clamped to the image widened by (FOV_CLAMP - 1) half-sizes on each side,
+#: for the Jacobian only (1.3 x the half field of view for a centred principal point).
 FOV_CLAMP = 1.3
 #: Contributions with alpha below this are skipped; no Gaussian with opacity below it is drawn.
 ALPHA_MIN = 1.0 / 255.0
@@ -43,6 +44,15 @@ ALPHA_MIN = 1.0 / 255.0
 MAX_AXIS_PX = 1e8
 #: Relative safety margin on the opacity-aware footprint so float32 rounding never clips it.
 FOOTPRINT_MARGIN = 1e-3
+
+
+def fov_limits(camera: Camera) -> tuple[float, float, float, float]:
+    """(lo_x, hi_x, lo_y, hi_y): the range of x/z and y/z the Jacobian's centre is clamped to, the
+    image widened by (FOV_CLAMP - 1) half-sizes on each side (gsplat's rule; for a centred principal
+    point +-FOV_CLAMP half fields of view; a crop of a camera keeps its pixels' clamp)."""
+    mx, my = (FOV_CLAMP - 1.0) * 0.5 * camera.width, (FOV_CLAMP - 1.0) * 0.5 * camera.height
+    return (-(camera.cx + mx) / camera.fx, (camera.width - camera.cx + mx) / camera.fx,
+            -(camera.cy + my) / camera.fy, (camera.height - camera.cy + my) / camera.fy)
 
 
 @dataclass
@@ -94,12 +104,11 @@ def project(means, log_scales, quats, opacity_logits, sh_dc, sh_rest, camera: Ca
     v = torch.where(in_front, y, zero) * iz
 
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-    lim_x = FOV_CLAMP * 0.5 * camera.width / fx
-    lim_y = FOV_CLAMP * 0.5 * camera.height / fy
+    lo_x, hi_x, lo_y, hi_y = fov_limits(camera)
     # Perspective Jacobian rows (j00, 0, j02) and (0, j11, j12), centre clamped for it only.
     j00, j11 = fx * iz, fy * iz
-    j02 = -fx * u.clamp(-lim_x, lim_x) * iz
-    j12 = -fy * v.clamp(-lim_y, lim_y) * iz
+    j02 = -fx * u.clamp(lo_x, hi_x) * iz
+    j12 = -fy * v.clamp(lo_y, hi_y) * iz
 
     # Rotation to camera space as one quaternion: q_cam = q_camera ⊗ q_gaussian.
     q_camera = torch.as_tensor(quaternions.from_rotmat(camera.rotation), dtype=dtype, device=dev)

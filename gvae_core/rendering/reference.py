@@ -94,8 +94,10 @@ def project_reference(cloud: GaussianCloud, camera: Camera, sh_degree: int | Non
     quats = _np64(cloud.quats)
     opac = 1.0 / (1.0 + np.exp(-np.clip(_np64(cloud.opacities), *OPACITY_LOGIT_RANGE)))
     dc, rest = _np64(cloud.sh_dc), _np64(cloud.sh_rest)
-    lim_x = FOV_CLAMP * camera.width / (2 * camera.fx)
-    lim_y = FOV_CLAMP * camera.height / (2 * camera.fy)
+    # the image widened by (FOV_CLAMP - 1) half-sizes on each side, as x/z and y/z
+    mx, my = (FOV_CLAMP - 1) * camera.width / 2, (FOV_CLAMP - 1) * camera.height / 2
+    lo_x, hi_x = -(camera.cx + mx) / camera.fx, (camera.width - camera.cx + mx) / camera.fx
+    lo_y, hi_y = -(camera.cy + my) / camera.fy, (camera.height - camera.cy + my) / camera.fy
     # Written per Gaussian i as batched 3x3 / 2x3 matrix products (numpy, float64).
     i = np.flatnonzero(valid)
     x, y, z = p[i, 0], p[i, 1], p[i, 2]
@@ -115,8 +117,8 @@ def project_reference(cloud: GaussianCloud, camera: Camera, sh_degree: int | Non
         cov3 = smoothed
     if dil is not None:
         cov3 = cov3 + (dil[i] ** 2)[:, None, None] * np.eye(3)
-    tx = np.clip(x / z, -lim_x, lim_x) * z
-    ty = np.clip(y / z, -lim_y, lim_y) * z
+    tx = np.clip(x / z, lo_x, hi_x) * z
+    ty = np.clip(y / z, lo_y, hi_y) * z
     jac = np.zeros((len(i), 2, 3))
     jac[:, 0, 0] = camera.fx / z
     jac[:, 0, 2] = -camera.fx * tx / (z * z)
