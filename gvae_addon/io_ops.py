@@ -17,6 +17,8 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from gvae_core.cloud import GaussianCloud
 from gvae_core.formats import WebpCodec, read_splat_file, write_splat_file
+from gvae_core.octaves import bake as bake_octaves
+from gvae_core.octaves import has_octaves
 
 from . import convert, nodes, render_setup
 
@@ -103,11 +105,15 @@ def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
     return obj
 
 
-def export_splat(obj, path: str, *, apply_transform: bool = False, write_step: bool = False):
+def export_splat(obj, path: str, *, apply_transform: bool = False, write_step: bool = False, bake: float = 0.0):
     """Write a splat object in the format `path` asks for (`write_splat_file`: a 3DGS PLY, .spz,
-    .sog, ...; atomic). Returns (count, messages)."""
+    .sog, ...; atomic). `bake` > 0: a refined object's changes per octave baked in for that factor
+    of its training resolution (`gvae_core.octaves.bake`). Returns (count, messages)."""
     cloud, steps = convert.cloud_from_object(obj)
     messages = []
+    if bake > 0 and has_octaves(cloud):
+        cloud = bake_octaves(cloud, bake)
+        messages.append(f"refinement baked in for {bake:g}x the training resolution")
     if apply_transform:
         try:
             cloud, messages = _with_messages(cloud.transformed, obj.matrix_world)
@@ -252,7 +258,7 @@ class _SplatExport(ExportHelper):
         start = time.perf_counter()
         try:
             count, messages = export_splat(obj, self.filepath, apply_transform=self.apply_transform,
-                                           write_step=self.write_step)
+                                           write_step=self.write_step, bake=self.bake_refinement)
         except Exception as exc:
             self.report({"ERROR"}, f"Gaussian splat export failed: {exc}")
             return {"CANCELLED"}
@@ -273,6 +279,11 @@ class EXPORT_SCENE_OT_gaussian_splat(_SplatExport, Operator):
     filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
     write_step: BoolProperty(name="Write Refine Step", default=False,
                              description="Also write the gvae_step attribute as an int property")
+    bake_refinement: FloatProperty(
+        name="Bake Refinement", default=0.0, min=0.0, soft_max=8.0,
+        description="A refined splat's changes written into the Gaussians as they are drawn at this factor of "
+        "the training resolution, for other tools (0: kept as properties, which only this add-on and gvae draw; "
+        "other tools then show the splat as it was before refining)")
 
 
 class EXPORT_SCENE_OT_gaussian_splat_spz(_SplatExport, Operator):
@@ -284,6 +295,10 @@ class EXPORT_SCENE_OT_gaussian_splat_spz(_SplatExport, Operator):
     filename_ext = ".spz"
     filter_glob: StringProperty(default="*.spz", options={"HIDDEN"})
     write_step = False  # .spz holds no extra properties such as gvae_step
+    bake_refinement: FloatProperty(
+        name="Bake Refinement", default=2.0, min=0.0, soft_max=8.0,
+        description="A refined splat's changes written into the Gaussians as they are drawn at this factor of "
+        "the training resolution (.spz keeps no other properties; 0: the splat as it was before refining)")
 
 
 class EXPORT_SCENE_OT_gaussian_splat_sog(_SplatExport, Operator):
@@ -295,6 +310,10 @@ class EXPORT_SCENE_OT_gaussian_splat_sog(_SplatExport, Operator):
     filename_ext = ".sog"
     filter_glob: StringProperty(default="*.sog", options={"HIDDEN"})
     write_step = False  # SOG holds no extra properties such as gvae_step
+    bake_refinement: FloatProperty(
+        name="Bake Refinement", default=2.0, min=0.0, soft_max=8.0,
+        description="A refined splat's changes written into the Gaussians as they are drawn at this factor of "
+        "the training resolution (SOG keeps no other properties; 0: the splat as it was before refining)")
 
 
 class GVAE_FH_gaussian_splat(bpy.types.FileHandler):

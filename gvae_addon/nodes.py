@@ -11,6 +11,9 @@ following the reference renderer (DESIGN.md, Rendering semantics) for the scene'
   the Gaussian's depth z from the camera (f: the camera's focal length in pixels of the render,
   the "Focal Length (px)" input that `render_setup` keeps in step): its projection is the
   renderer's v I in pixels;
+- a refined cloud (`gvae_core.octaves`): its log-scales and opacity logit plus t times their
+  changes per octave (`gvae_octave_scale_0..2`, `gvae_octave_opacity`), t the octaves above the
+  Gaussian's training rate at which the scene camera draws it (none at the training resolution);
 - colour: SH_C0 * f_dc + 0.5 plus, with View-Dependent Colour on, the SH bands for the direction
   camera -> centre in the object's own frame; clamped at 0 and converted from sRGB to linear
   (splat colours are display-referred: the Standard view transform gives them back);
@@ -38,7 +41,10 @@ import math
 
 import bpy
 
-from gvae_core.antialias import CLASSIC_DILATION, DILATION_KEY, FILTER_KEY
+from gvae_core.antialias import CLASSIC_DILATION, DILATION_KEY, FILTER_3D_VARIANCE, FILTER_KEY
+from gvae_core.octaves import DEADBAND as OCTAVE_DEADBAND
+from gvae_core.octaves import LIMIT_KEY as OCTAVE_LIMIT_KEY
+from gvae_core.octaves import field_keys
 from gvae_core.conventions import (ALPHA_MAX, ALPHA_MIN, LOG_SCALE_RANGE, MIP_2D_VARIANCE, OPACITY_LOGIT_RANGE,
                                    SH_C0, SH_C1, SH_C2, SH_C3, SH_REST_COUNTS, SRGB_EOTF)
 
@@ -50,7 +56,7 @@ MODIFIER_NAME = "GaussianVAE Splats"
 COLOR_ATTR = "gvae_color"
 ALPHA_ATTR = "gvae_alpha"
 #: Bumped when the node setup changes; an older group or material in a blend file is rebuilt in place.
-NODES_VERSION = 4
+NODES_VERSION = 5
 #: Multiplies every Gaussian's standard deviations (1: the Gaussians as trained).
 DEFAULT_SCALE_FACTOR = 1.0
 #: Circumradius of Blender's icosphere (subdivisions d) that encloses the unit sphere is
@@ -331,6 +337,27 @@ def _srgb_to_linear(b: _Builder, c):
     return b.math("ADD", b.math("MULTIPLY", low, is_low), b.math("MULTIPLY", high, b.math("SUBTRACT", 1.0, is_low)))
 
 
+def _octaves_seen(b: _Builder, depth, focal):
+    """A refined cloud's octaves above each Gaussian's training rate at which the scene camera
+    draws it (`gvae_core.octaves.octaves_seen`): t = clamp(log2((f / z) / nu), 0, limit), 0 below
+    the deadband, with nu = sqrt(0.2) / filter_3D where the cloud has that filter, else sqrt(0.3) /
+    gvae_dilation_3D. 0 where any of them is missing (Blender's logarithm of 0 is 0; the limit of a
+    cloud without changes is 0)."""
+    m = b.math
+    f3, dil = _named(b, FILTER_KEY), _named(b, DILATION_KEY)
+    has_f3 = m("GREATER_THAN", f3, 0.0)
+    inv_nu = m("ADD", m("MULTIPLY", has_f3, m("DIVIDE", f3, math.sqrt(FILTER_3D_VARIANCE))),
+               m("MULTIPLY", m("SUBTRACT", 1.0, has_f3), m("DIVIDE", dil, math.sqrt(CLASSIC_DILATION))))
+    t = m("LOGARITHM", m("DIVIDE", m("MULTIPLY", focal, inv_nu), depth), 2.0)
+    t = m("MINIMUM", m("MAXIMUM", t, 0.0), _named(b, OCTAVE_LIMIT_KEY))
+    return m("MULTIPLY", t, m("GREATER_THAN", t, OCTAVE_DEADBAND))
+
+
+def _refined(b: _Builder, name: str, change: str, octaves):
+    """Attribute `name` plus `octaves` times its change per octave (attribute `change`, 0 if absent)."""
+    return b.math("MULTIPLY_ADD", _named(b, change), octaves, _named(b, name))
+
+
 def _build_group(ng, degree: int) -> None:
     ng.nodes.clear()
     ng.interface.clear()
@@ -366,6 +393,7 @@ def _build_group(ng, degree: int) -> None:
     # variance (px²) x (depth / focal length in px)²; 0 while the focal length is unknown (0).
     pixel = m("DIVIDE", depth, gin["Focal Length (px)"])
     screen_var = m("MULTIPLY", gin["Screen Filter"], m("MULTIPLY", pixel, pixel))
+    octaves = _octaves_seen(b, depth, gin["Focal Length (px)"])
 
     # Rotation from the w,x,y,z quaternion (normalised by the node).
     q = b.node("FunctionNodeQuaternionToRotation")
@@ -394,7 +422,8 @@ def _build_group(ng, degree: int) -> None:
     uu = [m("MULTIPLY", c, c) for c in b.separate(u)]
     std_tot, ratio_3d, ratio_det, quad_eff, quad_tot = [], [], [], [], []
     for i in range(3):
-        s = m("MULTIPLY", m("EXPONENT", _clamp(b, _named(b, f"scale_{i}"), LOG_SCALE_RANGE)), gin["Scale Factor"])
+        log_s = _refined(b, f"scale_{i}", field_keys("scales", 3)[i], octaves)
+        s = m("MULTIPLY", m("EXPONENT", _clamp(b, log_s, LOG_SCALE_RANGE)), gin["Scale Factor"])
         var_eff = m("MULTIPLY_ADD", s, s, ff)
         var_tot = m("ADD", var_eff, screen_var)
         std_tot.append(m("SQRT", var_tot))
@@ -405,7 +434,7 @@ def _build_group(ng, degree: int) -> None:
     det_ratio = m("MULTIPLY", b.product(ratio_det), m("DIVIDE", b.total(quad_eff), b.total(quad_tot)))
     comp_2d = b.switch("FLOAT", gin["Compensate Screen Filter"], 1.0, m("SQRT", det_ratio))
 
-    logit = _clamp(b, _named(b, "opacity"), OPACITY_LOGIT_RANGE)
+    logit = _clamp(b, _refined(b, "opacity", field_keys("opacities", 1)[0], octaves), OPACITY_LOGIT_RANGE)
     sigmoid = m("DIVIDE", 1.0, m("ADD", m("EXPONENT", m("MULTIPLY", logit, -1.0)), 1.0))
     opacity = b.product([sigmoid, b.product(ratio_3d), comp_2d])
 

@@ -21,6 +21,7 @@ from ..antialias import ANTIALIAS_MODES, DEFAULT_ANTIALIAS, DILATION_KEY, FILTER
 from ..camera import Camera
 from ..cloud import GaussianCloud
 from ..conventions import is_torch
+from ..octaves import drawn_fields
 from .projection import Projected, project
 from .rasterize import composite, pack, tiles_to_image
 from .tiles import Binning, bin_gaussians
@@ -112,6 +113,8 @@ def prepare_view(cloud: GaussianCloud, camera: Camera, settings: RenderSettings,
     mode = resolve_antialias(settings.antialias, cloud)
     f = {name: _field(getattr(cloud, name), device) for name in
          ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")}
+    if mode != "classic":  # a refined cloud's changes, for the octaves above its training rate it is drawn at
+        f = drawn_fields(f, cloud, camera)
     dev = f["means"].device
     filter_3d = _size(cloud, FILTER_KEY, dev) if mode == "mip" and FILTER_KEY in cloud.extra else None
     dilation_3d = _size(cloud, DILATION_KEY, dev) if mode == "matched" else None

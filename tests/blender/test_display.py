@@ -24,6 +24,7 @@ from gvae_core.camera import Camera, orbit
 from gvae_core.cloud import GaussianCloud
 from gvae_core.conventions import (ALPHA_MAX, ALPHA_MIN, MIP_2D_VARIANCE, SH_REST_COUNTS, activate_opacities,
                                    activate_scales, footprint_sigmas, linear_to_srgb, srgb_to_linear)
+from gvae_core.octaves import DEADBAND, LIMIT_KEY, octave_fields, training_rate, with_octaves
 from gvae_core.ply import read_ply, write_ply
 from gvae_core.quaternions import normalize as normalize_quats
 from gvae_core.quaternions import to_rotmat
@@ -204,6 +205,14 @@ def expected_gaussians(cloud: GaussianCloud, m_obj: np.ndarray, c2w: np.ndarray,
     rel = means - cam_local
     direction = rel / np.linalg.norm(rel, axis=1, keepdims=True)
     pixel = np.abs(rel @ fwd) / focal
+    changes = octave_fields(cloud)
+    t = np.zeros(len(cloud))
+    if changes:
+        nu = training_rate(cloud)
+        t = np.clip(np.log2(1.0 / pixel / nu), 0.0, cloud.extra[LIMIT_KEY].astype(np.float64))
+        t = np.where(t < DEADBAND, 0.0, t)
+    cloud = cloud.replace(**{k: (getattr(cloud, k) + t.reshape((-1,) + (1,) * (v.ndim - 1)) * v).astype(np.float32)
+                             for k, v in changes.items()})
     s = activate_scales(cloud.scales.astype(np.float64)) * factor
     f3 = cloud.extra.get(FILTER_KEY, np.zeros(len(cloud))).astype(np.float64)
     dil = cloud.extra.get(DILATION_KEY, np.zeros(len(cloud))).astype(np.float64) * (not mip)
@@ -222,14 +231,16 @@ def expected_gaussians(cloud: GaussianCloud, m_obj: np.ndarray, c2w: np.ndarray,
     mats[:, 3, 3] = 1.0
     f64 = lambda a: torch.from_numpy(np.asarray(a, np.float64))  # noqa: E731
     rgb = sh_to_rgb(f64(cloud.sh_dc), f64(cloud.sh_rest), f64(direction), cloud.sh_degree).numpy()
-    return {"visible": o >= ALPHA_MIN, "opacity": o, "matrices": m_obj @ mats, "colour": srgb_to_linear(rgb)}
+    return {"visible": o >= ALPHA_MIN, "opacity": o, "matrices": m_obj @ mats, "colour": srgb_to_linear(rgb),
+            "octaves": t}
 
 
 def test_each_gaussian_gets_the_reference_size_opacity_and_colour(extension_zip, tmp_path):
     """Read back from the evaluated object (instance matrices; with Points Only, the colour and
     opacity the material reads): SH degree 1-3 seen from the scene camera through a rotated,
-    scaled, moved object; the classic screen filter, Mip-Splatting's filters, and the classic
-    dilation held in world units; Gaussians below 1/255 opacity are not drawn."""
+    scaled, moved object; the classic screen filter, Mip-Splatting's filters, the classic
+    dilation held in world units, and a refined cloud's changes per octave; Gaussians below 1/255
+    opacity are not drawn."""
     width, height = 160, 120
     cam = Camera.look_at((2.5, -3.0, 1.8), (0.1, 0.0, 0.2), width=width, height=height, fov_x=math.radians(50.0))
     c2w = cam.to_blender_c2w()
@@ -245,6 +256,11 @@ def test_each_gaussian_gets_the_reference_size_opacity_and_colour(extension_zip,
         "classic_sh3": random_cloud(n, 3, 0),
         "mip_sh1": random_cloud(n, 1, 1, {FILTER_KEY: rng.uniform(0.0, 0.05, n).astype(np.float32)}),
         "matched_sh2": random_cloud(n, 2, 2, {DILATION_KEY: rng.uniform(0.0, 0.03, n).astype(np.float32)}),
+        # refined (gvae_core.octaves): the training rate of a few Gaussians below the camera's, so
+        # that they draw 0..2 octaves of their changes, the others none
+        "refined_sh1": with_octaves(random_cloud(n, 1, 3, {DILATION_KEY: rng.uniform(0.0, 0.08, n).astype(np.float32)}),
+                                    {"scales": rng.normal(0, 0.4, (n, 3)).astype(np.float32),
+                                     "opacities": rng.normal(0, 1.5, n).astype(np.float32)}, limit=2.0),
     }
     plys = {}
     for key, cloud in clouds.items():
@@ -261,6 +277,8 @@ def test_each_gaussian_gets_the_reference_size_opacity_and_colour(extension_zip,
         assert inputs["Compensate Screen Filter"] == mip, key
         np.testing.assert_allclose(np.array(res[key]["matrix_world"]), m_obj, atol=1e-5)
         want = expected_gaussians(cloud, m_obj, c2w, cam.fx, factor, mip)
+        if key.startswith("refined"):  # some Gaussians draw their changes, in part or up to the limit
+            assert 0 < (want["octaves"] > 0).sum() < n and want["octaves"].max() == 2.0, want["octaves"]
         vis = want["visible"]
         assert 0 < vis.sum() < n, key  # the random opacities put some below 1/255
         # One instance per visible Gaussian (matched by centre: the depsgraph lists them in its order).
