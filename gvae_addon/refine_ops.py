@@ -69,7 +69,7 @@ class RefineJob:
     """
 
     def __init__(self, obj, *, steps: int = 1, budget="auto", model=None, seed: int = 0,
-                 fidelity: float | None = DEFAULT_FIDELITY, refine=None):
+                 fidelity: float | None = DEFAULT_FIDELITY["detail"], refine=None):
         self.obj_name = obj.name
         self.steps, self.budget, self.model, self.seed, self.fidelity = steps, budget, model, seed, fidelity
         self._refine = refine
@@ -199,7 +199,7 @@ class GVAE_OT_refine(Operator):
     fidelity_check: BoolProperty(name="Fidelity Check", default=True,
                                  description="Put back what the models did wherever it changes the picture at the "
                                  "training resolution (off: keep everything, which measurably lowers quality)")
-    fidelity: FloatProperty(name="Tolerance", default=DEFAULT_FIDELITY, min=0.0, max=1.0, precision=4,
+    fidelity: FloatProperty(name="Tolerance", default=DEFAULT_FIDELITY["detail"], min=0.0, max=1.0, precision=4,
                             description="Largest colour change (0..1) a refined Gaussian may make at the "
                             "training resolution")
 

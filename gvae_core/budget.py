@@ -2,8 +2,8 @@
 
 `select_budget` turns scores and a budget ('all', 'auto', a fraction or a count) into rows;
 `parse_budget` reads a budget typed by a user, for the command line and the Blender panel alike.
-`DEFAULT_FIDELITY` is how much of what the models did refine keeps (here so that the Blender
-panel, which must not import torch, reads the same default).
+`DEFAULT_FIDELITY` is how much of what the models did refine keeps, per method (here so that the
+Blender panel, which must not import torch, reads the same default).
 """
 
 from __future__ import annotations
@@ -15,8 +15,9 @@ import numpy as np
 
 #: 'auto' keeps between 1% and 50% of the Gaussians, whatever the score distribution says.
 AUTO_FRACTION_RANGE = (0.01, 0.5)
-#: refine's default fidelity tolerance (`gvae_core.fidelity.DEFAULT_TOLERANCE` says how it was chosen).
-DEFAULT_FIDELITY = 0.01
+#: refine's default fidelity tolerance per method (`gvae_core.fidelity.DEFAULT_TOLERANCES` says how
+#: each was chosen).
+DEFAULT_FIDELITY = {"detail": 0.04, "vae": 0.01}
 
 
 def parse_budget(text: str) -> str | float | int:

@@ -11,10 +11,14 @@ and adds exactly as many, so that every comparison is at equal output count:
   buys;
 - `thin_added`: a refinement's added Gaussians thinned at random to a count (random selection
   with the model is refinement with random scores, oversupplied, then thinned).
+At the same count (none added), for the detail refine: `extrapolation_control` (each Gaussian
+continues its last lineage change) and `octave_knob` (one global scale change per octave), each
+with one factor chosen on the training scenes.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 
@@ -24,6 +28,8 @@ from . import quaternions
 from .cloud import GaussianCloud
 from .conventions import activate_opacities
 from .densify import split_children
+from .detail.features import lineage_nodes
+from .octaves import with_octaves
 from .refinement import RefineResult
 
 #: An operation on the chosen Gaussians: (chosen (numpy cloud), generator) -> (their new values,
@@ -116,3 +122,22 @@ def thin_added(result: RefineResult, target: int, *, seed: int = 0) -> RefineRes
     return RefineResult(cloud=result.cloud.select(keep), added=np.arange(n, len(keep), dtype=np.int64),
                         parents=result.parents[keep_added], step=result.step[keep_added], scores=result.scores,
                         selected=result.selected, timings=result.timings)
+
+
+def extrapolation_control(cloud: GaussianCloud, lineage, factor: float, limit: float = 1.0) -> GaussianCloud:
+    """Linear lineage extrapolation, the simplest reading of refinement's own idea: each Gaussian
+    continues `factor` times its last stage-to-stage change of log-scales and opacity logit, per
+    octave of training resolution between those stages, as changes per octave above its training
+    rate (`gvae_core.octaves`: the training-resolution picture is kept). `factor` is chosen on the
+    training scenes; a Gaussian without history (or no lineage) does not change."""
+    scales, opac, _, octaves = lineage_nodes(cloud, lineage)
+    change = {"scales": (factor * (scales[:, 2] - scales[:, 1]) / octaves[1]).astype(np.float32),
+              "opacities": (factor * (opac[:, 2] - opac[:, 1]) / octaves[1]).astype(np.float32)}
+    return with_octaves(cloud.numpy(), change, limit)
+
+
+def octave_knob(cloud: GaussianCloud, factor: float, limit: float = 1.0) -> GaussianCloud:
+    """One global knob at the same cost as a refinement: every Gaussian's scale times `factor` per
+    octave above its training rate (at the training resolution the cloud is as it was)."""
+    n = len(cloud)
+    return with_octaves(cloud.numpy(), {"scales": np.full((n, 3), math.log(factor), np.float32)}, limit)

@@ -1,23 +1,32 @@
-"""Refinement past the training resolution (DESIGN.md step 5).
+"""Refinement past the training resolution (DESIGN.md step 5), two methods:
 
-Score the input Gaussians (Hessian), pick the budget's share, and run the lineage VAEs for
-`steps` sequential steps: each step extends every lineage selected so far by one stage. The
-budget says where to densify: the selected Gaussians all densify at the first step; the models
-say how (how many children, where, how large, what colour) and, at later steps, whether each
-descendant densifies again, as they learned from progressive training. Later steps change
-geometry only (children carry their parent's appearance, `carry_appearance`). With the budget
-"all" every Gaussian is given to the models, which decide at every step. For a lineage, the
-existing slot nearest its last node updates that Gaussian in place; every other existing slot
-becomes a new Gaussian (appended after the input rows). Outputs are sanitised: finite, unit
-quaternions, log-scales and opacity logits inside finite ranges. Last, every lineage whose
-Gaussians change the picture at the training sampling rate by more than `fidelity` is put back
-as it was (`gvae_core.fidelity`).
+- "detail" (the default): the detail model (`gvae_core.detail`, trained through the renderer
+  against real higher-resolution images) says how each Gaussian the budget selects should change
+  per octave of sampling rate above the one it was trained at; the changes are stored with the
+  cloud (`gvae_core.octaves`) and the renderer applies them by how far above its training rate
+  each Gaussian is drawn, so the training-resolution picture is the input's by construction.
+  `steps` is the number of octaves the changes run to. No Gaussian is added.
+- "vae" (the paper's): score the input Gaussians (Hessian), pick the budget's share, and run the
+  lineage VAEs for `steps` sequential steps: each step extends every lineage selected so far by
+  one stage. The budget says where to densify: the selected Gaussians all densify at the first
+  step; the models say how (how many children, where, how large, what colour) and, at later
+  steps, whether each descendant densifies again, as they learned from progressive training.
+  Later steps change geometry only (children carry their parent's appearance,
+  `carry_appearance`). With the budget "all" every Gaussian is given to the models, which decide
+  at every step. For a lineage, the existing slot nearest its last node updates that Gaussian in
+  place; every other existing slot becomes a new Gaussian (appended after the input rows).
+  Outputs are sanitised: finite, unit quaternions, log-scales and opacity logits inside finite
+  ranges.
+Last, for either, every lineage whose Gaussians change the picture at the training sampling rate
+by more than `fidelity` is put back as it was (`gvae_core.fidelity`).
 """
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 from collections.abc import Callable, Iterator, Sequence
 
@@ -29,10 +38,13 @@ from .budget import select_budget
 from .camera import Camera
 from .capture import default_views, scoring_views
 from .cloud import _FIELDS, GaussianCloud
-from .fidelity import DEFAULT_TOLERANCE, lineage_changes, revert_lineages, training_rate_views
+from .detail import DetailModel, detail_inputs, load_detail
+from .detail.persistence import CONFIG as DETAIL_CONFIG
+from .fidelity import DEFAULT_TOLERANCES, lineage_changes, revert_lineages, training_rate_views
 from .hessian import DEFAULT_RESOLUTION, DEFAULT_VIEWS, hessian_scores, scoring_settings
 from .lineage import (APP_EXIST, GEO_EXIST, GEO_LOG_SCALE, GEO_POSITION, Lineage, appearance_features,
                       cloud_from_features, geometry_features)
+from .octaves import has_octaves, with_octaves
 from .rendering.frames import Frame, make_frame
 from .resources import check_refine_memory, reuse_freed_memory
 from .vae import GaussianVAE, load_default_model
@@ -58,17 +70,26 @@ class RefineResult:
     stage: int | None = None
     #: Selected input rows left as they were: their lineages changed the training-rate picture.
     reverted: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    #: What the summary should say besides the counts (e.g. where the training rate came from).
+    notes: dict[str, str] = field(default_factory=dict)
 
     @property
     def n_input(self) -> int:
         return len(self.cloud) - len(self.added)
 
     def summary(self) -> str:
-        per_step = np.bincount(self.step, minlength=int(self.step.max(initial=0)) + 1)[1:]
         times = ", ".join(f"{k} {v * 1e3:.1f} ms" for k, v in self.timings.items())
+        notes = "".join(f"; {k}: {v}" for k, v in self.notes.items())
+        if has_octaves(self.cloud) and not len(self.added):
+            octaves = float(np.max(self.cloud.extra["gvae_octave_limit"], initial=0.0))
+            return (f"{self.n_input} Gaussians, {len(self.selected)} selected, {len(self.reverted)} of them put back "
+                    f"(fidelity), the others changed for up to {octaves:g} octave(s) above their training "
+                    f"resolution{notes}; {times}")
+        per_step = np.bincount(self.step, minlength=int(self.step.max(initial=0)) + 1)[1:]
         return (f"{self.n_input} Gaussians in, {len(self.selected)} selected, {len(self.reverted)} of them put "
                 f"back (fidelity), {len(self.added)} added "
-                f"(per step: {', '.join(str(int(c)) for c in per_step) or '-'}), {len(self.cloud)} out; {times}")
+                f"(per step: {', '.join(str(int(c)) for c in per_step) or '-'}), {len(self.cloud)} out{notes}; "
+                f"{times}")
 
 
 def _initial_history(cloud: GaussianCloud, lineage: Lineage | None, selected: np.ndarray, normalization):
@@ -125,53 +146,84 @@ def _lineage_for(cloud: GaussianCloud, lineage: Lineage, stage: int | None) -> t
     return (lineage if stage == lineage.n_stages - 1 else lineage.prefix(stage + 1)), stage
 
 
-def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
-           cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, stage: int | None = None,
-           seed: int = 0, progress: Callable[[float, str], None] | None = None, hessian_options: dict | None = None,
-           scores: Any = None, carry_appearance: bool = True, check_memory: bool = True,
-           fidelity: float | None = DEFAULT_TOLERANCE) -> RefineResult:
-    """Refine `cloud` by `steps` (>= 1) sequential model steps on the Gaussians the budget selects
-    (see `select_budget`). `model`: a `GaussianVAE` or a model directory (default: the bundled
-    one). `cameras`: the capture's cameras for the Hessian (`gvae_core.capture.load_cameras`; a
-    few are picked and scaled down, `capture.scoring_views`), default: views placed around the
-    cloud (`capture.default_views`). `lineage`: the training lineage of the cloud (default:
-    one-node lineages); `stage`: the lineage stage the cloud is a snapshot of (default: found from
-    its `gvae_id`s and positions, `Lineage.stage_of`; later stages are not used). `scores`:
-    precomputed Hessian scores (skips scoring). `carry_appearance`: after the first step the model
-    changes geometry only, every child taking its parent's colour, SH and opacity (fed its own
-    predictions, the model's appearance changes compounded and PSNR above the training resolution
-    fell with every step in the v1 experiment). `progress(fraction, message)` is called
+#: The refine methods (module docstring); `refine` uses DEFAULT_METHOD unless told.
+METHODS = ("detail", "vae")
+DEFAULT_METHOD = "detail"
+#: Each method's budget unless told: the detail model changes every Gaussian (its changes are
+#: small where nothing is to gain; BENCHMARKS.md "Refinement that makes the picture better"), the
+#: VAEs densify the Hessian's high-score class.
+DEFAULT_BUDGETS = {"detail": "all", "vae": "auto"}
+#: A cloud with neither an anti-aliasing size nor capture cameras is taken to have been trained by
+#: cameras like the placed views at this image height (a typical capture's).
+ASSUMED_TRAINING_HEIGHT = 1080
+
+
+def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = None, method: str | None = None,
+           model: Any = None, cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None,
+           stage: int | None = None, seed: int = 0, progress: Callable[[float, str], None] | None = None,
+           hessian_options: dict | None = None, scores: Any = None, carry_appearance: bool = True,
+           check_memory: bool = True, fidelity: float | str | None = "auto") -> RefineResult:
+    """Refine `cloud` with `method` (module docstring; default: the one `model` is for, else
+    DEFAULT_METHOD): "detail" changes the Gaussians the budget
+    selects for up to `steps` (>= 1) octaves above their training resolution, "vae" runs `steps`
+    sequential model steps on them. `budget` (see `select_budget`; default: the method's,
+    DEFAULT_BUDGETS). `model`: a `DetailModel` / `GaussianVAE` or a model directory (default: the
+    bundled one). `cameras`: the capture's cameras (`gvae_core.capture.load_cameras`): for the
+    Hessian (a few are picked and scaled down, `capture.scoring_views`) and, for a cloud without an
+    anti-aliasing size, as its training cameras; default: views placed around the cloud
+    (`capture.default_views`). `lineage`: the training lineage of the cloud (default: one-node
+    lineages); `stage`: the lineage stage the cloud is a snapshot of (default: found from its
+    `gvae_id`s and positions, `Lineage.stage_of`; later stages are not used). `scores`:
+    precomputed Hessian scores (skips scoring). `carry_appearance` ("vae"): after the first step
+    the model changes geometry only, every child taking its parent's colour, SH and opacity (fed
+    its own predictions, the model's appearance changes compounded and PSNR above the training
+    resolution fell with every step in the v1 experiment). `progress(fraction, message)` is called
     as the work goes on; an exception it raises stops the refine (how the Blender job cancels).
     `check_memory`: refuse, with `resources.NotEnoughMemoryError`, a cloud whose estimated peak
     memory exceeds what is free. `fidelity`: the largest colour change (0..1) a lineage may make
     at the training sampling rate, seen from the scoring views; lineages above it are put back as
-    they were (`gvae_core.fidelity`; None: keep everything the models did). Raises ValueError on
-    non-finite input rows."""
+    they were (`gvae_core.fidelity`; "auto": the method's, DEFAULT_TOLERANCES; None: keep
+    everything the models did). Raises ValueError on non-finite input rows."""
+    if method is None:
+        method = _method_of(model)
+    if method not in METHODS:
+        raise ValueError(f"refine: method must be one of {', '.join(METHODS)}, got {method!r}")
+    if isinstance(model, (GaussianVAE, DetailModel)) and isinstance(model, GaussianVAE) != (method == "vae"):
+        raise ValueError(f"refine: a {type(model).__name__} cannot refine with the {method!r} method")
+    budget = DEFAULT_BUDGETS[method] if budget is None else budget
+    fidelity = DEFAULT_TOLERANCES[method] if isinstance(fidelity, str) and fidelity == "auto" else fidelity
+    common = dict(steps=steps, budget=budget, model=model, cameras=cameras, lineage=lineage, stage=stage,
+                  progress=progress, hessian_options=hessian_options, scores=scores, check_memory=check_memory,
+                  fidelity=fidelity)
     with reuse_freed_memory():  # one scope over all the parts: memory is handed back once, at the end
-        (result,) = refine_steps(cloud, steps=steps, budget=budget, model=model, cameras=cameras, lineage=lineage,
-                                 stage=stage, seed=seed, progress=progress, hessian_options=hessian_options,
-                                 scores=scores, every_step=False, carry_appearance=carry_appearance,
-                                 check_memory=check_memory, fidelity=fidelity)
+        if method == "detail":
+            return refine_detail(cloud, **common)
+        (result,) = refine_steps(cloud, seed=seed, every_step=False, carry_appearance=carry_appearance, **common)
     return result
 
 
-def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
-                 cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, stage: int | None = None,
-                 seed: int = 0, progress: Callable[[float, str], None] | None = None,
-                 hessian_options: dict | None = None, scores: Any = None, every_step: bool = True,
-                 carry_appearance: bool = True, check_memory: bool = True,
-                 fidelity: float | None = DEFAULT_TOLERANCE) -> Iterator[RefineResult]:
-    """`refine`, yielding the result after every step (+1, +2, ...; each one the same as `refine`
-    with that many steps and the same seed), or only after the last with `every_step=False`."""
-    t_start = time.perf_counter()
-    timings: dict[str, float] = {}
-    say = progress or (lambda fraction, message: None)
+def _method_of(model) -> str:
+    """The method a model is for: a `GaussianVAE`, or a directory with only the VAEs' files, is
+    "vae"; anything else DEFAULT_METHOD."""
+    if isinstance(model, GaussianVAE):
+        return "vae"
+    if isinstance(model, (str, os.PathLike)):
+        folder = Path(model)
+        if not (folder / DETAIL_CONFIG).is_file() and (folder / "config.json").is_file():
+            return "vae"
+    return DEFAULT_METHOD
+
+
+def _check_steps(steps) -> None:
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
         raise ValueError(f"refine: steps must be an integer >= 1, got {steps!r}")
-    src = cloud.numpy()
+
+
+def _check_input(src: GaussianCloud, budget, options: dict, steps: int, scoring: bool, check_memory: bool,
+                 method: str = "vae") -> None:
+    """Refuse what refine cannot take before any work: too large for the memory free now, or
+    non-finite rows."""
     n = len(src)
-    options = dict(hessian_options or {})
-    scoring = scores is None and budget != "all"
     if check_memory:
         extra = sum(int(np.prod(np.shape(v)[1:], dtype=np.int64)) for v in src.extra.values())
         if isinstance(budget, str) or isinstance(budget, (bool, np.bool_)):
@@ -185,12 +237,120 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
                 selected_bound = None
         check_refine_memory(n, src.sh_degree, extra_values=extra, views=options.get("views", DEFAULT_VIEWS),
                             resolution=options.get("resolution", DEFAULT_RESOLUTION), selected=selected_bound,
-                            steps=steps, scoring=scoring)
+                            steps=steps, scoring=scoring, method=method)
     bad = src.nonfinite_rows()
     if len(bad):
         rows = ", ".join(str(int(r)) for r in bad[:5])
         raise ValueError(f"refine: the cloud has non-finite values in {len(bad)} row(s) "
                          f"[{rows}{', ...' if len(bad) > 5 else ''}]; sanitize it first")
+
+
+def _scores(src: GaussianCloud, cameras, scores, budget, options: dict, normalization, frames, say, h0, h1):
+    """The Hessian scores (computed unless given; zeros with the budget "all"), finite, float32."""
+    n = len(src)
+    if scores is None and budget == "all":
+        scores = np.zeros(n, np.float32)  # every Gaussian is refined: nothing to rank
+    if scores is None:
+        with reuse_freed_memory():
+            scores = hessian_scores(src, cameras, normalization=normalization, frames=frames,
+                                    progress=lambda f, message: say(h0 + (h1 - h0) * f, message), **options)
+    scores = np.nan_to_num(np.asarray(scores.detach().cpu() if torch.is_tensor(scores) else scores,
+                                      np.float32).reshape(-1), nan=0.0, posinf=0.0, neginf=0.0)
+    if len(scores) != n:
+        raise ValueError(f"refine: {len(scores)} scores for {n} Gaussians")
+    return scores
+
+
+def with_training_rate(cloud: GaussianCloud, cameras: Sequence[Camera] | None = None,
+                       options: dict | None = None, normalization=None) -> tuple[GaussianCloud, str]:
+    """The cloud with the anti-aliasing size the detail method needs to know its training sampling
+    rate, and where that came from: the cloud's own; else its `cameras` (the capture's, at their
+    size); else views placed around it (`capture.default_views`) at ASSUMED_TRAINING_HEIGHT."""
+    if {FILTER_KEY, DILATION_KEY} & set(cloud.extra):
+        return cloud, "stored"
+    if cameras is not None:
+        return with_dilation_3d(cloud, list(cameras)), "capture cameras"
+    views = (options or {}).get("views", DEFAULT_VIEWS) or DEFAULT_VIEWS
+    placed = default_views(cloud, views, ASSUMED_TRAINING_HEIGHT, normalization=normalization)
+    return with_dilation_3d(cloud, placed), f"assumed: placed views at {ASSUMED_TRAINING_HEIGHT} px"
+
+
+def refine_detail(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "all", model: Any = None,
+                  cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, stage: int | None = None,
+                  progress: Callable[[float, str], None] | None = None, hessian_options: dict | None = None,
+                  scores: Any = None, check_memory: bool = True,
+                  fidelity: float | None = DEFAULT_TOLERANCES["detail"]) -> RefineResult:
+    """`refine` with the detail method (the same arguments). The result's cloud carries the
+    changes per octave (`gvae_core.octaves`; `octaves.bake` for other tools) and, when the input
+    had none, the anti-aliasing size they are drawn by (`with_training_rate`; where it came from
+    is in `RefineResult.notes`); nothing is added."""
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    say = progress or (lambda fraction, message: None)
+    _check_steps(steps)
+    src = cloud.numpy()
+    n = len(src)
+    options = dict(hessian_options or {})
+    scoring = scores is None and budget != "all"
+    _check_input(src, budget, options, steps, scoring, check_memory, method="detail")
+    used_stage = None
+    if lineage is not None:
+        lineage, used_stage = _lineage_for(src, lineage, stage)
+    t0 = time.perf_counter()
+    model = model if isinstance(model, DetailModel) else load_detail(model)
+    timings["load"] = time.perf_counter() - t0
+
+    h0, h1 = (0.02, 0.75) if scoring else (0.02, 0.05)
+    say(h0, "scoring Gaussians (Hessian)" if scoring else "reading the cloud")
+    normalization = src.normalization()
+    src, rate_source = with_training_rate(src, cameras, options, normalization)
+    frames: list | None = [] if fidelity is not None else None
+    t0 = time.perf_counter()
+    scores = _scores(src, cameras, scores, budget, options, normalization, frames, say, h0, h1)
+    timings["hessian"] = time.perf_counter() - t0
+    selected = select_budget(scores, budget)
+
+    say(h1, f"detail model: {len(selected)} Gaussians")
+    t0 = time.perf_counter()
+    inputs = detail_inputs(src, lineage, neighbours=model.config.inputs_neighbours, rows=selected)
+    timings["features"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    predicted = model.changes(inputs)
+    changes = {}
+    for name, values in predicted.items():
+        full = np.zeros((n,) + values.shape[1:], np.float32)
+        full[selected] = values
+        changes[name] = full
+    out = with_octaves(src, changes, limit=float(steps))
+    timings["model"] = time.perf_counter() - t0
+    empty = np.zeros(0, np.int64)
+    result = RefineResult(cloud=out, added=empty, parents=empty, step=empty, scores=scores, selected=selected,
+                          timings=timings, stage=used_stage, notes={"training rate": rate_source})
+    timings["total"] = time.perf_counter() - t_start
+    if fidelity is not None and len(selected):
+        say(0.97, "checking the training-resolution picture")
+        result = FidelityCheck.around(src, cameras, fidelity, options, normalization, frames or ())(result)
+    say(1.0, result.summary())
+    return result
+
+
+def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
+                 cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, stage: int | None = None,
+                 seed: int = 0, progress: Callable[[float, str], None] | None = None,
+                 hessian_options: dict | None = None, scores: Any = None, every_step: bool = True,
+                 carry_appearance: bool = True, check_memory: bool = True,
+                 fidelity: float | None = DEFAULT_TOLERANCES["vae"]) -> Iterator[RefineResult]:
+    """`refine` with the "vae" method, yielding the result after every step (+1, +2, ...; each one
+    the same as `refine` with that many steps and the same seed), or only after the last with
+    `every_step=False`."""
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    say = progress or (lambda fraction, message: None)
+    _check_steps(steps)
+    src = cloud.numpy()
+    options = dict(hessian_options or {})
+    scoring = scores is None and budget != "all"
+    _check_input(src, budget, options, steps, scoring, check_memory)
     used_stage = None
     if lineage is not None:
         lineage, used_stage = _lineage_for(src, lineage, stage)
@@ -206,19 +366,10 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
     h0, h1 = (0.02, 0.75) if scoring else (0.02, 0.05)
     say(h0, "scoring Gaussians (Hessian)")
     t0 = time.perf_counter()
-    if scores is None and budget == "all":
-        scores = np.zeros(n, np.float32)  # every Gaussian is refined: nothing to rank
     normalization = src.normalization()  # the frame of Hessian positions and of lineages without history
     # the input as the Hessian's views composited it, for the fidelity check
     frames: list | None = [] if fidelity is not None else None
-    if scores is None:
-        with reuse_freed_memory():
-            scores = hessian_scores(src, cameras, normalization=normalization, frames=frames,
-                                    progress=lambda f, message: say(h0 + (h1 - h0) * f, message), **options)
-    scores = np.nan_to_num(np.asarray(scores.detach().cpu() if torch.is_tensor(scores) else scores,
-                                      np.float32).reshape(-1), nan=0.0, posinf=0.0, neginf=0.0)
-    if len(scores) != n:
-        raise ValueError(f"refine: {len(scores)} scores for {n} Gaussians")
+    scores = _scores(src, cameras, scores, budget, options, normalization, frames, say, h0, h1)
     timings["hessian"] = time.perf_counter() - t0
     selected = select_budget(scores, budget)
 
@@ -305,7 +456,8 @@ class FidelityCheck:
         timings["total"] = timings.get("total", 0.0) + timings["fidelity"]
         return RefineResult(cloud=cloud, added=np.arange(n, n + int(kept.sum()), dtype=np.int64),
                             parents=result.parents[kept], step=result.step[kept], scores=result.scores,
-                            selected=result.selected, timings=timings, stage=result.stage, reverted=reverted)
+                            selected=result.selected, timings=timings, stage=result.stage, reverted=reverted,
+                            notes=result.notes)
 
 
 def _same_view(a: Camera, b: Camera) -> bool:

@@ -35,8 +35,11 @@ PER_VALUE = 3 * 4
 HESSIAN_PER_GAUSSIAN = 1500
 #: Bytes per pixel of one scoring view (per-tile transmittance, colour, blocks of the sweep).
 HESSIAN_PER_PIXEL = 400
-#: Bytes per lineage given to the models, per step (features, model activations, children).
+#: Bytes per lineage given to the lineage VAEs, per step (features, model activations, children).
 MODEL_PER_LINEAGE = 4000
+#: Bytes per Gaussian given to the detail model (inputs, neighbours, activations in batches, the
+#: changes per octave of the output).
+DETAIL_PER_GAUSSIAN = 1000
 #: Measured (`python -m gvae_core.benchmarks refine`, example clouds, SH degree 3, budget auto,
 #: three refines in one process, fidelity check on): peaks of 0.61 GiB at 100k Gaussians, 2.44 GiB
 #: at 1M, 5.6 GiB at 3M; with the counts the budget selected these give 0.82, 2.67 and 6.8 GiB
@@ -82,11 +85,12 @@ def available_memory() -> int | None:
 
 def estimate_refine_memory(n: int, sh_degree: int = 3, *, extra_values: int = 0, views: int = 4,
                            resolution: int = 256, width: int | None = None, selected: int | None = None,
-                           steps: int = 1, scoring: bool = True) -> int:
+                           steps: int = 1, scoring: bool = True, method: str = "vae") -> int:
     """Estimated peak bytes of `refine` on `n` Gaussians of SH degree `sh_degree` with
     `extra_values` extra float properties each: scoring over `views` views of `resolution` pixels
-    high (`width` wide, default square), then `steps` model steps on `selected` lineages (default:
-    half the cloud, the most the 'auto' budget takes)."""
+    high (`width` wide, default square), then `steps` model steps of the lineage VAEs on `selected`
+    lineages (default: half the cloud, the most the 'auto' budget takes), or (`method` "detail")
+    the detail model on `selected` Gaussians."""
     k = SH_REST_COUNTS[min(int(sh_degree), 3)]
     values = 14 + 3 * k + int(extra_values)
     hessian = 0
@@ -94,7 +98,10 @@ def estimate_refine_memory(n: int, sh_degree: int = 3, *, extra_values: int = 0,
         pixels = int(resolution) * int(width or resolution)
         hessian = n * HESSIAN_PER_GAUSSIAN + pixels * HESSIAN_PER_PIXEL
     lineages = (n + 1) // 2 if selected is None else int(selected)
-    model = lineages * MODEL_PER_LINEAGE * min(int(steps), 2)  # later steps: the lineages that grew
+    if method == "detail":
+        model = lineages * DETAIL_PER_GAUSSIAN
+    else:
+        model = lineages * MODEL_PER_LINEAGE * min(int(steps), 2)  # later steps: the lineages that grew
     # scoring is over (its buffers freed) before the models run: the peak is the larger of the two
     return int(BASE_BYTES + n * values * PER_VALUE + max(hessian, model))
 

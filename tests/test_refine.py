@@ -12,12 +12,17 @@ import pytest
 import torch
 
 from gvae_core import Camera, GaussianCloud, refinement, resources
+from gvae_core.antialias import with_dilation_3d
 from gvae_core.cli import main as gvae
+from gvae_core.detail import DetailConfig, DetailModel, save_detail
+from gvae_core.formats import read_splat_file
 from gvae_core.lineage import Lineage
+from gvae_core.octaves import LIMIT_KEY, octave_fields
 from gvae_core.ply import read_ply, write_ply
 from gvae_core.refinement import RefineResult
 from gvae_core.refinement import refine as checked_refine
 from gvae_core.refinement import refine_steps as checked_refine_steps
+from gvae_core.rendering import render
 from gvae_core.vae import GaussianVAE
 
 
@@ -385,3 +390,78 @@ def test_cli_refines_a_stage_of_a_longer_run_with_the_capture_cameras(tmp_path, 
     assert "not alive at the lineage's stage 2" in capsys.readouterr().err
     assert gvae(base + ["--cameras", str(tmp_path / "missing.json")]) == 2
     assert "missing.json" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- the detail method
+
+def _detail_model(seed=0):
+    """A detail model with random weights (an untrained one changes nothing)."""
+    torch.manual_seed(seed)
+    model = DetailModel(DetailConfig(hidden=16))
+    with torch.no_grad():
+        for layer in (model.axis[-1], model.rest[-1]):
+            layer.weight.normal_(0, 0.5)
+            layer.bias.normal_(0, 0.2)
+    return model
+
+
+def _rated(cloud):
+    return with_dilation_3d(cloud, [Camera.look_at((0, -4, 1), width=48, height=48)])
+
+
+def test_detail_refine_keeps_the_training_picture_and_adds_nothing():
+    cloud = _rated(_cloud(80, degree=1))
+    r = refine(cloud, model=_detail_model(), steps=2)
+    assert len(r.cloud) == len(cloud) and len(r.added) == 0 and len(r.selected) == len(cloud)
+    for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
+        np.testing.assert_array_equal(getattr(r.cloud, name), getattr(cloud, name))
+    changes = octave_fields(r.cloud)
+    assert set(changes) == {"scales", "opacities"} and np.abs(changes["scales"]).max() > 0
+    assert np.all(r.cloud.extra[LIMIT_KEY] == 2.0)
+    train_cam = Camera.look_at((0, -4, 1), width=48, height=48)
+    assert torch.equal(render(cloud, train_cam).image, render(r.cloud, train_cam).image)
+    twice = Camera.look_at((0, -4, 1), width=96, height=96)
+    assert not torch.allclose(render(cloud, twice).image, render(r.cloud, twice).image, atol=1e-3)
+    assert "octave" in r.summary()
+
+
+def test_detail_refine_changes_only_the_budget_and_says_where_the_rate_came_from():
+    cloud = _cloud(80, degree=0)  # no anti-aliasing size: the rate is assumed from placed views
+    r = refine(cloud, model=_detail_model(1), budget=0.25, scores=_scores(80))
+    changed = np.flatnonzero(np.abs(octave_fields(r.cloud)["scales"]).sum(1) > 0)
+    np.testing.assert_array_equal(changed, np.sort(r.selected))
+    assert len(r.selected) == 20 and "assumed" in r.notes["training rate"]
+    assert "gvae_dilation_3D" in r.cloud.extra
+    with pytest.raises(ValueError, match="cannot refine"):
+        refine(cloud, model=_detail_model(), method="vae")
+
+
+def test_detail_refine_with_the_check_puts_back_nothing_at_the_training_rate():
+    cloud = _rated(_cloud(60, degree=1))
+    r = checked_refine(cloud, model=_detail_model(2))
+    assert len(r.reverted) == 0
+
+
+def test_detail_refine_replaces_the_changes_of_a_refined_cloud():
+    cloud = _rated(_cloud(40))
+    once = refine(cloud, model=_detail_model(3))
+    twice = refine(once.cloud, model=_detail_model(3))
+    for name, change in octave_fields(once.cloud).items():
+        np.testing.assert_array_equal(octave_fields(twice.cloud)[name], change)
+
+
+def test_cli_refine_with_the_detail_model(tmp_path, capsys):
+    save_detail(_detail_model(4), tmp_path / "detail")
+    write_ply(_rated(_cloud(n=50)), tmp_path / "in.ply")
+    args = ["--model", str(tmp_path / "detail"), "--fidelity", "off"]
+    assert gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "out.ply"), *args]) == 0
+    out = read_ply(tmp_path / "out.ply")
+    assert len(out) == 50 and LIMIT_KEY in out.extra and "octave" in capsys.readouterr().out
+    # a plain PLY for other tools, drawn as the refined cloud is at 2x; .spz keeps no extras: baked at 2^steps
+    assert gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "baked.ply"), "--bake", "2", *args]) == 0
+    baked = read_ply(tmp_path / "baked.ply")
+    assert LIMIT_KEY not in baked.extra and not np.array_equal(baked.scales, out.scales)
+    assert gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "out.spz"), *args]) == 0
+    assert "baked for 2x" in capsys.readouterr().out and len(read_splat_file(tmp_path / "out.spz")) == 50
+    assert gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "x.ply"), "--bake", "0", *args]) == 2
+    assert not (tmp_path / "x.ply").exists()

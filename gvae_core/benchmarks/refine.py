@@ -1,7 +1,8 @@
-"""Refinement speed and quality: ms per model step against Gaussian count and budget, model
-sizes, the model's reconstruction error on held-out transitions (what the refinement quality
-rests on), the Hessian blocks against their definition, and whole refines at capture scale (100k
-to 3M Gaussians: seconds per part, peak memory, selected and added counts)."""
+"""Refinement speed and quality: the detail model (refine's default: its size, ms per refine
+against Gaussian count and budget), the lineage VAEs (ms per model step, sizes, reconstruction
+error on held-out transitions), the Hessian blocks against their definition, and whole refines at
+capture scale with each method (100k to 3M Gaussians: seconds per part, peak memory, selected and
+added counts)."""
 
 from __future__ import annotations
 
@@ -17,13 +18,16 @@ import time
 import numpy as np
 import torch
 
+from ..antialias import with_dilation_3d
 from ..camera import Camera
-from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS, load_cameras
+from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS, default_views, load_cameras
+from ..detail import DetailModel, default_detail_dir, load_detail
 from ..examples import example_cloud
 from ..experiment import PROTOCOLS, runs_dir
 from ..hessian import hessian_blocks, hessian_blocks_reference, hessian_scores
+from ..octaves import octave_fields
 from ..ply import read_ply
-from ..refinement import refine
+from ..refinement import DEFAULT_BUDGETS, refine
 from ..rendering import RenderSettings
 from ..resources import estimate_refine_memory
 from ..scenes import cache_dir, scene_key
@@ -120,7 +124,10 @@ def run(args) -> None:
     _exactness()
     if not quick:
         _view_choice()
-    _capture_scale([100_000] if quick else [100_000, 1_000_000, 3_000_000], repeats=1 if quick else 3)
+    _detail_speed([10_000] if quick else [10_000, 100_000], repeats)
+    for method in ("detail", "vae"):
+        _capture_scale([100_000] if quick else [100_000, 1_000_000, 3_000_000], repeats=1 if quick else 3,
+                       method=method)
     if math.isfinite(os.getloadavg()[0]):
         print(f"(load average at the end: {os.getloadavg()[0]:.2f})")
 
@@ -180,13 +187,43 @@ def _view_choice() -> None:
                   f"{recall:.2f} | {rank:.3f} | {seconds:.1f} |", flush=True)
 
 
-def _capture_scale(counts, repeats: int) -> None:
-    """A whole +1 refine (budget auto, the default 4 Hessian views at 256 px) of example clouds
-    of 100k to 3M SH-3 Gaussians, each size in a fresh process (its peak memory is its own)."""
+def _detail_speed(counts, repeats: int) -> None:
+    """The detail model: its size, and a refine of `example_cloud` with precomputed scores (no
+    Hessian, no fidelity check) against count and budget: inputs (neighbours) and model ms."""
+    model = load_detail() if (default_detail_dir() / "detail.json").is_file() else DetailModel()
+    params = sum(p.numel() for p in model.parameters())
+    print(f"\nDetail model: {params:,} parameters, {model.size_bytes() / 1e3:.1f} kB (float32), "
+          f"{model.meta.get('steps', '?')} steps, {model.meta.get('seconds', '?')} s of training")
+    print("\n| Gaussians | budget | changed | inputs ms (median) | model ms (median) | refine ms excl. Hessian "
+          "(median; first call) | error: non-finite out / changed parameters |")
+    print("|---:|---|---:|---:|---:|---:|---|")
+    for n in counts:
+        cloud = example_cloud(n, seed=1)
+        cloud = with_dilation_3d(cloud, default_views(cloud, 4, 512))
+        scores = np.random.default_rng(0).gamma(1.0, 1.0, n).astype(np.float32)
+        for budget in (0.1, "all"):
+            feats, mod, rest, r = [], [], [], None
+            for _ in range(repeats + 1):
+                r = refine(cloud, budget=budget, model=model, scores=scores, fidelity=None)
+                feats.append(r.timings["features"] * 1e3)
+                mod.append(r.timings["model"] * 1e3)
+                rest.append((r.timings["total"] - r.timings["hessian"] - r.timings["load"]) * 1e3)
+            bad = len(r.cloud.validate().nonfinite_rows) + sum(int((~np.isfinite(v)).sum())
+                                                               for v in octave_fields(r.cloud).values())
+            changed = int((r.cloud.scales != cloud.scales).sum())
+            print(f"| {n:,} | {budget} | {len(r.selected):,} | {statistics.median(feats[1:]):.1f} | "
+                  f"{statistics.median(mod[1:]):.1f} | {statistics.median(rest[1:]):.1f}; {rest[0]:.1f} | "
+                  f"{bad} / {changed} |", flush=True)
+
+
+def _capture_scale(counts, repeats: int, method: str = "detail") -> None:
+    """A whole +1 refine (the method's default budget: detail "all", vae "auto" with the default 4
+    Hessian views at 256 px; fidelity check on) of example clouds of 100k to 3M SH-3 Gaussians, each
+    size in a fresh process (its peak memory is its own)."""
     threads = os.environ.get("OMP_NUM_THREADS") or torch.get_num_threads()
-    print(f"\nWhole +1 refine, budget auto, default Hessian views ({DEFAULT_VIEWS} x {DEFAULT_RESOLUTION} px), "
-          f"`example_cloud(N)` (SH 3), torch threads {threads}; each size in a fresh process, "
-          f"median of {repeats} (3M: 1); seconds:")
+    print(f"\nWhole +1 refine, method {method}, budget {DEFAULT_BUDGETS[method]}, default Hessian views "
+          f"({DEFAULT_VIEWS} x {DEFAULT_RESOLUTION} px), `example_cloud(N)` (SH 3), torch threads {threads}; each "
+          f"size in a fresh process, median of {repeats} (3M: 1); seconds:")
     print("\n| Gaussians | Hessian (project / bin / composite / sweep / moments / blocks / score) | features | model "
           "| assemble | fidelity check | refine total (process CPU) | peak RSS (estimate) | selected | kept | added "
           "| error: non-finite scores / out rows, changed unselected | load |")
@@ -195,7 +232,7 @@ def _capture_scale(counts, repeats: int) -> None:
         runs = 1 if n > 1_500_000 else repeats
         load0 = os.getloadavg()[0]
         proc = subprocess.run([sys.executable, "-m", "gvae_core.benchmarks.refine", "--one", str(n), "--repeats",
-                               str(runs)], capture_output=True, text=True, timeout=3600)
+                               str(runs), "--method", method], capture_output=True, text=True, timeout=3600)
         if proc.returncode != 0:
             why = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else proc.returncode
             print(f"| {n:,} | failed: {why} |")
@@ -215,20 +252,20 @@ def _capture_scale(counts, repeats: int) -> None:
 PARTS = ("hessian", "features", "model", "assemble", "fidelity", "total")
 
 
-def _one(n: int, repeats: int) -> dict:
+def _one(n: int, repeats: int, method: str = "detail") -> dict:
     """The child of `_capture_scale`: refine example_cloud(n) `repeats` times; medians."""
-    model, _ = _load_model()
+    model = _load_model()[0] if method == "vae" else None
     cloud = example_cloud(n, seed=1)
     rows: list[dict] = []
     for _ in range(repeats):
         parts: dict = {}
         c0 = resource.getrusage(resource.RUSAGE_SELF)
-        r = refine(cloud, steps=1, budget="auto", model=model, seed=0, hessian_options={"timings": parts})
+        r = refine(cloud, steps=1, method=method, model=model, seed=0, hessian_options={"timings": parts})
         c1 = resource.getrusage(resource.RUSAGE_SELF)
         rows.append({**{k: r.timings.get(k, 0.0) for k in PARTS},
                      "cpu": c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime, "hessian_parts": parts})
     med = {k: statistics.median(row[k] for row in rows) for k in PARTS + ("cpu",)}
-    med["hessian_parts"] = {k: statistics.median(row["hessian_parts"][k] for row in rows)
+    med["hessian_parts"] = {k: statistics.median(row["hessian_parts"].get(k, 0.0) for row in rows)
                             for k in rows[0]["hessian_parts"]}
     unsel = np.setdiff1d(np.arange(n), r.selected)
     changed = int((r.cloud.means[unsel] != cloud.means[unsel]).any(1).sum())
@@ -245,5 +282,6 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser()
     parser.add_argument("--one", type=int, required=True)
     parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--method", default="detail")
     a = parser.parse_args()
-    print(json.dumps(_one(a.one, a.repeats)))
+    print(json.dumps(_one(a.one, a.repeats, a.method)))

@@ -36,15 +36,27 @@ def register(subparsers) -> None:
 
     r = subparsers.add_parser(
         "refine", help="refine a 3DGS PLY past its training resolution",
-        description="Score the Gaussians (Hessian), pick the budget's share and run the lineage VAEs "
-        "for K sequential steps; write the refined PLY (input Gaussians first, then the added ones).")
+        description="detail (default): the detail model says how each Gaussian changes per octave above its "
+        "training resolution, stored in the PLY (gvae_octave_* properties) and applied by the renderer, so the "
+        "training-resolution picture is kept; K octaves. vae (the paper's): score the Gaussians (Hessian), pick "
+        "the budget's share and run the lineage VAEs for K sequential steps (input Gaussians first, then the "
+        "added ones).")
     r.add_argument("input", type=Path, metavar="IN.ply", help="a splat file: 3DGS or compressed PLY, .splat, .spz")
     r.add_argument("output", type=Path, metavar="OUT.ply",
                    help="where the refined cloud goes, in the format its name asks for (.ply, .spz, .splat)")
-    r.add_argument("--steps", type=int, default=1, help="sequential refinement steps, 1..4 (default: 1)")
-    r.add_argument("--budget", default="auto",
-                   help="'all', 'auto' (from the score distribution), a fraction (0.1 or 10%%) or a count "
-                   "(default: auto)")
+    r.add_argument("--method", choices=("detail", "vae"), default=None,
+                   help="detail (the default) or vae (the paper's lineage VAEs; default with a --model folder "
+                   "holding only them)")
+    r.add_argument("--steps", type=int, default=1,
+                   help="detail: octaves above the training resolution the changes run to; vae: sequential steps "
+                   "(default: 1)")
+    r.add_argument("--budget", default=None,
+                   help="'all', 'auto' (from the Hessian score distribution), a fraction (0.1 or 10%%) or a count "
+                   "(default: all for detail, auto for vae)")
+    r.add_argument("--bake", type=float, default=None, metavar="FACTOR",
+                   help="detail: write a plain cloud, drawn as the refined one is at FACTOR times the training "
+                   "resolution, for other tools (default: keep the changes in the PLY; .spz/.splat, which keep no "
+                   "extra properties, are baked at 2^K)")
     r.add_argument("--model", type=Path, default=None, help="model directory (default: the bundled one)")
     r.add_argument("--lineage", type=Path, default=None,
                    help="lineage.npz of the run IN.ply comes from (default: one-node lineages); its stages up to "
@@ -61,7 +73,7 @@ def register(subparsers) -> None:
                    help="Hessian view height in pixels (capture cameras are scaled down to it) (default: %(default)s)")
     r.add_argument("--fidelity", default=None, metavar="TOL|off",
                    help="largest colour change (0..1) a refined lineage may make at the training sampling rate; "
-                   "those above are put back as they were (default: gvae_core.fidelity.DEFAULT_TOLERANCE; "
+                   "those above are put back as they were (default: the method's, fidelity.DEFAULT_TOLERANCES; "
                    "off: keep everything the models did)")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--sanitize", action="store_true", help="drop non-finite Gaussians of IN.ply first")
@@ -151,12 +163,12 @@ def run_refine(args: argparse.Namespace) -> int:
     from ..capture import load_cameras
     from ..lineage import Lineage
     from ..formats import output_format, read_splat_file, write_splat_file
-    from ..fidelity import DEFAULT_TOLERANCE
+    from ..octaves import bake, has_octaves
     from ..refinement import refine
 
     output_format(args.output)  # a name no format is written under is refused before any work
-    budget = parse_budget(args.budget)
-    fidelity = _parse_fidelity(args.fidelity, DEFAULT_TOLERANCE)
+    budget = parse_budget(args.budget) if args.budget is not None else None
+    fidelity = _parse_fidelity(args.fidelity, "auto")
     t0 = time.perf_counter()
     cloud = read_splat_file(args.input, sanitize=args.sanitize)
     lineage = Lineage.load(args.lineage) if args.lineage is not None else None
@@ -164,11 +176,20 @@ def run_refine(args: argparse.Namespace) -> int:
     t_read = time.perf_counter() - t0
     if args.stage is not None and lineage is None:
         raise ValueError("--stage needs --lineage")
-    result = refine(cloud, steps=args.steps, budget=budget, model=args.model, lineage=lineage, stage=args.stage,
-                    cameras=cameras, seed=args.seed, fidelity=fidelity,
+    if args.bake is not None and not args.bake > 0:
+        raise ValueError(f"--bake must be a positive factor, got {args.bake}")
+    result = refine(cloud, steps=args.steps, budget=budget, method=args.method, model=args.model, lineage=lineage,
+                    stage=args.stage, cameras=cameras, seed=args.seed, fidelity=fidelity,
                     hessian_options={"views": args.views, "resolution": args.resolution})
     t0 = time.perf_counter()
-    write_splat_file(result.cloud, args.output)
+    out = result.cloud
+    factor = args.bake
+    if factor is None and has_octaves(out) and args.output.suffix.lower() in (".spz", ".splat"):
+        factor = 2.0 ** args.steps
+    if factor is not None and has_octaves(out):
+        out = bake(out, factor)
+        print(f"baked for {factor:g}x the training resolution (a plain cloud for other tools)")
+    write_splat_file(out, args.output)
     print(f"read {args.input} in {t_read:.2f} s"
           + (f"; {len(cameras)} capture cameras from {args.cameras}" if cameras is not None else ""))
     if lineage is not None:
@@ -178,7 +199,7 @@ def run_refine(args: argparse.Namespace) -> int:
     return 0
 
 
-def _parse_fidelity(text: str | None, default: float) -> float | None:
+def _parse_fidelity(text: str | None, default: float | str) -> float | str | None:
     """--fidelity: a tolerance >= 0, or "off" (None)."""
     if text is None:
         return default
