@@ -4,12 +4,18 @@ the same cost, on scenes no choice was made on, over several seeds.
 Per (scene, seed): progressive 3DGS with lineage up to the training resolution, continued with
 the real 1.5x and 2x images (the upper bound, the paper's 700p/800p columns). From the
 training-resolution stage and its lineage only:
-- baselines: the unrefined cloud (`BASELINE`); the same with one global scale factor chosen on
-  the training scenes only (`KNOB`); 3DGS trained on the real 1.5x and 2x images (`REAL`);
-- Ours (the models refine every Gaussian) and Ours-∇² (the Hessian budget) at +1..+steps, and
-  `refine`'s default, Ours-∇² with the fidelity check (`DEFAULT`);
-- controls at Ours-∇²'s output count, step by step (`gvae_core.controls`): the plain 3DGS split,
-  random selection with the model, and duplicate-in-place.
+- baselines: the unrefined cloud (`BASELINE`); 3DGS trained on the real 1.5x and 2x images
+  (`REAL`);
+- `refine`'s default (`DEFAULT`): the detail model's changes per octave with the fidelity check
+  (`gvae_core.detail`, `gvae_core.octaves`; no Gaussian added), against what costs the same: the
+  global knob in its per-octave form (`KNOB`, `controls.octave_knob`) and linear lineage
+  extrapolation (`EXTRAPOLATION`, `controls.extrapolation_control`), each with one factor chosen on
+  the training scenes; bounded by the oracle (`ORACLE`, an upper bound, not a method: every
+  Gaussian's log-scale and opacity changes fitted to the pair's real 1.5x and 2x training views,
+  `detail.fit_changes`);
+- the paper's method (the lineage VAEs): Ours (every Gaussian) and Ours-∇² (the Hessian budget)
+  at +1..+steps, with controls at Ours-∇²'s output count, step by step (`gvae_core.controls`):
+  the plain 3DGS split, random selection with the model, and duplicate-in-place.
 Every cloud is scored by Chamfer distance of its centres to the ground-truth mesh (accuracy plain
 and weighted by opacity, completeness), PSNR/SSIM against the ground-truth test views at 1x, 1.5x
 and 2x the training resolution with the anti-aliasing mode the protocol names (the primary
@@ -22,6 +28,7 @@ Scenes and training runs are cached and reused; runs resume.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -39,26 +46,30 @@ import numpy as np
 import torch
 
 from .antialias import with_training_cameras
-from .controls import duplicate_control, split_control, thin_added
+from .cloud import GaussianCloud
+from .controls import duplicate_control, extrapolation_control, octave_knob, split_control, thin_added
 from .datasets import load_nerf_synthetic
-from .fidelity import DEFAULT_TOLERANCE
+from .detail import Example, FitConfig, fit_changes, load_detail
 from .hessian import hessian_scores
 from .lineage import Lineage
 from .metrics.geometry import MeshDistance, chamfer, read_mesh_ply
 from .metrics.image import image_scores
+from .octaves import with_octaves
 from .ply import read_ply
-from .refinement import RefineResult, refine_steps
+from .refinement import RefineResult, refine, refine_steps
 from .rendering import RenderSettings, render, resolve_device
 from .rendering.reference import render_reference
 from .scenes import SPLITS, cache_dir, make_scene
-from .train import TrainConfig, train_progressive
+from .train import TrainConfig, scene_extent, train_progressive
 from .vae import GaussianVAE, default_model_dir
 
 #: Methods in result rows.
 BASELINE, KNOB, REAL = "3dgs", "3dgs_knob", "3dgs_real"
 OURS, OURS_H = "ours", "ours_h"
-#: What `refine` does by default: Ours-∇² with the fidelity check (`gvae_core.fidelity`).
+#: What `refine` does by default: the detail model with the fidelity check (`gvae_core.fidelity`).
 DEFAULT = "refine"
+#: At the default's cost: linear lineage extrapolation; the bound: the oracle.
+EXTRAPOLATION, ORACLE = "extrapolation", "oracle"
 SPLIT, RANDOM, DUPLICATE = "split", "random", "duplicate"
 CONTROLS = (SPLIT, RANDOM, DUPLICATE)
 SCALES = ("1x", "1.5x", "2x")
@@ -71,7 +82,8 @@ RANDOM_OVERSUPPLY = 1.5
 class Protocol:
     """One experiment profile: scenes (by default the test split) at a render profile, seeds,
     the training stages (the last is the training resolution) and the real-image stages above it
-    (1.5x and 2x), how far to refine, how to render, and where the global scale knob is tuned."""
+    (1.5x and 2x), how far to refine, how to render, where the global knob and the extrapolation
+    factor are tuned, and how hard the oracle is fitted."""
 
     name: str
     scene_profile: str
@@ -88,13 +100,29 @@ class Protocol:
     test_views: int | None = None
     hessian_views: int = 8
     knob_scenes: tuple[str, ...] = SPLITS["train"]
+    #: The global knob: every scale times this per octave above the training rate.
     knob_factors: tuple[float, ...] = (0.8, 0.9, 1.0, 1.1, 1.2, 1.3)
+    #: Linear lineage extrapolation: this share of each Gaussian's last change per octave.
+    extrapolation_factors: tuple[float, ...] = (0.0, 0.1, 0.25, 0.5, 1.0)
+    #: Optimiser steps (and patch size) of the oracle's fit to a pair's real higher-resolution views.
+    oracle_steps: int = 200
+    oracle_patch: int = 128
     scene_seed: int = 0
 
+    #: Whether the runs go on with the real higher-resolution images (the REAL upper bound); without,
+    #: they stop at the training resolution (what a model learns from; evaluation still uses `higher`).
+    train_higher: bool = True
+
     def train_config(self, seed: int = 0) -> TrainConfig:
-        return TrainConfig.profile("default", resolutions=self.resolutions + self.higher,
-                                   iterations=self.iterations + self.higher_iterations, seed=seed,
-                                   **self.train_overrides)
+        higher = self.higher if self.train_higher else ()
+        iterations = self.higher_iterations if self.train_higher else ()
+        return TrainConfig.profile("default", resolutions=self.resolutions + higher,
+                                   iterations=self.iterations + iterations, seed=seed, **self.train_overrides)
+
+    def data(self, scene_seed: int = 0) -> Protocol:
+        """The runs a model learns from: the same training on a seeded variant of each scene
+        (`make_scene(..., seed=)`), stopped at the training resolution."""
+        return dataclasses.replace(self, name=f"{self.name}-data", train_higher=False, scene_seed=scene_seed)
 
     @property
     def train_stage(self) -> int:
@@ -102,9 +130,11 @@ class Protocol:
         return len(self.resolutions) - 1
 
     def run_key(self, seed: int = 0) -> str:
-        """Hash of what a scene's training run with 3DGS seed `seed` depends on."""
-        blob = json.dumps({"scene_profile": self.scene_profile, "config": self.train_config(seed).to_dict()},
-                          sort_keys=True)
+        """Hash of what a scene's training run with 3DGS seed `seed` depends on (the scene's seed too)."""
+        key = {"scene_profile": self.scene_profile, "config": self.train_config(seed).to_dict()}
+        if self.scene_seed:  # (absent for scene seed 0, so that the runs cached before it keep their keys)
+            key["scene_seed"] = self.scene_seed
+        blob = json.dumps(key, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
@@ -234,11 +264,6 @@ def hessian_cameras(run: SceneRun, count: int):
     return [views.cameras[i] for i in pick]
 
 
-def scaled(cloud, factor: float):
-    """The cloud with every Gaussian's scale multiplied by `factor` (the global knob)."""
-    return cloud.replace(scales=(cloud.scales + np.float32(math.log(factor))).astype(np.float32))
-
-
 def render_timing(cloud, camera, antialias: str, repeats: int = 3, samples: int = 64, seed: int = 0) -> dict:
     """Seconds per forward render (median of `repeats`) and the largest difference from the
     float64 reference renderer on `samples` random pixels of the same image."""
@@ -259,9 +284,27 @@ def render_timing(cloud, camera, antialias: str, repeats: int = 3, samples: int 
             "height": camera.height}
 
 
-def run_scene(run: SceneRun, model, knob: float = 1.0, *, device=None,
+def oracle(run: SceneRun, base, fields=("scales", "opacities"), *, steps: int | None = None,
+           patch: int | None = None) -> tuple[GaussianCloud, float]:
+    """The oracle of one pair: `base` with every Gaussian's changes per octave of `fields` fitted to
+    the pair's real training views at 1.5x and 2x its training resolution; and the seconds it took."""
+    p = run.protocol
+    t0 = time.perf_counter()
+    res = p.resolutions[-1]
+    views = {label: load_nerf_synthetic(run.scene_dir, "train", resolution=h)
+             for label, h in zip(SCALES[1:], (round(1.5 * res), 2 * res))}
+    extent = scene_extent(views["2x"].cameras)[1]
+    example = Example(base, None, views)
+    changes = fit_changes(example, fields, FitConfig(steps=steps or p.oracle_steps, patch=patch or p.oracle_patch,
+                                                     seed=run.seed), extent=extent)
+    return with_octaves(base, changes), time.perf_counter() - t0
+
+
+def run_scene(run: SceneRun, model, knob: float = 1.0, extrapolation: float = 0.0, *, detail=None, device=None,
               say: Callable[[str], None] = print) -> list[dict]:
-    """Every method and step on one prepared (scene, seed); one row per (method, step)."""
+    """Every method and step on one prepared (scene, seed); one row per (method, step). `model`: the
+    lineage VAEs; `detail`: the detail model (default: the bundled one); `knob`, `extrapolation`:
+    the factors chosen on the training scenes."""
     p = run.protocol
     k = p.train_stage
     evaluate = Evaluator(run, device=device)
@@ -279,10 +322,17 @@ def run_scene(run: SceneRun, model, knob: float = 1.0, *, device=None,
 
     log = run.log()
     add(BASELINE, 0, base, resolution=log[k]["resolution"], train_s=sum(e["seconds"] for e in log[:k + 1]))
-    add(KNOB, 0, scaled(base, knob), factor=knob)
-    for i, label in enumerate(SCALES[1:], 1):
+    for i, label in enumerate(SCALES[1:] if p.train_higher else (), 1):
         add(REAL, 0, run.stage_cloud(k + i), scale=label, resolution=log[k + i]["resolution"],
             train_s=sum(e["seconds"] for e in log[:k + i + 1]))
+    # refine's default and what costs the same, at +1 (one octave: 2x; nothing is added)
+    add(KNOB, 1, octave_knob(base, knob), factor=knob)
+    add(EXTRAPOLATION, 1, extrapolation_control(base, lineage, extrapolation), factor=extrapolation)
+    t0 = time.perf_counter()
+    r = refine(base, lineage=lineage, model=detail, method="detail")
+    add(DEFAULT, 1, r.cloud, selected=len(r.selected), reverted=len(r.reverted), refine_s=time.perf_counter() - t0)
+    bound, seconds = oracle(run, base)
+    add(ORACLE, 1, bound, fit_s=seconds)
 
     t0 = time.perf_counter()
     scores = hessian_scores(base, hessian_cameras(run, p.hessian_views), views=0,
@@ -300,8 +350,6 @@ def run_scene(run: SceneRun, model, knob: float = 1.0, *, device=None,
 
     refined(OURS, refine_steps(base, budget="all", **common))
     ours_h = refined(OURS_H, refine_steps(base, budget=p.budget, scores=scores, **common), hessian_s=hessian_s)
-    refined(DEFAULT, refine_steps(base, budget=p.budget, scores=scores, **{**common, "fidelity": DEFAULT_TOLERANCE}),
-            hessian_s=hessian_s)
     targets = [len(r.added) for r in ours_h]
     refined(SPLIT, split_control(base, scores, targets, seed=run.seed))
     refined(DUPLICATE, duplicate_control(base, scores, targets, seed=run.seed))
@@ -321,18 +369,23 @@ def _brief(row: dict) -> str:
     return " ".join(parts)
 
 
-# ----------------------------------------------------------------------------- the global knob
+# ----------------------------------------------------------------------------- the knob and the extrapolation
 
-def tune_knob(runs: Sequence[SceneRun], factors: Sequence[float], device=None) -> dict:
-    """The one global scale factor, chosen on `runs` (the training scenes): the factor whose
-    unrefined clouds score the best mean PSNR at 2x with the protocol's render. Returns the
-    factor and the table it was chosen from."""
+def tune_knob(runs: Sequence[SceneRun], factors: Sequence[float], device=None, *, control=octave_knob,
+              with_lineage: bool = False) -> dict:
+    """One global factor, chosen on `runs` (the training scenes): the factor whose `control` of the
+    unrefined clouds (default: the global scale knob per octave; `extrapolation_control` with
+    `with_lineage`) scores the best mean PSNR at 2x with the protocol's render. Returns the factor
+    and the table it was chosen from."""
     table = {f"{f:g}": [] for f in factors}
     for run in runs:
         evaluate = Evaluator(run, device=device)
-        base = run.stage_cloud(run.protocol.train_stage)
+        k = run.protocol.train_stage
+        base = run.stage_cloud(k)
+        lineage = run.lineage(k + 1) if with_lineage else None
         for f in factors:
-            s = image_scores(scaled(base, f), evaluate.views["2x"], evaluate.background, no_reference=False,
+            cloud = control(base, lineage, f) if with_lineage else control(base, f)
+            s = image_scores(cloud, evaluate.views["2x"], evaluate.background, no_reference=False,
                              antialias=evaluate.modes[""], device=device)
             table[f"{f:g}"].append(s.psnr)
     means = {f: float(np.mean(v)) for f, v in table.items()}
@@ -342,7 +395,7 @@ def tune_knob(runs: Sequence[SceneRun], factors: Sequence[float], device=None) -
 
 # ----------------------------------------------------------------------------- the whole experiment
 
-def run_experiment(protocol: Protocol | str, *, model=None, scenes=None, seeds=None, cache=None,
+def run_experiment(protocol: Protocol | str, *, model=None, detail=None, scenes=None, seeds=None, cache=None,
                    jobs: int | None = None, device=None, say: Callable[[str], None] = print) -> dict:
     """The whole experiment: the knob's training-scene runs and every (scene, seed) prepared,
     the knob tuned, every (scene, seed) evaluated, `jobs` at a time in worker processes of one
@@ -352,7 +405,9 @@ def run_experiment(protocol: Protocol | str, *, model=None, scenes=None, seeds=N
     CPU)."""
     p = PROTOCOLS[protocol] if isinstance(protocol, str) else protocol
     model_dir = Path(model) if model is not None else default_model_dir()
+    detail_dir = Path(detail) if detail is not None else model_dir
     loaded = GaussianVAE.load(model_dir)
+    detail_model = load_detail(detail_dir)
     pairs = [(name, seed) for name in (scenes or p.scenes) for seed in (seeds or p.seeds)]
     knob_pairs = [(name, p.seeds[0]) for name in p.knob_scenes]
     started = time.time()
@@ -362,16 +417,24 @@ def run_experiment(protocol: Protocol | str, *, model=None, scenes=None, seeds=N
     prepared = _map(prepare_job, [(n, s, p, cache, device) for n, s in dict.fromkeys(knob_pairs + pairs)], jobs,
                     say)
     runs = dict(zip(dict.fromkeys(knob_pairs + pairs), prepared))
-    say(f"tuning the global scale knob on {', '.join(p.knob_scenes)}")
-    knob = tune_knob([runs[pair] for pair in knob_pairs], p.knob_factors, device)
-    say(f"knob: x{knob['factor']:g} (mean PSNR 2x by factor: "
-        + ", ".join(f"{f}: {v:.2f}" for f, v in knob["psnr_2x"].items()) + ")")
-    results = _map(evaluate_job, [(runs[pair], model_dir, knob["factor"], device) for pair in pairs], jobs, say)
+    say(f"tuning the global knob and the extrapolation factor on {', '.join(p.knob_scenes)}")
+    knob_runs = [runs[pair] for pair in knob_pairs]
+    knob = tune_knob(knob_runs, p.knob_factors, device)
+    extrapolation = tune_knob(knob_runs, p.extrapolation_factors, device, control=extrapolation_control,
+                              with_lineage=True)
+    for name, tuned in (("knob", knob), ("extrapolation", extrapolation)):
+        say(f"{name}: x{tuned['factor']:g} (mean PSNR 2x by factor: "
+            + ", ".join(f"{f}: {v:.2f}" for f, v in tuned["psnr_2x"].items()) + ")")
+    results = _map(evaluate_job, [(runs[pair], model_dir, knob["factor"], extrapolation["factor"], detail_dir, device)
+                                  for pair in pairs], jobs, say)
     doc = {"protocol": {**asdict(p), "train_config": p.train_config().to_dict()},
            "model": {"dir": str(model_dir), "sizes": loaded.sizes(),
                      "train_scenes": loaded.meta.get("train_scenes", []),
-                     "held_out_scenes": loaded.meta.get("held_out_scenes", [])},
-           "knob": knob, "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(started)), "runs": {},
+                     "held_out_scenes": loaded.meta.get("held_out_scenes", []),
+                     "detail": {"dir": str(detail_dir), "bytes": detail_model.size_bytes(),
+                                "config": asdict(detail_model.config), "meta": detail_model.meta}},
+           "knob": knob, "extrapolation": extrapolation,
+           "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(started)), "runs": {},
            "rows": [], "jobs": jobs, "device": device, "split": _common_split(name for name, _ in pairs)}
     for (name, seed), rows in zip(pairs, results):
         run = runs[(name, seed)]
@@ -392,8 +455,11 @@ def prepare_job(name: str, seed: int, protocol: Protocol, cache=None, device=Non
     return prepare_scene(name, protocol, seed=seed, cache=cache, threads=1, device=device, say=say or _print)
 
 
-def evaluate_job(run: SceneRun, model_dir, knob: float, device=None, say=None) -> list[dict]:
-    return run_scene(run, GaussianVAE.load(model_dir), knob, device=device, say=say or _print)
+def evaluate_job(run: SceneRun, model_dir, knob: float, extrapolation: float, detail_dir=None, device=None,
+                 say=None) -> list[dict]:
+    detail = load_detail(detail_dir) if detail_dir is not None else None
+    return run_scene(run, GaussianVAE.load(model_dir), knob, extrapolation, detail=detail, device=device,
+                     say=say or _print)
 
 
 def prepare_scenes(names, protocol: Protocol, *, seed: int = 0, cache=None, jobs: int | None = None,

@@ -1,6 +1,7 @@
 """The experiment and the report, end to end on a tiny scene rendered by our own renderer (no
-Blender): every method and step is evaluated, the controls match Ours-∇²'s count, the knob is the
-best factor, and the report's tables show the numbers of a known input."""
+Blender): every method and step is evaluated, the controls match Ours-∇²'s count, the knob and the
+extrapolation factor are the best on their scenes, the oracle is above the unrefined cloud, and
+the report's tables show the numbers of a known input."""
 
 import json
 import math
@@ -11,10 +12,13 @@ from PIL import Image
 
 from gvae_core import GaussianCloud
 from gvae_core.camera import orbit
-from gvae_core.experiment import (BASELINE, CONTROLS, DUPLICATE, KNOB, OURS, OURS_H, RANDOM, REAL, SCALES, SPLIT,
-                                  Protocol, SceneRun, run_scene, tune_knob)
+from gvae_core.controls import extrapolation_control
+from gvae_core.detail import DetailModel
+from gvae_core.experiment import (BASELINE, CONTROLS, DEFAULT, DUPLICATE, EXTRAPOLATION, KNOB, ORACLE, OURS, OURS_H,
+                                  RANDOM, REAL, SCALES, SPLIT, Protocol, SceneRun, run_scene, tune_knob)
 from gvae_core.rendering import render
-from gvae_core.report import Results, headline_table, losses, mean_ci, methods_table, write_report
+from gvae_core.report import (Results, default_losses, default_table, headline_table, losses, mean_ci, methods_table,
+                              write_report)
 from gvae_core.scenes.build import write_mesh_ply
 from gvae_core.train import train_progressive
 from gvae_core.vae import GaussianVAE
@@ -67,12 +71,12 @@ def experiment(tmp_path_factory):
     protocol = Protocol("test", scene_profile="none", resolutions=(16, 24), iterations=(40, 30), higher=(36, 48),
                         higher_iterations=(20, 20), scenes=("ball",), seeds=(0,), steps=2,
                         train_overrides=dict(init_count=300, max_gaussians=3000, sh_degree=1), test_views=2,
-                        hessian_views=2, knob_factors=(0.5, 1.0))
+                        hessian_views=2, knob_factors=(0.5, 1.0), oracle_steps=30, oracle_patch=0)
     run_dir = tmp / "run"
     train_progressive(scene, protocol.train_config(0), out_dir=run_dir, progress=False)
     run = SceneRun("ball", 0, scene, run_dir, protocol, {"scene": 0.0, "train": 0.0})
     model = GaussianVAE.create(seed=0)
-    rows = run_scene(run, model, 1.1, say=lambda msg: None)
+    rows = run_scene(run, model, 1.1, 0.5, detail=DetailModel(), say=lambda msg: None)
     return run, rows
 
 
@@ -98,8 +102,14 @@ def test_every_method_and_step_is_scored(experiment):
     for i, s in enumerate(SCALES[1:], 2):
         r = _pick(rows, REAL, scale=s)
         assert r["resolution"] == log[i]["resolution"] and r["n_gaussians"] == log[i]["n_gaussians"]
-    knob = _pick(rows, KNOB)
-    assert knob["factor"] == 1.1 and knob["n_gaussians"] == _pick(rows, BASELINE)["n_gaussians"]
+    base = _pick(rows, BASELINE)
+    for method in (KNOB, EXTRAPOLATION, DEFAULT, ORACLE):  # at the same count, the training picture kept
+        r = _pick(rows, method, 1)
+        assert r["n_gaussians"] == base["n_gaussians"] and r["psnr_1x"] == pytest.approx(base["psnr_1x"], abs=0.02)
+    assert _pick(rows, KNOB, 1)["factor"] == 1.1 and _pick(rows, EXTRAPOLATION, 1)["factor"] == 0.5
+    # an untrained detail model changes nothing; the oracle, fitted to the real views, gains
+    assert _pick(rows, DEFAULT, 1)["psnr_2x"] == pytest.approx(base["psnr_2x"], abs=1e-6)
+    assert _pick(rows, ORACLE, 1)["psnr_2x"] > base["psnr_2x"]
 
 
 def test_controls_match_ours_h_count(experiment):
@@ -112,11 +122,14 @@ def test_controls_match_ours_h_count(experiment):
     assert _pick(rows, OURS, 1)["selected"] == _pick(rows, BASELINE)["n_gaussians"]
 
 
-def test_knob_is_the_best_factor_on_its_scenes(experiment):
+def test_knob_and_extrapolation_factor_are_the_best_on_their_scenes(experiment):
     run, _ = experiment
     knob = tune_knob([run], (0.5, 1.0))
     assert knob["factor"] == 1.0 and knob["scenes"] == ["ball"]
     assert knob["psnr_2x"]["1"] > knob["psnr_2x"]["0.5"]  # halving every Gaussian leaves holes
+    tuned = tune_knob([run], (0.0, 0.5, 3.0), control=extrapolation_control, with_lineage=True)
+    assert tuned["psnr_2x"][f"{tuned['factor']:g}"] == max(tuned["psnr_2x"].values())
+    assert tuned["psnr_2x"]["0"] > tuned["psnr_2x"]["3"]
 
 
 def _known_doc() -> dict:
@@ -128,7 +141,10 @@ def _known_doc() -> dict:
             base = dict(scene=scene, seed=seed, split="test", chamfer=2.0, accuracy=1.0, weighted_accuracy=1.0,
                         completeness=3.0, n_gaussians=100, **{f"psnr_{s}": 30.0 for s in SCALES},
                         **{f"psnr_{s}_classic": 29.0 for s in SCALES}, **{f"ssim_{s}": 0.9 for s in SCALES})
-            rows += [{**base, "method": BASELINE, "step": 0}, {**base, "method": KNOB, "step": 0, "psnr_2x": 30.2}]
+            rows += [{**base, "method": BASELINE, "step": 0}, {**base, "method": KNOB, "step": 1, "psnr_2x": 30.2},
+                     {**base, "method": EXTRAPOLATION, "step": 1, "psnr_2x": 30.3},
+                     {**base, "method": DEFAULT, "step": 1, "psnr_2x": 30.1 if scene == "a" else 30.6},
+                     {**base, "method": ORACLE, "step": 1, "psnr_2x": 31.0}]
             rows += [{**base, "method": REAL, "step": 0, "scale": s, "psnr_2x": 33.0, "n_gaussians": 200}
                      for s in ("1.5x", "2x")]
             for k in (1, 2):
@@ -142,7 +158,8 @@ def _known_doc() -> dict:
     return {"protocol": {"name": "known", "resolutions": [10, 20], "higher": [30, 40], "steps": 2, "seeds": [0, 1],
                          "budget": "auto", "scene_profile": "none", "antialias": "matched"},
             "model": {"dir": None, "sizes": {"geometry": 1000, "appearance": 2000}, "train_scenes": ["t"]},
-            "knob": {"factor": 1.1, "psnr_2x": {"1": 29.0, "1.1": 29.4}, "scenes": ["t"]}, "split": "test",
+            "knob": {"factor": 1.1, "psnr_2x": {"1": 29.0, "1.1": 29.4}, "scenes": ["t"]},
+            "extrapolation": {"factor": 0.25, "psnr_2x": {"0": 29.0, "0.25": 29.2}, "scenes": ["t"]}, "split": "test",
             "started": "now", "seconds": 60.0, "rows": rows,
             "runs": {f"{s}/s{d}": {"scene": s, "seed": d, "log": [{"resolution": 10, "peak_rss_mb": 100.0,
                                                                   "n_gaussians": 50, "seconds": 1.0,
@@ -172,12 +189,23 @@ def test_report_tables_show_the_numbers_of_a_known_input():
                            "- b, seed 1, +2: PSNR 2x -0.50 dB against plain split"]
 
 
+def test_report_compares_the_default_with_what_costs_the_same():
+    res = Results(_known_doc())
+    table = {line.split(" | ")[0][2:]: line.split(" | ") for line in default_table(res)[2:]}
+    # default +0.10 on a, +0.60 on b; the extrapolation's +0.30 is the best same-cost alternative
+    assert table["PSNR 2x dB"][1].startswith("+0.35 ± ") and table["PSNR 2x dB"][4].startswith("+1.00 ± 0.00")
+    assert table["PSNR 2x dB"][5].startswith("+0.05 ± ") and table["PSNR 2x dB"][6] == "2/4 |"
+    assert default_losses(res) == [f"- a, seed {d}: PSNR 2x -0.10 dB against global scale knob per octave; -0.20 dB "
+                                   f"against linear lineage extrapolation" for d in (0, 1)]
+
+
 def test_report_is_written_with_its_results(tmp_path):
     doc = _known_doc()
     path = write_report(doc, tmp_path, command="gvae report --profile test")
     text = path.read_text()
     assert "\n".join(headline_table(Results(doc))) in text and "\n".join(losses(Results(doc))) in text
-    assert "gvae report --profile test" in text and "x1.1" in text
+    assert "gvae report --profile test" in text and "x1.1" in text and "x0.25" in text
+    assert "\n".join(default_table(Results(doc))) in text
     for png in ("geometry_vs_count.png", "training.png"):
         assert png in text and Image.open(tmp_path / png).size[0] > 100
     data = json.loads((tmp_path / "results.json").read_text())
