@@ -83,14 +83,23 @@ def refine_status() -> tuple[bool, str]:
 def core_refine():
     """`gvae_core.refinement.refine`, imported on first use (this imports torch). Raises RuntimeError
     with a user-facing message when it cannot be imported."""
+    return _core("gvae_core.refinement", "refine", "Refine")
+
+
+def core_compact():
+    """`gvae_core.compaction.compact`, imported on first use (this imports torch), as `core_refine`."""
+    return _core("gvae_core.compaction", "compact", "Compact")
+
+
+def _core(module_name: str, function: str, label: str):
     ok, message = refine_status()
     if not ok:
-        raise RuntimeError(message)
+        raise RuntimeError(message.replace("Refine", label))
     try:
-        module = importlib.import_module("gvae_core.refinement")
+        module = importlib.import_module(module_name)
     except ImportError as exc:
-        raise RuntimeError(f"Refine could not be loaded: {exc}") from exc
-    return module.refine
+        raise RuntimeError(f"{label} could not be loaded: {exc}") from exc
+    return getattr(module, function)
 
 
 def pip_install_command(target: str, requirements: tuple[str, ...] = REFINE_REQUIREMENTS,

@@ -1,4 +1,4 @@
-"""Sidebar (N-panel) tab "GaussianVAE" in the 3D viewport: display options, Refine, import/export."""
+"""Sidebar (N-panel) tab "GaussianVAE" in the 3D viewport: display options, Refine, Compact, import/export."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ from . import convert, nodes, refine_ops, runtime
 
 
 class GVAE_Settings(PropertyGroup):
-    """Refine settings kept with the scene (the panel passes them to `gvae.refine`)."""
+    """Refine and Compact settings kept with the scene (the panels pass them to `gvae.refine` and
+    `gvae.compact`)."""
 
     steps: IntProperty(name="Steps", default=1, min=1, max=4,
                        description="Resolution steps to extrapolate past the trained one")
@@ -26,6 +27,11 @@ class GVAE_Settings(PropertyGroup):
     fidelity_check: BoolProperty(name="Fidelity Check", default=True,
                                  description="Put back what the models did wherever it changes the picture at the "
                                  "training resolution (off: keep everything, which measurably lowers quality)")
+    compact_keep: FloatProperty(name="Keep", default=0.5, min=0.001, max=1.0, subtype="FACTOR",
+                                description="Fraction of the Gaussians Compact keeps")
+    compact_removal: EnumProperty(name="Removal", default="MERGE",
+                                  items=(("MERGE", "Merge", "Merge Gaussians into their neighbours (moments kept)"),
+                                         ("PRUNE", "Prune", "Drop the Gaussians with the lowest scores")))
 
 
 class GVAE_PT_main(Panel):
@@ -98,10 +104,7 @@ class GVAE_PT_refine(Panel):
         col.prop(settings, "seed")
         col.prop(settings, "fidelity_check")
         obj = context.active_object
-        job = refine_ops.RUNNING.get(obj.name) if obj is not None else None
-        if job is not None:
-            layout.progress(factor=job.fraction, type="BAR", text=f"{100 * job.fraction:.0f}% {job.message}")
-            layout.label(text="Refining in the background (Esc: cancel)", icon="TIME")
+        if _show_job(layout, obj):
             return
         row = layout.row()
         row.enabled = ok and convert.is_splat(obj)
@@ -117,6 +120,59 @@ class GVAE_PT_refine(Panel):
             box.label(text=line)
 
 
+class GVAE_PT_compact(Panel):
+    bl_label = "Compact"
+    bl_parent_id = "GVAE_PT_main"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "GaussianVAE"
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.gvae
+        ok, message = runtime.refine_status()
+        if not ok:
+            layout.box().label(text=message.replace("Refine", "Compact"), icon="ERROR")
+        col = layout.column()
+        col.use_property_split = True
+        col.prop(settings, "compact_keep")
+        col.prop(settings, "compact_removal")
+        obj = context.active_object
+        if convert.is_splat(obj):
+            col.label(text=f"{len(obj.data.vertices):,} -> {round(settings.compact_keep * len(obj.data.vertices)):,} "
+                      f"Gaussians")
+        if _show_job(layout, obj):
+            return
+        row = layout.row()
+        row.enabled = ok and convert.is_splat(obj)
+        row.scale_y = 1.4
+        op = row.operator("gvae.compact", icon="MOD_DECIM")
+        op.keep = settings.compact_keep
+        op.removal = settings.compact_removal
+        box = layout.box().column(align=True)
+        for line in COMPACT_NOTE:
+            box.label(text=line)
+
+
+def _show_job(layout, obj) -> bool:
+    """The progress of a job running on `obj` (Refine or Compact), if one is: True when shown."""
+    job = refine_ops.RUNNING.get(obj.name) if obj is not None else None
+    if job is None:
+        return False
+    layout.progress(factor=job.fraction, type="BAR", text=f"{100 * job.fraction:.0f}% {job.message}")
+    layout.label(text=f"{job.label} running in the background (Esc: cancel)", icon="TIME")
+    return True
+
+
+#: What Compact does (README), under its button.
+COMPACT_NOTE = (
+    "Drops what no view sees and merges the rest",
+    "pairwise, the Hessian choosing which: scored",
+    "from views placed around the object. With the",
+    "capture's images, `gvae compact --images`",
+    "also fine-tunes (README: Compact).",
+)
+
 #: What Refine does and does not do (README, "What to expect"), under its button.
 REFINE_NOTE = (
     "Adds Gaussians for viewing above the training",
@@ -127,7 +183,7 @@ REFINE_NOTE = (
 )
 
 
-classes = (GVAE_Settings, GVAE_PT_main, GVAE_PT_display, GVAE_PT_refine)
+classes = (GVAE_Settings, GVAE_PT_main, GVAE_PT_display, GVAE_PT_refine, GVAE_PT_compact)
 
 
 def register():

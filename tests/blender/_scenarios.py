@@ -636,7 +636,7 @@ def scenario_refine_job(bpy, args: dict) -> dict:
     status = []
     context.workspace.status_text_set.side_effect = status.append
     op = types.SimpleNamespace(report=lambda kind, text: reports.append((sorted(kind), text)), _timer=object())
-    for name_ in ("_status", "_end"):
+    for name_ in ("_status", "_end", "_report_text"):
         setattr(op, name_, getattr(op_cls, name_).__get__(op))
     release = threading.Event()
     op._running = refine_ops.RefineJob(bpy.data.objects[name], refine=_job_stand_in(release)).start()
@@ -680,6 +680,56 @@ def scenario_refine_job(bpy, args: dict) -> dict:
     bpy.ops.ed.undo_push(message="before refine")
     before = len(bpy.data.objects[name].data.vertices)
     bpy.ops.gvae.refine("EXEC_DEFAULT", True, steps=1, budget="0.5", model=args["model"], fidelity_check=False)
+    after = len(bpy.data.objects[name].data.vertices)
+    bpy.ops.ed.undo()
+    undone = len(bpy.data.objects[name].data.vertices)
+    bpy.ops.ed.redo()
+    res["undo"] = [before, after, undone, len(bpy.data.objects[name].data.vertices)]
+    return res
+
+
+def scenario_compact_job(bpy, args: dict) -> dict:
+    """The Compact job (the Refine job's machinery) with the real gvae_core.compact: cancelled at
+    its first progress report, a bad count (refused, nothing changed), a run through the job,
+    the operator in batch (`execute`) and as a button without a window (`invoke`), one undo step."""
+    import numpy as np
+
+    from bl_ext.user_default.gaussian_vae.gvae_addon import refine_ops, runtime
+
+    bpy.ops.import_scene.gaussian_splat(filepath=args["ply"])
+    name = bpy.context.active_object.name
+    res = {"available": runtime.refine_status()[0]}
+    if not res["available"]:
+        return res
+
+    def state():
+        o = bpy.data.objects[name]
+        return {"counts": counts(bpy), "vertices": len(o.data.vertices), "mesh": o.data.name}
+
+    before = state()
+    job = refine_ops.CompactJob(bpy.data.objects[name], keep=0.5).start()
+    job.cancel()
+    job.wait(120)
+    res["cancel"] = failure(bpy, job.finish)
+    res["cancel_same"] = state() == before
+    job = refine_ops.CompactJob(bpy.data.objects[name], keep=None, count=10 ** 6).start()
+    job.wait(120)
+    res["bad"] = failure(bpy, job.finish)
+    res["bad_same"] = state() == before
+    job = refine_ops.CompactJob(bpy.data.objects[name], keep=0.5).start()
+    messages = set()
+    while not job.wait(0.05):
+        messages.add(job.poll()[2].split(" ")[0])
+    res["info"] = {k: v for k, v in job.finish().items() if k in ("before", "after", "psnr")}
+    res["messages"] = sorted(messages)
+    np.savez(args["out"] + ".job.npz", **attributes(bpy.data.objects[name]))
+    res["batch"] = sorted(bpy.ops.gvae.compact(keep=0.5))
+    res["batch_vertices"] = len(bpy.data.objects[name].data.vertices)
+    res["invoke"] = sorted(bpy.ops.gvae.compact("INVOKE_DEFAULT", count=5, removal="PRUNE"))
+    res["invoke_vertices"] = len(bpy.data.objects[name].data.vertices)
+    bpy.ops.ed.undo_push(message="before compact")
+    before = len(bpy.data.objects[name].data.vertices)
+    bpy.ops.gvae.compact("EXEC_DEFAULT", True, count=2)
     after = len(bpy.data.objects[name].data.vertices)
     bpy.ops.ed.undo()
     undone = len(bpy.data.objects[name].data.vertices)
