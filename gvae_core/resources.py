@@ -124,7 +124,7 @@ def check_refine_memory(n: int, sh_degree: int = 3, **kwargs) -> int:
 
 
 def estimate_compact_memory(n: int, sh_degree: int = 3, *, extra_values: int = 0, views: int = 4,
-                            resolution: int = 256, width: int | None = None, neighbours: int = 8) -> int:
+                            resolution: int = 256, width: int | None = None, neighbours: int = 4) -> int:
     """Estimated peak bytes of `compact` on `n` Gaussians: the input and output clouds, then the
     larger of the Hessian scoring (as for a refine) and the merging over a graph of `neighbours`
     edges a Gaussian."""

@@ -180,11 +180,11 @@ def test_degenerate_gaussians_compact_to_finite_values():
 
 
 def test_tolerance_keeps_more_for_a_stricter_picture():
-    cloud = _cloud(300, extras=False)
-    loose = compact(cloud, tolerance=22.0, resolution=64)
-    strict = compact(cloud, tolerance=35.0, resolution=64)
+    cloud = _cloud(200, extras=False)
+    loose = compact(cloud, tolerance=22.0, resolution=48)
+    strict = compact(cloud, tolerance=35.0, resolution=48)
     assert len(loose.cloud) < len(strict.cloud) <= len(cloud)
-    assert loose.tolerance == 22.0 and len(loose.cloud) < 300
+    assert loose.tolerance == 22.0 and len(loose.cloud) < 200
     with pytest.raises(ValueError, match="without images"):
         compact(cloud, tolerance=30.0, images=_views_of(cloud, 2))
 
@@ -198,11 +198,11 @@ def _views_of(cloud, n, size=32):
 
 
 def test_fine_tuning_rounds_with_images_recover_the_picture():
-    cloud = _cloud(240)
-    images = _views_of(cloud, 6)
-    r = compact(cloud, keep=0.25, images=images, rounds=2, iterations=20, views=3, resolution=32)
-    assert len(r.cloud) == 60 and len(r.rounds) == 2
-    assert [x["count"] for x in r.rounds] == [120, 60]
+    cloud = _cloud(160)
+    images = _views_of(cloud, 4, size=24)
+    r = compact(cloud, keep=0.25, images=images, rounds=2, iterations=12, views=2, resolution=24)
+    assert len(r.cloud) == 40 and len(r.rounds) == 2
+    assert [x["count"] for x in r.rounds] == [80, 40]
     assert r.rounds[-1]["psnr_after"] > r.rounds[-1]["psnr_before"]
     assert set(r.cloud.extra) == set(cloud.extra) and not len(r.cloud.nonfinite_rows())
     assert r.cloud.extra[DILATION_KEY].min() > 0  # recomputed from the images' cameras

@@ -14,4 +14,5 @@ BENCHMARKS = (
     "quality",
     "scenes",
     "train",
+    "compact",
 )
