@@ -41,15 +41,14 @@ def _groups(n, rng):
     return np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
 
 
-@pytest.mark.parametrize("mode", ["classic", "matched", "mip"])
-def test_merge_groups_matches_its_definition(mode):
+@pytest.mark.parametrize("size", [DILATION_KEY, FILTER_KEY])
+def test_merge_groups_matches_its_definition(size):
     rng = np.random.default_rng(3)
     cloud = _cloud(40)
-    if mode == "mip":
-        cloud = cloud.replace(extra={**cloud.extra, FILTER_KEY: cloud.extra.pop(DILATION_KEY)})
+    cloud = cloud.replace(extra={**cloud.extra, size: cloud.extra.pop(DILATION_KEY)})
     groups = _groups(len(cloud), rng)
-    fast, rows = merge_groups(cloud, groups, mode)
-    slow = merge_groups_reference(cloud, groups, mode)
+    fast, rows = merge_groups(cloud, groups)
+    slow = merge_groups_reference(cloud, groups)
     assert len(fast) == groups.max() + 1
     for name in ("means", "scales", "opacities", "sh_dc", "sh_rest"):
         np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=2e-4, atol=2e-5, err_msg=name)
