@@ -75,17 +75,23 @@ class GVAE_PT_display(Panel):
             layout.prop(mod, f'["{nodes.modifier_input_id(mod, name)}"]', text=name)
 
 
-class GVAE_PT_refine(Panel):
-    bl_label = "Refine"
+class _JobPanel(Panel):
+    """A sub-panel that runs a job on the active splat object: its settings, then the job's
+    progress while one runs on the object, else the button (greyed out, with the install button
+    above, while PyTorch is missing) and a note on what it does. Subclasses set `operator`, `icon`,
+    `note`, `module` (the core module it needs) and define `_settings(col, settings, obj)` and
+    `_fill(op, settings)`."""
+
     bl_parent_id = "GVAE_PT_main"
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "GaussianVAE"
+    operator, icon, note, module = "", "NONE", (), "gvae_core.refinement"
 
     def draw(self, context):
         layout = self.layout
         settings = context.scene.gvae
-        ok, message = runtime.refine_status()
+        ok, message = runtime.refine_status(self.module, self.bl_label)
         if not ok:
             box = layout.box()
             box.label(text=message, icon="ERROR")
@@ -93,6 +99,52 @@ class GVAE_PT_refine(Panel):
                 box.operator("gvae.install_torch", text="Install PyTorch (CPU)", icon="IMPORT")
         col = layout.column()
         col.use_property_split = True
+        obj = context.active_object
+        self._settings(col, settings, obj)
+        job = refine_ops.RUNNING.get(obj.name) if obj is not None else None
+        if job is not None:
+            layout.progress(factor=job.fraction, type="BAR", text=f"{100 * job.fraction:.0f}% {job.message}")
+            layout.label(text=f"{job.label} running in the background (Esc: cancel)", icon="TIME")
+            return
+        row = layout.row()
+        row.enabled = ok and convert.is_splat(obj)
+        row.scale_y = 1.4
+        self._fill(row.operator(self.operator, icon=self.icon), settings)
+        box = layout.box().column(align=True)
+        for line in self.note:
+            box.label(text=line)
+
+    def _settings(self, col, settings, obj) -> None:
+        raise NotImplementedError
+
+    def _fill(self, op, settings) -> None:
+        raise NotImplementedError
+
+
+#: What Refine does and does not do (README, "What to expect"), under its button.
+REFINE_NOTE = (
+    "Adds Gaussians for viewing above the training",
+    "resolution; lineages that change the picture at",
+    "that resolution are put back as they were.",
+    "Measured on held-out scenes: no sharper than the",
+    "unrefined splat at 2x (README: What to expect).",
+)
+
+#: What Compact does (README, "Compaction"), under its button.
+COMPACT_NOTE = (
+    "Drops what no view sees and merges the rest",
+    "pairwise, the Hessian choosing which: scored",
+    "from views placed around the object. With the",
+    "capture's images, `gvae compact --images`",
+    "also fine-tunes (README: Compaction).",
+)
+
+
+class GVAE_PT_refine(_JobPanel):
+    bl_label = "Refine"
+    operator, icon, note = "gvae.refine", "SHADERFX", REFINE_NOTE
+
+    def _settings(self, col, settings, obj) -> None:
         col.prop(settings, "steps")
         col.prop(settings, "budget_auto")
         sub = col.column()
@@ -103,84 +155,29 @@ class GVAE_PT_refine(Panel):
             col.prop(settings, "model_path")
         col.prop(settings, "seed")
         col.prop(settings, "fidelity_check")
-        obj = context.active_object
-        if _show_job(layout, obj):
-            return
-        row = layout.row()
-        row.enabled = ok and convert.is_splat(obj)
-        row.scale_y = 1.4
-        op = row.operator("gvae.refine", icon="SHADERFX")
+
+    def _fill(self, op, settings) -> None:
         op.steps = settings.steps
         op.budget = "auto" if settings.budget_auto else f"{settings.budget_fraction:.6g}"
         op.model = settings.model_path if settings.model_source == "FILE" else ""
         op.seed = settings.seed
         op.fidelity_check = settings.fidelity_check
-        box = layout.box().column(align=True)
-        for line in REFINE_NOTE:
-            box.label(text=line)
 
 
-class GVAE_PT_compact(Panel):
+class GVAE_PT_compact(_JobPanel):
     bl_label = "Compact"
-    bl_parent_id = "GVAE_PT_main"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "GaussianVAE"
+    operator, icon, note, module = "gvae.compact", "MOD_DECIM", COMPACT_NOTE, runtime.COMPACT_MODULE
 
-    def draw(self, context):
-        layout = self.layout
-        settings = context.scene.gvae
-        ok, message = runtime.refine_status()
-        if not ok:
-            layout.box().label(text=message.replace("Refine", "Compact"), icon="ERROR")
-        col = layout.column()
-        col.use_property_split = True
+    def _settings(self, col, settings, obj) -> None:
         col.prop(settings, "compact_keep")
         col.prop(settings, "compact_removal")
-        obj = context.active_object
         if convert.is_splat(obj):
-            col.label(text=f"{len(obj.data.vertices):,} -> {round(settings.compact_keep * len(obj.data.vertices)):,} "
-                      f"Gaussians")
-        if _show_job(layout, obj):
-            return
-        row = layout.row()
-        row.enabled = ok and convert.is_splat(obj)
-        row.scale_y = 1.4
-        op = row.operator("gvae.compact", icon="MOD_DECIM")
+            n = len(obj.data.vertices)
+            col.label(text=f"{n:,} -> {max(1, round(settings.compact_keep * n)):,} Gaussians")
+
+    def _fill(self, op, settings) -> None:
         op.keep = settings.compact_keep
         op.removal = settings.compact_removal
-        box = layout.box().column(align=True)
-        for line in COMPACT_NOTE:
-            box.label(text=line)
-
-
-def _show_job(layout, obj) -> bool:
-    """The progress of a job running on `obj` (Refine or Compact), if one is: True when shown."""
-    job = refine_ops.RUNNING.get(obj.name) if obj is not None else None
-    if job is None:
-        return False
-    layout.progress(factor=job.fraction, type="BAR", text=f"{100 * job.fraction:.0f}% {job.message}")
-    layout.label(text=f"{job.label} running in the background (Esc: cancel)", icon="TIME")
-    return True
-
-
-#: What Compact does (README), under its button.
-COMPACT_NOTE = (
-    "Drops what no view sees and merges the rest",
-    "pairwise, the Hessian choosing which: scored",
-    "from views placed around the object. With the",
-    "capture's images, `gvae compact --images`",
-    "also fine-tunes (README: Compact).",
-)
-
-#: What Refine does and does not do (README, "What to expect"), under its button.
-REFINE_NOTE = (
-    "Adds Gaussians for viewing above the training",
-    "resolution; lineages that change the picture at",
-    "that resolution are put back as they were.",
-    "Measured on held-out scenes: no sharper than the",
-    "unrefined splat at 2x (README: What to expect).",
-)
 
 
 classes = (GVAE_Settings, GVAE_PT_main, GVAE_PT_display, GVAE_PT_refine, GVAE_PT_compact)

@@ -113,13 +113,17 @@ def _gib(b: int) -> str:
 def check_refine_memory(n: int, sh_degree: int = 3, **kwargs) -> int:
     """The estimate of `estimate_refine_memory`; raises NotEnoughMemoryError when it exceeds the
     memory available now (skipped where that cannot be told)."""
-    need = estimate_refine_memory(n, sh_degree, **kwargs)
+    return _check(estimate_refine_memory(n, sh_degree, **kwargs), f"refining {n:,} Gaussians (SH degree {sh_degree})",
+                  "refine a smaller part of the cloud (or a lower SH degree), use a smaller budget or fewer/smaller "
+                  "Hessian views")
+
+
+def _check(need: int, what: str, advice: str) -> int:
+    """`need` bytes, or NotEnoughMemoryError when that is more than is available now."""
     free = available_memory()
     if free is not None and need > free:
-        raise NotEnoughMemoryError(
-            f"refining {n:,} Gaussians (SH degree {sh_degree}) needs about {_gib(need)} of memory, but only "
-            f"{_gib(free)} is available; refine a smaller part of the cloud (or a lower SH degree), use a smaller "
-            f"budget or fewer/smaller Hessian views, or close other programs")
+        raise NotEnoughMemoryError(f"{what} needs about {_gib(need)} of memory, but only {_gib(free)} is available; "
+                                   f"{advice}, or close other programs")
     return need
 
 
@@ -139,14 +143,9 @@ def estimate_compact_memory(n: int, sh_degree: int = 3, *, extra_values: int = 0
 def check_compact_memory(n: int, sh_degree: int = 3, **kwargs) -> int:
     """The estimate of `estimate_compact_memory`; raises NotEnoughMemoryError when it exceeds the
     memory available now (skipped where that cannot be told)."""
-    need = estimate_compact_memory(n, sh_degree, **kwargs)
-    free = available_memory()
-    if free is not None and need > free:
-        raise NotEnoughMemoryError(
-            f"compacting {n:,} Gaussians (SH degree {sh_degree}) needs about {_gib(need)} of memory, but only "
-            f"{_gib(free)} is available; compact a smaller part of the cloud, use fewer/smaller scoring views, "
-            f"or close other programs")
-    return need
+    return _check(estimate_compact_memory(n, sh_degree, **kwargs),
+                  f"compacting {n:,} Gaussians (SH degree {sh_degree})",
+                  "compact a smaller part of the cloud or use fewer/smaller scoring views")
 
 
 # glibc's mallopt parameters (malloc.h)

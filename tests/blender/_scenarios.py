@@ -224,13 +224,18 @@ def draw_panels(bpy) -> list[str]:
     from unittest import mock
 
     labels = []
-    for name in ("GVAE_PT_main", "GVAE_PT_display", "GVAE_PT_refine"):
+    for name in ("GVAE_PT_main", "GVAE_PT_display", "GVAE_PT_refine", "GVAE_PT_compact"):
         cls = getattr(bpy.types, name)
         layout = mock.MagicMock()
         layout.label.side_effect = lambda text="", **kw: labels.append(text)
-        layout.box.return_value = layout
+        layout.box.return_value = layout.column.return_value = layout.row.return_value = layout
+        me = mock.MagicMock(layout=layout)  # the panel: its class attributes, its methods bound
+        for attr in ("bl_label", "operator", "icon", "note", "module", "_settings", "_fill"):
+            if hasattr(cls, attr):
+                value = getattr(cls, attr)
+                setattr(me, attr, value.__get__(me) if callable(value) and attr.startswith("_") else value)
         if cls.poll(bpy.context) if hasattr(cls, "poll") else True:
-            cls.draw(mock.MagicMock(layout=layout), bpy.context)
+            cls.draw(me, bpy.context)
     prefs = bpy.context.preferences.addons["bl_ext.user_default.gaussian_vae"].preferences
     layout = mock.MagicMock()
     layout.label.side_effect = lambda text="", **kw: labels.append(text)
@@ -676,16 +681,22 @@ def scenario_refine_job(bpy, args: dict) -> dict:
     res["checked_vertices"] = len(bpy.data.objects[name].data.vertices)
 
     # 8. one undo step: undo brings the object back as it was before the refine, redo refines again
-    # (called as a button does: with the undo push that scripts leave out by default)
-    bpy.ops.ed.undo_push(message="before refine")
-    before = len(bpy.data.objects[name].data.vertices)
-    bpy.ops.gvae.refine("EXEC_DEFAULT", True, steps=1, budget="0.5", model=args["model"], fidelity_check=False)
-    after = len(bpy.data.objects[name].data.vertices)
-    bpy.ops.ed.undo()
-    undone = len(bpy.data.objects[name].data.vertices)
-    bpy.ops.ed.redo()
-    res["undo"] = [before, after, undone, len(bpy.data.objects[name].data.vertices)]
+    res["undo"] = undo_round(bpy, name, lambda: bpy.ops.gvae.refine("EXEC_DEFAULT", True, steps=1, budget="0.5",
+                                                                    model=args["model"], fidelity_check=False))
     return res
+
+
+def undo_round(bpy, name: str, run) -> list[int]:
+    """The object's vertex count before `run()` (an operator called as a button calls it: with the
+    undo push that scripts leave out by default), after it, after undo and after redo."""
+    bpy.ops.ed.undo_push(message="before the operator")
+    counts = [len(bpy.data.objects[name].data.vertices)]
+    run()
+    counts.append(len(bpy.data.objects[name].data.vertices))
+    bpy.ops.ed.undo()
+    counts.append(len(bpy.data.objects[name].data.vertices))
+    bpy.ops.ed.redo()
+    return counts + [len(bpy.data.objects[name].data.vertices)]
 
 
 def scenario_compact_job(bpy, args: dict) -> dict:
@@ -727,14 +738,7 @@ def scenario_compact_job(bpy, args: dict) -> dict:
     res["batch_vertices"] = len(bpy.data.objects[name].data.vertices)
     res["invoke"] = sorted(bpy.ops.gvae.compact("INVOKE_DEFAULT", count=5, removal="PRUNE"))
     res["invoke_vertices"] = len(bpy.data.objects[name].data.vertices)
-    bpy.ops.ed.undo_push(message="before compact")
-    before = len(bpy.data.objects[name].data.vertices)
-    bpy.ops.gvae.compact("EXEC_DEFAULT", True, count=2)
-    after = len(bpy.data.objects[name].data.vertices)
-    bpy.ops.ed.undo()
-    undone = len(bpy.data.objects[name].data.vertices)
-    bpy.ops.ed.redo()
-    res["undo"] = [before, after, undone, len(bpy.data.objects[name].data.vertices)]
+    res["undo"] = undo_round(bpy, name, lambda: bpy.ops.gvae.compact("EXEC_DEFAULT", True, count=2))
     return res
 
 
