@@ -220,3 +220,26 @@ def test_cli_compacts_a_file_and_refuses_bad_requests(tmp_path, capsys):
         assert message in capsys.readouterr().err and not bad.exists()
     assert main(["compact", str(src), str(src), "--keep", "0.5"]) == 2
     assert "must not be IN" in capsys.readouterr().err
+
+
+def test_cli_fine_tunes_with_the_captures_images(tmp_path, capsys):
+    import json  # noqa: PLC0415
+
+    from PIL import Image  # noqa: PLC0415
+
+    cloud = _cloud(60, extras=False)
+    views = _views_of(cloud, 3, size=16)
+    folder = tmp_path / "capture"
+    folder.mkdir()
+    frames = []
+    for i, (cam, img) in enumerate(zip(views.cameras, views.images)):
+        Image.fromarray((img * 255).round().astype(np.uint8)).save(folder / f"r_{i}.png")
+        frames.append({"file_path": f"r_{i}", "transform_matrix": cam.to_blender_c2w().tolist()})
+    (folder / "transforms_train.json").write_text(json.dumps({"camera_angle_x": views.cameras[0].fov_x,
+                                                              "frames": frames}))
+    src = write_ply(cloud, tmp_path / "in.ply")
+    out = tmp_path / "out.ply"
+    assert main(["compact", str(src), str(out), "--keep", "0.5", "--images", str(folder), "--iterations", "2",
+                 "--rounds", "1", "--views", "2", "--resolution", "16"]) == 0
+    text = capsys.readouterr().out
+    assert "3 images at 16 px" in text and "round 1: 30 Gaussians" in text and len(read_ply(out)) == 30

@@ -91,8 +91,10 @@ def _decimate(command: list[str], cloud, mode: str, count: int, work: Path):
     return read_ply(out), seconds
 
 
-def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, images: bool = True, say=print) -> list[dict]:
-    """Every method at every fraction on one (scene, seed) of the quick protocol; one row each."""
+def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, images: bool = True, image_methods=IMAGE_METHODS,
+                   say=print) -> list[dict]:
+    """Every method at every fraction on one (scene, seed) of the quick protocol; one row each.
+    `images`: also the rows with fine-tuning (`image_methods`, and the input fine-tuned as long)."""
     p = PROTOCOLS["quick"]
     run = prepare_scene(name, p, seed=seed, threads=1, say=say)
     k = p.train_stage
@@ -140,7 +142,7 @@ def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, images: bool = 
         r = compact(base, keep=1.0, images=train, views=VIEWS, iterations=iterations, seed=seed)
         add("input + fine-tune", 1.0, r.cloud, time.perf_counter() - t0, iterations=iterations)
         for fraction in IMAGE_FRACTIONS:
-            for label, score_name, removal in IMAGE_METHODS:
+            for label, score_name, removal in image_methods:
                 t0 = time.perf_counter()
                 r = compact(base, keep=fraction, images=train, views=VIEWS, score=score_name, removal=removal,
                             iterations=iterations, seed=seed)
