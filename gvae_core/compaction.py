@@ -60,7 +60,8 @@ from .rendering.rasterize import _alpha_and_transmittance, _tile_centres, _weigh
 from .resources import check_compact_memory, reuse_freed_memory
 
 __all__ = ["SCORES", "REMOVALS", "CompactResult", "compact", "compaction_scores", "merge_groups",
-           "merge_groups_reference", "pixel_hits", "pixel_hits_reference", "target_count"]
+           "merge_groups_reference", "own_renders", "pixel_hits", "pixel_hits_reference", "removal_groups",
+           "target_count"]
 
 #: Per-Gaussian scores `compact` can rank by: the default, then the baselines.
 SCORES = ("hessian", "lightgaussian", "opacity", "random")
@@ -79,6 +80,9 @@ LIGHTGAUSSIAN_POWER = 0.1
 LIGHTGAUSSIAN_QUANTILE = 0.1
 #: Fine-tuning iterations per round with images (PUP 3D-GS fine-tunes 5,000 after each pruning).
 DEFAULT_ITERATIONS = 5000
+#: Views of the input's own renders that `distill` fine-tunes against.
+DISTILL_VIEWS = 32
+_VIEW_HEIGHT = np.min
 #: PSNR reported when the compacted renders equal the input's.
 PSNR_CAP = 100.0
 
@@ -668,7 +672,7 @@ def _input_images(src: GaussianCloud, cams: Sequence[Camera], settings: RenderSe
 def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | None = None,
             tolerance: float | None = None, cameras: Sequence[Camera] | None = None, views: int = DEFAULT_VIEWS,
             resolution: int = DEFAULT_RESOLUTION, score: str = "hessian", removal: str = "merge",
-            images=None, rounds: int = 2, iterations: int = DEFAULT_ITERATIONS, seed: int = 0,
+            images=None, rounds: int = 2, iterations: int = DEFAULT_ITERATIONS, distill: int = 0, seed: int = 0,
             neighbours: int = NEIGHBOURS, render_settings: RenderSettings | None = None,
             progress: Callable[[float, str], None] | None = None, check_memory: bool = True) -> CompactResult:
     """`cloud` with fewer Gaussians: `keep` a fraction in (0, 1], a `count`, or the fewest whose
@@ -680,7 +684,10 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     `score`: one of SCORES; `removal`: "merge" (default) or "prune". `images`: the capture's
     training images (`datasets.Views`, in the cloud's frame, at the resolution to fine-tune at):
     `rounds` rounds of removal and `iterations` of fine-tuning each (`train.fine_tune`), the
-    scores then come from `images`' cameras. `seed`: the random score and the fine-tuning.
+    scores then come from `images`' cameras. `distill`: without images, fine-tune as with them,
+    `distill` iterations a round, against the input's own renders (`own_renders`: DISTILL_VIEWS
+    views, of `cameras` or placed around the cloud, at the training sampling rate); 0: prune and
+    merge only. `seed`: the random score and the fine-tuning.
     `progress(fraction, message)` as the work goes on (an exception it raises stops the work:
     how the Blender job cancels). `check_memory`: refuse a cloud whose estimated peak memory
     exceeds what is free (`resources.NotEnoughMemoryError`). Every check on the arguments and the
@@ -702,12 +709,18 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
         target = None
     else:
         target = target_count(n, keep, count)
-    if images is not None:
+    if distill:
+        if isinstance(distill, bool) or not isinstance(distill, (int, np.integer)) or distill < 0:
+            raise ValueError(f"compact: distill must be a whole number of iterations >= 0, got {distill!r}")
+        if images is not None or tolerance is not None:
+            raise ValueError("compact: distill fine-tunes against the input's own renders: without images or a "
+                             "tolerance")
+    if images is not None or distill:
         if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 1:
             raise ValueError(f"compact: rounds must be a whole number >= 1, got {rounds!r}")
         if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 0:
             raise ValueError(f"compact: iterations must be a whole number >= 0, got {iterations!r}")
-        if len(images) == 0:
+        if images is not None and len(images) == 0:
             raise ValueError("compact: no images")
     if check_memory:
         extra = sum(int(np.prod(np.shape(v)[1:], dtype=np.int64)) for v in src.extra.values())
@@ -716,6 +729,9 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     settings = scoring_settings(render_settings)
     timings: dict[str, float] = {}
     with reuse_freed_memory():
+        if distill:
+            say(0.0, "rendering the input for the fine-tuning")
+            images, iterations = own_renders(src, cameras, resolution, settings), distill
         if images is not None:
             result = _compact_with_images(src, target, images, score, removal, rounds, iterations, seed, neighbours,
                                           views, resolution, settings, say, timings)
@@ -751,14 +767,35 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     return result
 
 
-def _tolerance_count(src, scores, tolerance, cameras, cams, score, removal, neighbours, settings, say) -> int:
-    """The fewest Gaussians (to within 1% of the input's count) whose compaction keeps the
-    picture at the training sampling rate at or above `tolerance` dB against the input's: a
-    bisection on the count (the scoring views rescaled by `fidelity.training_rate_views`)."""
+def _training_rate(src: GaussianCloud, cameras, cams: Sequence[Camera]) -> list[Camera]:
+    """`cams` rescaled to the sampling rate the cloud was trained at (`fidelity.training_rate_views`:
+    from its anti-aliasing size, else from the capture's `cameras` at their full size)."""
     rate_of = src
     if cameras is not None and not {FILTER_KEY, DILATION_KEY} & set(src.extra):
         rate_of = with_dilation_3d(src, list(cameras))
-    check = training_rate_views(rate_of, cams)
+    return training_rate_views(rate_of, cams)
+
+
+def own_renders(cloud: GaussianCloud, cameras=None, resolution: int = DEFAULT_RESOLUTION,
+                settings: RenderSettings | None = None, views: int = DISTILL_VIEWS):
+    """The cloud's own renders over white as training images (`datasets.Views`): `views` of the
+    capture's `cameras` (spread out) or views placed around the cloud (`resolution` px high), all
+    rescaled to one height, the median of the training sampling rate's (`_training_rate`)."""
+    from .datasets import Views  # noqa: PLC0415
+
+    src = cloud.numpy()
+    cams = (scoring_views(cameras, views, 1 << 30, src) if cameras is not None
+            else default_views(src, views, resolution))
+    height = int(_VIEW_HEIGHT([c.height for c in _training_rate(src, cameras, cams)]))
+    cams = [c.scaled(height) for c in cams]
+    return Views(cams, np.stack([img.numpy() for img in _input_images(src, cams, settings or RenderSettings())]))
+
+
+def _tolerance_count(src, scores, tolerance, cameras, cams, score, removal, neighbours, settings, say) -> int:
+    """The fewest Gaussians (to within 1% of the input's count) whose compaction keeps the
+    picture at the training sampling rate at or above `tolerance` dB against the input's: a
+    bisection on the count (the scoring views rescaled by `_training_rate`)."""
+    check = _training_rate(src, cameras, cams)
     reference = _input_images(src, check, settings)
     n = len(src)
 

@@ -207,6 +207,19 @@ def test_fine_tuning_rounds_with_images_recover_the_picture():
     assert r.cloud.extra[DILATION_KEY].min() > 0  # recomputed from the images' cameras
 
 
+def test_distilling_against_the_inputs_own_renders_keeps_the_picture_closer():
+    """Without images: fine-tuned against the input's renders from views placed around it."""
+    cloud = _cloud(200, extras=False)  # (no anti-aliasing size: the views stay at 32 px)
+    merged = compact(cloud, keep=0.3, resolution=32)
+    distilled = compact(cloud, keep=0.3, resolution=32, distill=25, rounds=1)
+    assert len(distilled.cloud) == 60 and len(distilled.rounds) == 1
+    assert distilled.psnr > merged.psnr
+    with pytest.raises(ValueError, match="distill"):
+        compact(cloud, keep=0.3, distill=5, images=_views_of(cloud, 2))
+    with pytest.raises(ValueError, match="distill"):
+        compact(cloud, keep=0.3, distill=-1)
+
+
 def test_cli_compacts_a_file_and_refuses_bad_requests(tmp_path, capsys):
     src = write_ply(_cloud(200), tmp_path / "in.ply")
     out = tmp_path / "out.ply"

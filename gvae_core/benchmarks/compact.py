@@ -54,6 +54,9 @@ METHODS = (("ours", "hessian", "merge"), ("merge, no score", "random", "merge"),
 ST_MODES = ("decimate", "decimate-adaptive")
 #: Scoring views of every `compact` row: this many of the training cameras.
 VIEWS = 4
+#: Ours fine-tuned against the input's own renders (`--distill`, no images), at these fractions.
+DISTILLED = "ours + distill (no images)"
+DISTILL_FRACTIONS = (0.5, 0.3, 0.1)
 #: Fractions compacted with fine-tuning (`--images`) and the scores compared there.
 IMAGE_FRACTIONS = (0.1,)
 IMAGE_METHODS = (("ours + fine-tune", "hessian", "merge"), ("Hessian prune + fine-tune", "hessian", "prune"),
@@ -92,9 +95,10 @@ def _decimate(command: list[str], cloud, mode: str, count: int, work: Path):
 
 
 def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, images: bool = True, image_methods=IMAGE_METHODS,
-                   say=print) -> list[dict]:
+                   distill: bool = True, say=print) -> list[dict]:
     """Every method at every fraction on one (scene, seed) of the quick protocol; one row each.
-    `images`: also the rows with fine-tuning (`image_methods`, and the input fine-tuned as long)."""
+    `images`: also the rows with fine-tuning (`image_methods`, and the input fine-tuned as long);
+    `distill`: also ours fine-tuned against the input's own renders (no images) at DISTILL_FRACTIONS."""
     p = PROTOCOLS["quick"]
     run = prepare_scene(name, p, seed=seed, threads=1, say=say)
     k = p.train_stage
@@ -126,6 +130,8 @@ def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, images: bool = 
             r = compact(base, keep=fraction, cameras=train.cameras, views=VIEWS, score=score_name, removal=removal,
                         seed=seed)
             add(label, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr)
+    if distill:
+        distilled_rows(base, p.iterations[k], seed, add)
     command, note = splat_transform()
     if command is None:
         say(f"[{name} s{seed}] splat-transform skipped: {note}")
@@ -149,6 +155,15 @@ def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, images: bool = 
                 add(label, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr,
                     iterations=iterations, rounds=[dict(x) for x in r.rounds])
     return rows
+
+
+def distilled_rows(base, iterations: int, seed: int, add) -> None:
+    """`add` the rows of ours with `compact(distill=iterations)` (views placed around the cloud) at
+    DISTILL_FRACTIONS."""
+    for fraction in DISTILL_FRACTIONS:
+        t0 = time.perf_counter()
+        r = compact(base, keep=fraction, distill=iterations, seed=seed)
+        add(DISTILLED, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr, iterations=iterations)
 
 
 def _mean_ci(values) -> str:
@@ -197,19 +212,22 @@ def plot(rows: list[dict], out: Path) -> Path:
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
     scored = [r for r in rows if "drop" in r]
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for m in dict.fromkeys(r["method"] for r in scored):
-        fr = sorted({r["fraction"] for r in scored if r["method"] == m})
-        ys = [np.mean([-r["drop"] for r in scored if r["method"] == m and r["fraction"] == f]) for f in fr]
-        style = "-o" if m == "ours" else "--s" if m.startswith("splat") else ":." if "fine-tune" not in m else "-^"
-        ax.plot(fr, ys, style, label=m, lw=2.2 if m == "ours" else 1.2)
-    ax.set_xscale("log")
-    ax.set_xlabel("fraction of Gaussians kept")
-    ax.set_ylabel("PSNR change at 1x against the input (dB)")
-    ax.set_ylim(bottom=max(ax.get_ylim()[0], -12))
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
+    fig, axes = plt.subplots(1, 2, figsize=(14, 4.8))
+    for ax, low in zip(axes, (-16.0, -4.5)):
+        for m in dict.fromkeys(r["method"] for r in scored):
+            fr = sorted({r["fraction"] for r in scored if r["method"] == m})
+            ys = [np.mean([-r["drop"] for r in scored if r["method"] == m and r["fraction"] == f]) for f in fr]
+            style = "-o" if m == "ours" else "--s" if m.startswith("splat") else "^" if "fine-tune" in m else ":."
+            ax.plot(fr, ys, style, label=m, lw=2.2 if m == "ours" else 1.2, ms=8 if "fine-tune" in m else 5)
+        ax.set_xscale("log")
+        ax.set_xlabel("fraction of Gaussians kept")
+        ax.set_ylabel("PSNR change at 1x against the input (dB)")
+        ax.set_ylim(low, 1.8)
+        ax.grid(True, alpha=0.3)
+    axes[0].set_title("every method")
+    axes[1].set_title("close up")
+    fig.legend(*axes[1].get_legend_handles_labels(), fontsize=8, loc="center left", bbox_to_anchor=(0.81, 0.5))
+    fig.tight_layout(rect=(0, 0, 0.8, 1))
     path = out / "compact_psnr_vs_fraction.png"
     fig.savefig(path, dpi=110)
     plt.close(fig)

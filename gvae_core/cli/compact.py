@@ -40,7 +40,12 @@ def register(subparsers) -> None:
     c.add_argument("--images", type=Path, default=None, metavar="DATASET",
                    help="the capture's training images (a NeRF-Synthetic folder with transforms_train.json, or a "
                    "COLMAP capture: sparse model and images/): compact in rounds, fine-tuning after each")
-    c.add_argument("--rounds", type=int, default=2, help="removal and fine-tuning rounds with --images (default: 2)")
+    c.add_argument("--distill", type=int, default=0, metavar="ITERATIONS",
+                   help="without images: fine-tune this many iterations a round against the input's own renders "
+                   "(32 views of --cameras, else placed around the cloud, at the training resolution); slower, "
+                   "keeps the picture closer (default: 0, merge only)")
+    c.add_argument("--rounds", type=int, default=2,
+                   help="removal and fine-tuning rounds with --images or --distill (default: 2)")
     c.add_argument("--iterations", type=int, default=None,
                    help="fine-tuning iterations per round with --images (default: 5000, as PUP 3D-GS)")
     c.add_argument("--image-height", type=int, default=None, metavar="H",
@@ -109,7 +114,8 @@ def run_compact(args: argparse.Namespace) -> int:
     result = compact(cloud, keep=keep, count=args.count, tolerance=args.tolerance, cameras=cameras, views=args.views,
                      resolution=args.resolution, score=args.score, removal=args.removal, images=images,
                      rounds=args.rounds, iterations=DEFAULT_ITERATIONS if args.iterations is None else args.iterations,
-                     seed=args.seed, progress=progress if images is not None else None)
+                     distill=args.distill, seed=args.seed,
+                     progress=progress if images is not None or args.distill else None)
     t0 = time.perf_counter()
     write_splat_file(result.cloud, args.output)
     t_write = time.perf_counter() - t0
@@ -119,8 +125,9 @@ def run_compact(args: argparse.Namespace) -> int:
           + (f"; {len(images)} images at {images.cameras[0].height} px from {args.images}" if images is not None
              else ""))
     print(result.summary())
+    target = "the training images" if images is not None else "the input's own renders"
     for k, r in enumerate(result.rounds, 1):
-        print(f"  round {k}: {r['count']:,} Gaussians, fine-tuned {r['seconds']:.1f} s, PSNR on the training images "
+        print(f"  round {k}: {r['count']:,} Gaussians, fine-tuned {r['seconds']:.1f} s, PSNR on {target} "
               f"{r['psnr_before']:.2f} -> {r['psnr_after']:.2f} dB")
     print(f"Gaussians {len(result.groups):,} -> {len(result.cloud):,}; file {_size(size_in)} -> {_size(size_out)} "
           f"({size_out / max(size_in, 1):.1%}); PSNR against the input's render {result.psnr:.2f} dB; "
