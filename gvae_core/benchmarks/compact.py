@@ -178,8 +178,8 @@ def _mean_ci(values) -> str:
 
 def tables(rows: list[dict]) -> list[str]:
     """Markdown: mean change of PSNR against the input (± 95% interval over scenes x seeds) per
-    method and fraction; then per scene, the change at 50/30/10% of ours and of splat-transform's
-    better mode."""
+    method and fraction; then per scene, the change at 50/30/10% of ours, ours distilled and
+    splat-transform's better mode."""
     scored = [r for r in rows if "drop" in r]
     methods = list(dict.fromkeys(r["method"] for r in scored))
     fractions = sorted({r["fraction"] for r in scored}, reverse=True)
@@ -189,17 +189,18 @@ def tables(rows: list[dict]) -> list[str]:
         cells = [_mean_ci([-r["drop"] for r in scored if r["method"] == m and r["fraction"] == f]) for f in fractions]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     lines += ["", "| scene | seed | input PSNR | " + " | ".join(
-        f"{f:.0%}: ours / best splat-transform" for f in (0.5, 0.3, 0.1)) + " |", "|---|---|---|---|---|---|"]
+        f"{f:.0%}: ours / distilled / best splat-transform" for f in (0.5, 0.3, 0.1)) + " |",
+        "|---|---|---|---|---|---|"]
     pairs = sorted({(r["scene"], r["seed"]) for r in scored})
     for scene, seed in pairs:
         mine = {(r["method"], r["fraction"]): r for r in scored if r["scene"] == scene and r["seed"] == seed}
         base = next(r["psnr"] for r in rows if r["scene"] == scene and r["seed"] == seed and r["method"] == "input")
         cells = []
         for f in (0.5, 0.3, 0.1):
-            ours = mine.get(("ours", f))
-            st = [mine[(f"splat-transform --{m}", f)] for m in ST_MODES if (f"splat-transform --{m}", f) in mine]
-            best = max((-x["drop"] for x in st), default=None)
-            cells.append(f"{-ours['drop']:+.2f} / " + ("-" if best is None else f"{best:+.2f}") if ours else "-")
+            change = {m: -r["drop"] for (m, fr), r in mine.items() if fr == f}
+            st = [change[f"splat-transform --{m}"] for m in ST_MODES if f"splat-transform --{m}" in change]
+            values = [change.get("ours"), change.get(DISTILLED), max(st) if st else None]
+            cells.append(" / ".join("-" if v is None else f"{v:+.2f}" for v in values))
         lines.append(f"| {scene} | {seed} | {base:.2f} | " + " | ".join(cells) + " |")
     return lines
 
