@@ -209,16 +209,16 @@ class CompactJob(CoreJob):
     label, participle = "Compact", "compacted"
 
     def __init__(self, obj, *, keep: float | None = 0.5, count: int | None = None, removal: str = "merge",
-                 seed: int = 0, compact=None):
+                 distill: int = 0, seed: int = 0, compact=None):
         super().__init__(obj, compact)
-        self.keep, self.count, self.removal, self.seed = keep, count, removal, seed
+        self.keep, self.count, self.removal, self.distill, self.seed = keep, count, removal, distill, seed
 
     def _load(self):
         return runtime.core_compact()
 
     def _run(self, compact, cloud, progress):
-        return compact(cloud, keep=self.keep, count=self.count, removal=self.removal, seed=self.seed,
-                       progress=progress)
+        return compact(cloud, keep=self.keep, count=self.count, removal=self.removal, distill=self.distill,
+                       seed=self.seed, progress=progress)
 
     def _write(self, obj) -> None:
         r = self.result
@@ -405,11 +405,14 @@ class GVAE_OT_compact(JobOperator, Operator):
     removal: EnumProperty(name="Removal", default="MERGE",
                           items=(("MERGE", "Merge", "Merge Gaussians into their neighbours (moments kept)"),
                                  ("PRUNE", "Prune", "Drop the Gaussians with the lowest scores")))
+    distill: IntProperty(name="Fine-Tune Iterations", default=0, min=0,
+                         description="Fine-tune the result against the object's own renders for this many "
+                         "iterations a round (0: merge only; slower, keeps the picture closer)")
     seed: IntProperty(name="Seed", default=0, min=0, description="Random seed (repeatable runs)")
 
     def _job(self, context) -> CompactJob:
         return CompactJob(context.active_object, keep=None if self.count else self.keep, count=self.count or None,
-                          removal=self.removal.lower(), seed=self.seed)
+                          removal=self.removal.lower(), distill=self.distill, seed=self.seed)
 
     def _report_text(self, info: dict) -> str:
         return (f"Compact: {info['before']} -> {info['after']} Gaussians ({info['after'] / max(info['before'], 1):.0%})"

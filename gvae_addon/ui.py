@@ -32,6 +32,9 @@ class GVAE_Settings(PropertyGroup):
     compact_removal: EnumProperty(name="Removal", default="MERGE",
                                   items=(("MERGE", "Merge", "Merge Gaussians into their neighbours (moments kept)"),
                                          ("PRUNE", "Prune", "Drop the Gaussians with the lowest scores")))
+    compact_distill: IntProperty(name="Fine-Tune Iterations", default=0, min=0,
+                                 description="Fine-tune the result against the object's own renders for this many "
+                                 "iterations a round (0: merge only; slower, keeps the picture closer)")
 
 
 class GVAE_PT_main(Panel):
@@ -134,9 +137,9 @@ REFINE_NOTE = (
 COMPACT_NOTE = (
     "Drops what no view sees and merges the rest",
     "pairwise, the Hessian choosing which: scored",
-    "from views placed around the object. With the",
-    "capture's images, `gvae compact --images`",
-    "also fine-tunes (README: Compaction).",
+    "from views placed around the object; then, with",
+    "Fine-Tune Iterations, fine-tunes against the",
+    "object's own renders (README: Compaction).",
 )
 
 
@@ -171,6 +174,7 @@ class GVAE_PT_compact(_JobPanel):
     def _settings(self, col, settings, obj) -> None:
         col.prop(settings, "compact_keep")
         col.prop(settings, "compact_removal")
+        col.prop(settings, "compact_distill")
         if convert.is_splat(obj):
             n = len(obj.data.vertices)
             col.label(text=f"{n:,} -> {max(1, round(settings.compact_keep * n)):,} Gaussians")
@@ -178,6 +182,7 @@ class GVAE_PT_compact(_JobPanel):
     def _fill(self, op, settings) -> None:
         op.keep = settings.compact_keep
         op.removal = settings.compact_removal
+        op.distill = settings.compact_distill
 
 
 classes = (GVAE_Settings, GVAE_PT_main, GVAE_PT_display, GVAE_PT_refine, GVAE_PT_compact)

@@ -734,8 +734,9 @@ def scenario_compact_job(bpy, args: dict) -> dict:
     res["info"] = {k: v for k, v in job.finish().items() if k in ("before", "after", "psnr")}
     res["messages"] = sorted(messages)
     np.savez(args["out"] + ".job.npz", **attributes(bpy.data.objects[name]))
-    res["batch"] = sorted(bpy.ops.gvae.compact(keep=0.5))
+    res["batch"] = sorted(bpy.ops.gvae.compact(keep=0.5, distill=1))  # (fine-tuned: a glimpse of the plumbing)
     res["batch_vertices"] = len(bpy.data.objects[name].data.vertices)
+    res["batch_attrs"] = sorted(attributes(bpy.data.objects[name]))
     res["invoke"] = sorted(bpy.ops.gvae.compact("INVOKE_DEFAULT", count=5, removal="PRUNE"))
     res["invoke_vertices"] = len(bpy.data.objects[name].data.vertices)
     res["undo"] = undo_round(bpy, name, lambda: bpy.ops.gvae.compact("EXEC_DEFAULT", True, count=2))

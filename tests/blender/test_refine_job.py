@@ -78,7 +78,7 @@ def test_compact_job_batch_button_and_undo(extension_zip, tmp_path):
     assert len(got["position"]) == n // 2 and {"f_dc_0", "f_rest_8", "label", "big", "weight"} <= set(got.files)
     ids = np.ascontiguousarray(got["big"]).view(np.int64).ravel()  # (int64 is stored as two int32s)
     assert set(ids.tolist()) <= set(cloud.extra["big"].tolist())  # a kept Gaussian carries its own extras
-    assert res["batch"] == ["FINISHED"] and res["batch_vertices"] == n // 4
+    assert res["batch"] == ["FINISHED"] and res["batch_vertices"] == n // 4 and "gvae_dilation_3D" in res["batch_attrs"]
     assert res["invoke"] == ["FINISHED"] and res["invoke_vertices"] == 5
     before, after, undone, redone = res["undo"]
     assert (before, after, undone, redone) == (5, 2, 5, 2)
