@@ -14,9 +14,10 @@ def register(subparsers) -> None:
         "compact", help="remove the Gaussians a splat's picture does not need",
         description="Score every Gaussian by how much the picture depends on it (the exact Gauss-Newton block of "
         "position and log-scale over a few views, as PUP 3D-GS), drop what no view sees and merge the rest pairwise, "
-        "cheapest first, down to the count asked for; with the capture's images (--images), in rounds, each followed "
-        "by fine-tuning with the project's trainer. The output keeps the input's SH degree, extra properties and "
-        "anti-aliasing sizes; untouched Gaussians keep their values.")
+        "cheapest first, down to the count asked for; with the capture's images (--images), or against the input's "
+        "own renders (--distill), in rounds, each followed by fine-tuning with the project's trainer. The output "
+        "keeps the input's SH degree, extra properties and anti-aliasing sizes; untouched Gaussians keep their "
+        "values.")
     c.add_argument("input", type=Path, metavar="IN", help="a splat file: 3DGS or compressed PLY, .splat, .spz")
     c.add_argument("output", type=Path, metavar="OUT",
                    help="where the compacted cloud goes, in the format its name asks for (.ply, .spz, .splat)")
