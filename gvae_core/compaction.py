@@ -19,9 +19,15 @@ number, or as few as keep the picture within a PSNR tolerance) in three parts:
    KL divergence of the members from the merged Gaussian, plus their colour difference) times the
    two's scores summed: pairs the picture is insensitive to go first. `prune`: the lowest
    scores are dropped (PUP's pruning).
-3. **Fine-tune** (only with the capture's images, `images`): PUP's rounds, each removing part of
-   the way to the count and then training the survivors for `iterations` with the project's
-   trainer (`train.fine_tune`: its recipe, one stage's schedule, the cloud's anti-aliasing).
+3. **Fine-tune** (with the capture's images, `images`, or against the input's own renders,
+   `distill`): PUP's rounds, each removing part of the way to the count and then training the
+   survivors for `iterations` with the project's trainer (`train.fine_tune`: its recipe, one
+   stage's schedule, the cloud's anti-aliasing). Without either, compaction is steps 1 and 2 only.
+
+What was measured (BENCHMARKS.md, "Compaction"): merging keeps the picture far better than any
+pruning score without fine-tuning; the Hessian's weighting of the merges changes PSNR by less than
+0.01 dB against an unweighted merge (its use here is dropping what no view sees first); with
+fine-tuning, merging then fine-tuning also beats pruning then fine-tuning.
 
 Untouched Gaussians keep their values bit for bit, their rows in input order; a merged Gaussian
 takes the row (and the extra properties) of its most massive member, with the anti-aliasing size
