@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 # Spinning OpenMP waits slow torch badly when the cores are shared (see BENCHMARKS.md).
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: install lint test test-blender-versions demo bench report extension clean train-model
+.PHONY: install lint test test-blender-versions test-numpy2 demo bench report extension clean train-model
 
 install: $(STAMP)
 
@@ -25,22 +25,39 @@ lint: install
 test: install
 	$(PY) -m pytest -q
 
-# The Blender tests (tests/blender) against each Blender version the manifest claims besides the
-# 5.0 of the everyday suite: one venv per version under build/ with that bpy wheel from PyPI (large
-# downloads) and what Refine needs; pytest runs here, the scenarios in that venv's Blender.
-BLENDER_VERSIONS ?= 4.2.0 4.5.15
-BLENDER_PYTHON_BIN ?= python3.11
+# The Blender tests (tests/blender) against each Blender version the manifest claims: the everyday
+# 5.0.1 in .venv, the others each in a venv under build/ with that bpy wheel from PyPI (~0.4 GB each)
+# and what Refine needs; pytest runs here, the scenarios in that venv's Blender. Blender up to 5.0 runs
+# Python 3.11 with numpy 1.26 (torch: the CPU build from local disk); 5.1 and later run Python 3.13 with
+# numpy 2 (2.3, the VFX Reference Platform 2026's, as Blender ships it) and get no torch here: PyPI's
+# Linux torch for cp313 is the CUDA build, so the Refine job test says so and skips there.
+BLENDER_VERSIONS ?= 4.2.0 4.5.15 5.0.1 5.1.2 5.2.3
+BLENDER_EVERYDAY := 5.0.1
+PYTHON311 ?= python3.11
+PYTHON313 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.13*/bin/python3.13) python3.13)
+py313 = $(filter-out 4.% 5.0.%,$(1))
 build/bpy-%/.installed:
-	test -x build/bpy-$*/bin/python || $(BLENDER_PYTHON_BIN) -m venv build/bpy-$*
-	build/bpy-$*/bin/python -m pip install -q "bpy==$*" "numpy==1.26.*" torch==2.13.0 safetensors==0.8.0 \
-		scipy pillow tqdm
+	test -x build/bpy-$*/bin/python || $(if $(call py313,$*),$(PYTHON313),$(PYTHON311)) -m venv build/bpy-$*
+	build/bpy-$*/bin/python -m pip install -q "bpy==$*" safetensors==0.8.0 scipy pillow tqdm \
+		$(if $(call py313,$*),"numpy==2.3.*","numpy==1.26.*" torch==2.13.0)
 	touch $@
 
-test-blender-versions: install $(foreach v,$(BLENDER_VERSIONS),build/bpy-$(v)/.installed)
+test-blender-versions: install $(foreach v,$(filter-out $(BLENDER_EVERYDAY),$(BLENDER_VERSIONS)),build/bpy-$(v)/.installed)
 	set -e; for v in $(BLENDER_VERSIONS); do \
 		echo "== Blender $$v"; \
-		GVAE_BLENDER_PYTHON=$(CURDIR)/build/bpy-$$v/bin/python $(PY) -m pytest -q tests/blender; \
+		py=build/bpy-$$v/bin/python; [ $$v != $(BLENDER_EVERYDAY) ] || py=$(PY); \
+		GVAE_BLENDER_PYTHON=$(CURDIR)/$$py $(PY) -m pytest -q tests/blender; \
 	done
+
+# gvae_core (the whole suite but tests/blender) under numpy 2 (2.3, as Blender 5.1+ ships it), in
+# build/numpy2; `make test` runs it under numpy 1.26 (bpy 5.0.1 needs numpy < 2).
+build/numpy2/.installed: pyproject.toml
+	test -x build/numpy2/bin/python || $(PYTHON311) -m venv build/numpy2
+	build/numpy2/bin/python -m pip install -q -e ".[test]" "numpy==2.3.*"
+	touch $@
+
+test-numpy2: build/numpy2/.installed
+	build/numpy2/bin/python -m pytest -q --ignore=tests/blender
 
 demo: install
 	$(PY) -m gvae_core demo

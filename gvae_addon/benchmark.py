@@ -80,12 +80,12 @@ def _camera_moves(obj, repeats: int) -> dict:
     scene.collection.objects.link(cam)
     scene.camera = cam
     mod = nodes.splat_modifier(obj)
-    defaults = {name: mod[nodes.modifier_input_id(mod, name)] for name in ("View-Dependent Colour", "Points Only",
-                                                                          "Display Fraction")}
+    defaults = {name: nodes.get_modifier_input(mod, name) for name in ("View-Dependent Colour", "Points Only",
+                                                                       "Display Fraction")}
     out = {}
     for label, values in CAMERA_MOVE_SETTINGS.items():
         for name, value in {**defaults, **values}.items():
-            mod[nodes.modifier_input_id(mod, name)] = value
+            nodes.set_modifier_input(mod, name, value)
         obj.update_tag()
         bpy.context.evaluated_depsgraph_get().update()
         times = []
@@ -96,7 +96,7 @@ def _camera_moves(obj, repeats: int) -> dict:
             times.append(time.perf_counter() - t0)
         out[label] = statistics.median(times)
     for name, value in defaults.items():
-        mod[nodes.modifier_input_id(mod, name)] = value
+        nodes.set_modifier_input(mod, name, value)
     bpy.data.objects.remove(cam)
     return out
 

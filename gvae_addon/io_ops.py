@@ -1,11 +1,13 @@
-"""File > Import / Export > Gaussian Splat: splat files (.ply, .splat, .spz) <-> splat objects."""
+"""File > Import / Export > Gaussian Splat: splat files (.ply, .splat, .spz, .sog) <-> splat objects."""
 
 from __future__ import annotations
 
 import math
 import os
+import tempfile
 import time
 import warnings
+from pathlib import Path
 
 import bpy
 import numpy as np
@@ -14,8 +16,7 @@ from bpy.types import Operator, OperatorFileListElement
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from gvae_core.cloud import GaussianCloud
-from gvae_core.formats import read_splat_file, write_spz
-from gvae_core.ply import write_ply
+from gvae_core.formats import WebpCodec, read_splat_file, write_splat_file
 
 from . import convert, nodes, render_setup
 
@@ -33,6 +34,45 @@ def _with_messages(function, *args, **kwargs):
         warnings.simplefilter("always")
         value = function(*args, **kwargs)
     return value, [str(w.message) for w in caught]
+
+
+def blender_webp() -> WebpCodec:
+    """Lossless WebP through Blender's own image reader and writer, for SOG files: Blender bundles no
+    Pillow. Exact both ways, except that Blender's writer drops the colour of fully transparent
+    pixels (in SOG: the colour of Gaussians stored with opacity code 0, which are invisible)."""
+
+    def decode(data: bytes) -> np.ndarray:
+        with tempfile.TemporaryDirectory() as tmp:
+            path = os.path.join(tmp, "image.webp")
+            Path(path).write_bytes(data)
+            image = bpy.data.images.load(path, check_existing=False)
+            try:
+                width, height = image.size
+                channels = image.channels
+                if not width or not height or image.is_float or channels not in (3, 4):
+                    raise ValueError("Blender could not read it as an 8-bit image")
+                pixels = np.empty(width * height * channels, np.float32)
+                image.pixels.foreach_get(pixels)
+            finally:
+                bpy.data.images.remove(image)
+        rgba = np.full((height, width, 4), 255, np.uint8)
+        rgba[..., :channels] = np.rint(pixels.reshape(height, width, channels)[::-1] * 255.0)
+        return rgba
+
+    def encode(rgba: np.ndarray) -> bytes:
+        height, width = rgba.shape[:2]
+        image = bpy.data.images.new("gvae_sog_image", width, height, alpha=True, float_buffer=False)
+        try:
+            image.pixels.foreach_set((rgba[::-1].astype(np.float32) / 255.0).reshape(-1))
+            image.file_format = "WEBP"
+            with tempfile.TemporaryDirectory() as tmp:
+                path = os.path.join(tmp, "image.webp")
+                image.save(filepath=path, quality=100)  # quality 100: lossless
+                return Path(path).read_bytes()
+        finally:
+            bpy.data.images.remove(image)
+
+    return WebpCodec("Blender", decode, encode)
 
 
 def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
@@ -64,8 +104,8 @@ def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
 
 
 def export_splat(obj, path: str, *, apply_transform: bool = False, write_step: bool = False):
-    """Write a splat object as a 3DGS PLY, or an .spz when `path` ends in .spz (atomic). Returns
-    (count, messages)."""
+    """Write a splat object in the format `path` asks for (`write_splat_file`: a 3DGS PLY, .spz,
+    .sog, ...; atomic). Returns (count, messages)."""
     cloud, steps = convert.cloud_from_object(obj)
     messages = []
     if apply_transform:
@@ -76,20 +116,28 @@ def export_splat(obj, path: str, *, apply_transform: bool = False, write_step: b
                              "Apply Transform") from None
     if write_step and steps is not None:
         cloud = cloud.replace(extra={**cloud.extra, convert.STEP_ATTR: steps})
-    writer = write_spz if path.lower().endswith(".spz") else write_ply
-    _, written = _with_messages(writer, cloud, path)
+    _, written = _with_messages(write_splat_file, cloud, path, webp=blender_webp())
     return len(cloud), messages + written
 
 
+def splat_name(path: str) -> str:
+    """The object name for a splat file: its name without extension (a SOG meta.json: its folder's)."""
+    p = Path(path)
+    if p.name.lower() == "meta.json" and p.parent.name:
+        return p.parent.name
+    return p.stem or "splat"
+
+
 class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
-    """Import Gaussian splat files (3DGS or compressed PLY, .splat, .spz) as splat objects (one per file)"""
+    """Import Gaussian splat files (3DGS or compressed PLY, .splat, .spz, .sog or a SOG meta.json) as splat
+    objects (one per file)"""
 
     bl_idname = "import_scene.gaussian_splat"
     bl_label = "Import Gaussian Splat"
     bl_options = {"REGISTER", "UNDO", "PRESET"}
 
     filename_ext = ".ply"
-    filter_glob: StringProperty(default="*.ply;*.splat;*.spz", options={"HIDDEN"})
+    filter_glob: StringProperty(default="*.ply;*.splat;*.spz;*.sog;*meta.json", options={"HIDDEN"})
     files: CollectionProperty(type=OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
     directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
 
@@ -114,8 +162,9 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
     min_opacity: FloatProperty(name="Min Opacity", default=0.0, min=0.0, max=1.0, subtype="FACTOR",
                                description="Hide splats below this opacity")
     drop_invalid: BoolProperty(name="Drop Invalid Gaussians", default=False,
-                               description="Drop Gaussians with NaN or infinite values instead of "
-                               "refusing the file")
+                               description="Drop Gaussians with NaN values, infinite positions or colours "
+                               "instead of refusing the file (infinite opacities and zero scales are kept "
+                               "as what they mean: opacity 1 or 0, a flat axis)")
 
     def _paths(self) -> list[str]:
         names = [f.name for f in self.files if f.name]
@@ -130,12 +179,13 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
             # Read every file first: a bad file leaves the blend file untouched.
             loaded = []
             for path in self._paths():
-                cloud, messages = _with_messages(read_splat_file, path, sanitize=self.drop_invalid)
+                cloud, messages = _with_messages(read_splat_file, path, sanitize=self.drop_invalid,
+                                                 webp=blender_webp())
                 loaded.append((path, cloud))
                 for msg in messages:
                     self.report({"WARNING"}, msg)
             for path, cloud in loaded:
-                name = os.path.splitext(os.path.basename(path))[0] or "splat"
+                name = splat_name(path)
                 try:
                     made.append(build_splat(
                         context, cloud, name, axes=self.axis_conversion,
@@ -236,13 +286,24 @@ class EXPORT_SCENE_OT_gaussian_splat_spz(_SplatExport, Operator):
     write_step = False  # .spz holds no extra properties such as gvae_step
 
 
+class EXPORT_SCENE_OT_gaussian_splat_sog(_SplatExport, Operator):
+    """Export the active splat object as a PlayCanvas SOG file (.sog: WebP images, for SuperSplat and the web)"""
+
+    bl_idname = "export_scene.gaussian_splat_sog"
+    bl_label = "Export Gaussian Splat (.sog)"
+
+    filename_ext = ".sog"
+    filter_glob: StringProperty(default="*.sog", options={"HIDDEN"})
+    write_step = False  # SOG holds no extra properties such as gvae_step
+
+
 class GVAE_FH_gaussian_splat(bpy.types.FileHandler):
-    """Drag and drop of .ply, .splat and .spz files into the viewport."""
+    """Drag and drop of .ply, .splat, .spz, .sog files and SOG meta.json files into the viewport."""
 
     bl_idname = "GVAE_FH_gaussian_splat"
     bl_label = "Gaussian Splat"
     bl_import_operator = "import_scene.gaussian_splat"
-    bl_file_extensions = ".ply;.splat;.spz"
+    bl_file_extensions = ".ply;.splat;.spz;.sog;.json"
 
     @classmethod
     def poll_drop(cls, context):
@@ -250,16 +311,17 @@ class GVAE_FH_gaussian_splat(bpy.types.FileHandler):
 
 
 def menu_import(self, context):
-    self.layout.operator(IMPORT_SCENE_OT_gaussian_splat.bl_idname, text="Gaussian Splat (.ply, .splat, .spz)")
+    self.layout.operator(IMPORT_SCENE_OT_gaussian_splat.bl_idname, text="Gaussian Splat (.ply, .splat, .spz, .sog)")
 
 
 def menu_export(self, context):
     self.layout.operator(EXPORT_SCENE_OT_gaussian_splat.bl_idname, text="Gaussian Splat (.ply)")
     self.layout.operator(EXPORT_SCENE_OT_gaussian_splat_spz.bl_idname, text="Gaussian Splat (.spz)")
+    self.layout.operator(EXPORT_SCENE_OT_gaussian_splat_sog.bl_idname, text="Gaussian Splat (.sog)")
 
 
 classes = (IMPORT_SCENE_OT_gaussian_splat, EXPORT_SCENE_OT_gaussian_splat, EXPORT_SCENE_OT_gaussian_splat_spz,
-           GVAE_FH_gaussian_splat)
+           EXPORT_SCENE_OT_gaussian_splat_sog, GVAE_FH_gaussian_splat)
 
 
 def register():

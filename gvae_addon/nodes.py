@@ -50,7 +50,7 @@ MODIFIER_NAME = "GaussianVAE Splats"
 COLOR_ATTR = "gvae_color"
 ALPHA_ATTR = "gvae_alpha"
 #: Bumped when the node setup changes; an older group or material in a blend file is rebuilt in place.
-NODES_VERSION = 3
+NODES_VERSION = 4
 #: Multiplies every Gaussian's standard deviations (1: the Gaussians as trained).
 DEFAULT_SCALE_FACTOR = 1.0
 #: Circumradius of Blender's icosphere (subdivisions d) that encloses the unit sphere is
@@ -99,6 +99,47 @@ HIDDEN_INPUTS = (
 )
 
 
+#: Socket type (`NodeSocket.type`) of each interface socket type and node data type used here.
+SOCKET_KIND = {"NodeSocketFloat": "VALUE", "NodeSocketBool": "BOOLEAN", "NodeSocketInt": "INT",
+               "NodeSocketMaterial": "MATERIAL", "NodeSocketGeometry": "GEOMETRY", "FLOAT": "VALUE",
+               "FLOAT_VECTOR": "VECTOR", "VECTOR": "VECTOR", "BOOLEAN": "BOOLEAN", "ROTATION": "ROTATION",
+               "GEOMETRY": "GEOMETRY"}
+
+
+def sockets(node, name: str, kind: str, *, output: bool = False) -> list:
+    """The enabled inputs (outputs) of `node` called `name`, by label or identifier (the identifier
+    stays when Blender renames a label: Mix Shader's "Fac" is shown as "Factor" from 5.0), whose
+    type (`NodeSocket.type`) is `kind`, in the node's order."""
+    return [s for s in (node.outputs if output else node.inputs)
+            if s.enabled and s.type == kind and name in (s.name, s.identifier)]
+
+
+def socket(node, name: str, kind: str, *, output: bool = False, nth: int | None = None):
+    """The one enabled input (output) of `node` called `name` of type `kind`; `nth` picks among
+    sockets that share name and type (Math's "Value" inputs, in order).
+
+    Every socket the add-on wires is found this way, never by position: the order and number of a
+    node's sockets change between Blender versions (Random Value's outputs in 5.2, Capture
+    Attribute's new Selection). Raises LookupError naming the node, the socket and the Blender version."""
+    found = sockets(node, name, kind, output=output)
+    if (len(found) == 1 and not nth) or (nth is not None and nth < len(found)):
+        return found[nth or 0]
+    side = "output" if output else "input"
+    has = ", ".join(f"{s.name} ({s.type})" for s in (node.outputs if output else node.inputs) if s.enabled)
+    what = (f"{len(found)} {side}s" if len(found) > 1 and nth is None else f"no {side}" if not found
+            else f"{len(found)} {side}s (not #{nth})")
+    raise LookupError(f"Blender {bpy.app.version_string}: node {node.bl_idname} \"{node.name}\" has {what} "
+                      f"\"{name}\" of type {kind}; its {side}s: {has or 'none'}")
+
+
+def inp(node, name: str, kind: str, nth: int | None = None):
+    return socket(node, name, kind, nth=nth)
+
+
+def outp(node, name: str, kind: str):
+    return socket(node, name, kind, output=True)
+
+
 class _Builder:
     """Adds and links nodes with less noise; `arrange()` lays them out in columns by link depth."""
 
@@ -115,9 +156,9 @@ class _Builder:
         self.nodes.append(n)
         return n
 
-    def link(self, out, inp):
-        self.tree.links.new(out, inp, verify_limits=False)
-        self.edges.append((out.node["gvae_i"], inp.node["gvae_i"]))
+    def link(self, src, dst):
+        self.tree.links.new(src, dst, verify_limits=False)
+        self.edges.append((src.node["gvae_i"], dst.node["gvae_i"]))
 
     def _feed(self, sock, value):
         if value is None:
@@ -127,32 +168,48 @@ class _Builder:
         else:
             self.link(value, sock)
 
+    def _operands(self, n, name: str, kind: str, values):
+        for i, value in enumerate(values):
+            if value is not None:
+                self._feed(inp(n, name, kind, i), value)
+
     def math(self, op: str, a, b=None, c=None):
         n = self.node("ShaderNodeMath", operation=op)
-        for sock, value in zip(n.inputs, (a, b, c)):
-            self._feed(sock, value)
-        return n.outputs[0]
+        self._operands(n, "Value", "VALUE", (a, b, c))
+        return outp(n, "Value", "VALUE")
 
     def vmath(self, op: str, a, b=None, c=None, *, scale=None):
         """Vector Math; a float given for a vector input becomes (v, v, v). The float result of
         DOT_PRODUCT / LENGTH is returned for those operations, else the vector."""
         n = self.node("ShaderNodeVectorMath", operation=op)
-        for sock, value in zip(n.inputs, (a, b, c)):
-            self._feed(sock, value)
+        self._operands(n, "Vector", "VECTOR", (a, b, c))
         if scale is not None:
-            self._feed(n.inputs["Scale"], scale)
-        return n.outputs[1] if op in ("DOT_PRODUCT", "LENGTH", "DISTANCE") else n.outputs[0]
+            self._feed(inp(n, "Scale", "VALUE"), scale)
+        return outp(n, "Value", "VALUE") if op in ("DOT_PRODUCT", "LENGTH", "DISTANCE") else outp(n, "Vector", "VECTOR")
 
     def combine(self, xyz):
         n = self.node("ShaderNodeCombineXYZ")
-        for sock, value in zip(n.inputs, xyz):
-            self._feed(sock, value)
-        return n.outputs[0]
+        for axis, value in zip("XYZ", xyz):
+            self._feed(inp(n, axis, "VALUE"), value)
+        return outp(n, "Vector", "VECTOR")
 
     def separate(self, vec):
         n = self.node("ShaderNodeSeparateXYZ")
-        self.link(vec, n.inputs[0])
-        return list(n.outputs)
+        self.link(vec, inp(n, "Vector", "VECTOR"))
+        return [outp(n, axis, "VALUE") for axis in "XYZ"]
+
+    def boolean(self, op: str, a, b=None):
+        n = self.node("FunctionNodeBooleanMath", operation=op)
+        self._operands(n, "Boolean", "BOOLEAN", (a, b))
+        return outp(n, "Boolean", "BOOLEAN")
+
+    def switch(self, kind: str, condition, false, true):
+        """Switch of `kind` ("FLOAT", "VECTOR", "GEOMETRY"); a branch is a socket or a number."""
+        n = self.node("GeometryNodeSwitch", input_type=kind)
+        self.link(condition, inp(n, "Switch", "BOOLEAN"))
+        self._feed(inp(n, "False", SOCKET_KIND[kind]), false)
+        self._feed(inp(n, "True", SOCKET_KIND[kind]), true)
+        return outp(n, "Output", SOCKET_KIND[kind])
 
     def product(self, values):
         out = values[0]
@@ -186,29 +243,52 @@ class _Builder:
 def _named(b: _Builder, name: str, data_type: str = "FLOAT"):
     """A named attribute (0 where the geometry has none)."""
     n = b.node("GeometryNodeInputNamedAttribute", data_type=data_type)
-    n.inputs["Name"].default_value = name
-    return n.outputs["Attribute"]
+    inp(n, "Name", "STRING").default_value = name
+    return outp(n, "Attribute", SOCKET_KIND[data_type])
 
 
 def _remove_attributes(b: _Builder, geo, pattern: str):
     """Remove Named Attribute with a wildcard pattern (a node property up to Blender 4.5, a menu
     socket from 5.0)."""
     rm = b.node("GeometryNodeRemoveAttribute")
-    if "Pattern Mode" in rm.inputs:
-        rm.inputs["Pattern Mode"].default_value = "Wildcard"
+    mode = sockets(rm, "Pattern Mode", "MENU")
+    if mode:
+        mode[0].default_value = "Wildcard"
     else:
         rm.pattern_mode = "WILDCARD"
-    rm.inputs["Name"].default_value = pattern
-    b.link(geo, rm.inputs["Geometry"])
-    return rm.outputs["Geometry"]
+    inp(rm, "Name", "STRING").default_value = pattern
+    b.link(geo, inp(rm, "Geometry", "GEOMETRY"))
+    return outp(rm, "Geometry", "GEOMETRY")
+
+
+def _clamp(b: _Builder, value, bounds: tuple[float, float]):
+    n = b.node("ShaderNodeClamp")
+    inp(n, "Min", "VALUE").default_value, inp(n, "Max", "VALUE").default_value = bounds
+    b.link(value, inp(n, "Value", "VALUE"))
+    return outp(n, "Result", "VALUE")
+
+
+def _compare(b: _Builder, op: str, a, c):
+    """Float comparison a OP c (a boolean field)."""
+    n = b.node("FunctionNodeCompare", data_type="FLOAT", operation=op)
+    b.link(a, inp(n, "A", "VALUE"))
+    b.link(c, inp(n, "B", "VALUE"))
+    return outp(n, "Result", "BOOLEAN")
+
+
+def _set_material(b: _Builder, geo, material):
+    n = b.node("GeometryNodeSetMaterial")
+    b.link(geo, inp(n, "Geometry", "GEOMETRY"))
+    b.link(material, inp(n, "Material", "MATERIAL"))
+    return outp(n, "Geometry", "GEOMETRY")
 
 
 def _store(b: _Builder, geo, name: str, value, data_type: str):
     st = b.node("GeometryNodeStoreNamedAttribute", data_type=data_type, domain="POINT")
-    st.inputs["Name"].default_value = name
-    b.link(geo, st.inputs["Geometry"])
-    b.link(value, st.inputs["Value"])
-    return st.outputs["Geometry"]
+    inp(st, "Name", "STRING").default_value = name
+    b.link(geo, inp(st, "Geometry", "GEOMETRY"))
+    b.link(value, inp(st, "Value", SOCKET_KIND[data_type]))
+    return outp(st, "Geometry", "GEOMETRY")
 
 
 def sh_basis_terms(b: _Builder, direction, degree: int) -> list:
@@ -266,19 +346,22 @@ def _build_group(ng, degree: int) -> None:
             s.subtype = "FACTOR"
 
     b = _Builder(ng)
-    gin = b.node("NodeGroupInput").outputs
+    group_in = b.node("NodeGroupInput")
+    gin = {name: outp(group_in, name, SOCKET_KIND[kind]) for name, kind, *_ in INPUTS + HIDDEN_INPUTS}
+    gin["Geometry"] = outp(group_in, "Geometry", "GEOMETRY")
     gout = b.node("NodeGroupOutput")
     m = b.math
 
     # The scene's active camera in the object's own frame (the frame of the Gaussians' data).
     cam = b.node("GeometryNodeObjectInfo", transform_space="RELATIVE")
-    b.link(b.node("GeometryNodeInputActiveCamera").outputs[0], cam.inputs["Object"])
-    rel = b.vmath("SUBTRACT", b.node("GeometryNodeInputPosition").outputs[0], cam.outputs["Location"])
+    b.link(outp(b.node("GeometryNodeInputActiveCamera"), "Active Camera", "OBJECT"), inp(cam, "Object", "OBJECT"))
+    rel = b.vmath("SUBTRACT", outp(b.node("GeometryNodeInputPosition"), "Position", "VECTOR"),
+                  outp(cam, "Location", "VECTOR"))
     view_dir = b.vmath("NORMALIZE", rel)  # camera -> centre
     forward = b.node("FunctionNodeRotateVector")
-    forward.inputs["Vector"].default_value = (0.0, 0.0, -1.0)
-    b.link(cam.outputs["Rotation"], forward.inputs["Rotation"])
-    depth = m("ABSOLUTE", b.vmath("DOT_PRODUCT", rel, forward.outputs[0]))
+    inp(forward, "Vector", "VECTOR").default_value = (0.0, 0.0, -1.0)
+    b.link(outp(cam, "Rotation", "ROTATION"), inp(forward, "Rotation", "ROTATION"))
+    depth = m("ABSOLUTE", b.vmath("DOT_PRODUCT", rel, outp(forward, "Vector", "VECTOR")))
     # Screen-space filter as a world-space isotropic variance at the Gaussian's depth:
     # variance (px²) x (depth / focal length in px)²; 0 while the focal length is unknown (0).
     pixel = m("DIVIDE", depth, gin["Focal Length (px)"])
@@ -287,7 +370,8 @@ def _build_group(ng, degree: int) -> None:
     # Rotation from the w,x,y,z quaternion (normalised by the node).
     q = b.node("FunctionNodeQuaternionToRotation")
     for i, comp in enumerate("WXYZ"):
-        b.link(_named(b, f"rot_{i}"), q.inputs[comp])
+        b.link(_named(b, f"rot_{i}"), inp(q, comp, "VALUE"))
+    rotation = outp(q, "Rotation", "ROTATION")
 
     # Variances: s² (std-devs exp(clamp(log-scale)) x factor); with the 3D filter f:
     # s² + f²; with the screen filter v: + v. Opacity compensations, each exactly 1 when its
@@ -302,17 +386,15 @@ def _build_group(ng, degree: int) -> None:
     d = m("MULTIPLY", _named(b, DILATION_KEY), m("SUBTRACT", 1.0, gin["Compensate Screen Filter"]))
     screen_var = m("MAXIMUM", m("MULTIPLY", d, d), screen_var)
     u = b.node("FunctionNodeRotateVector")
-    b.link(view_dir, u.inputs["Vector"])
+    b.link(view_dir, inp(u, "Vector", "VECTOR"))
     inv_q = b.node("FunctionNodeInvertRotation")
-    b.link(q.outputs[0], inv_q.inputs[0])
-    b.link(inv_q.outputs[0], u.inputs["Rotation"])
-    uu = [m("MULTIPLY", c, c) for c in b.separate(u.outputs[0])]
+    b.link(rotation, inp(inv_q, "Rotation", "ROTATION"))
+    b.link(outp(inv_q, "Rotation", "ROTATION"), inp(u, "Rotation", "ROTATION"))
+    u = outp(u, "Vector", "VECTOR")
+    uu = [m("MULTIPLY", c, c) for c in b.separate(u)]
     std_tot, ratio_3d, ratio_det, quad_eff, quad_tot = [], [], [], [], []
     for i in range(3):
-        clamp = b.node("ShaderNodeClamp")
-        clamp.inputs["Min"].default_value, clamp.inputs["Max"].default_value = LOG_SCALE_RANGE
-        b.link(_named(b, f"scale_{i}"), clamp.inputs["Value"])
-        s = m("MULTIPLY", m("EXPONENT", clamp.outputs[0]), gin["Scale Factor"])
+        s = m("MULTIPLY", m("EXPONENT", _clamp(b, _named(b, f"scale_{i}"), LOG_SCALE_RANGE)), gin["Scale Factor"])
         var_eff = m("MULTIPLY_ADD", s, s, ff)
         var_tot = m("ADD", var_eff, screen_var)
         std_tot.append(m("SQRT", var_tot))
@@ -320,17 +402,12 @@ def _build_group(ng, degree: int) -> None:
         ratio_det.append(m("DIVIDE", var_eff, var_tot))  # in (0, 1]
         quad_eff.append(m("DIVIDE", uu[i], var_eff))
         quad_tot.append(m("DIVIDE", uu[i], var_tot))
-    comp_2d = b.node("GeometryNodeSwitch", input_type="FLOAT")
-    b.link(gin["Compensate Screen Filter"], comp_2d.inputs["Switch"])
-    comp_2d.inputs["False"].default_value = 1.0
-    b.link(m("SQRT", m("MULTIPLY", b.product(ratio_det), m("DIVIDE", b.total(quad_eff), b.total(quad_tot)))),
-           comp_2d.inputs["True"])
+    det_ratio = m("MULTIPLY", b.product(ratio_det), m("DIVIDE", b.total(quad_eff), b.total(quad_tot)))
+    comp_2d = b.switch("FLOAT", gin["Compensate Screen Filter"], 1.0, m("SQRT", det_ratio))
 
-    logit = b.node("ShaderNodeClamp")
-    logit.inputs["Min"].default_value, logit.inputs["Max"].default_value = OPACITY_LOGIT_RANGE
-    b.link(_named(b, "opacity"), logit.inputs["Value"])
-    sigmoid = m("DIVIDE", 1.0, m("ADD", m("EXPONENT", m("MULTIPLY", logit.outputs[0], -1.0)), 1.0))
-    opacity = b.product([sigmoid, b.product(ratio_3d), comp_2d.outputs[0]])
+    logit = _clamp(b, _named(b, "opacity"), OPACITY_LOGIT_RANGE)
+    sigmoid = m("DIVIDE", 1.0, m("ADD", m("EXPONENT", m("MULTIPLY", logit, -1.0)), 1.0))
+    opacity = b.product([sigmoid, b.product(ratio_3d), comp_2d])
 
     # Radius of the visible part: sqrt(2 ln(255 o)) std-devs; the icosphere encloses that ellipsoid.
     radius = m("SQRT", m("MAXIMUM", m("MULTIPLY", m("LOGARITHM", m("MULTIPLY", opacity, 1.0 / ALPHA_MIN), math.e),
@@ -338,30 +415,15 @@ def _build_group(ng, degree: int) -> None:
     scale = b.vmath("SCALE", b.combine(std_tot), scale=radius)
 
     # Selection: a fixed random subset of the given fraction; visible (o >= 1/255); o >= Min Opacity.
-    keep_op = b.node("FunctionNodeCompare", data_type="FLOAT", operation="GREATER_EQUAL")
-    b.link(opacity, keep_op.inputs[0])
-    b.link(m("MAXIMUM", gin["Min Opacity"], ALPHA_MIN), keep_op.inputs[1])
     rand = b.node("FunctionNodeRandomValue", data_type="FLOAT")
-    rand.inputs["Seed"].default_value = 0
-    keep_frac = b.node("FunctionNodeCompare", data_type="FLOAT", operation="LESS_THAN")
-    b.link(rand.outputs[1], keep_frac.inputs[0])
+    inp(rand, "Seed", "INT").default_value = 0
     # Display Fraction and Points Only act where "display" applies: always, or in the viewport only.
-    display_not = b.node("FunctionNodeBooleanMath", operation="NOT")
-    b.link(gin["Viewport Only"], display_not.inputs[0])
-    display = b.node("FunctionNodeBooleanMath", operation="OR")  # viewport, or not viewport-only
-    b.link(b.node("GeometryNodeIsViewport").outputs[0], display.inputs[0])
-    b.link(display_not.outputs[0], display.inputs[1])
-    fraction = b.node("GeometryNodeSwitch", input_type="FLOAT")
-    b.link(display.outputs[0], fraction.inputs["Switch"])
-    fraction.inputs["False"].default_value = 1.0
-    b.link(gin["Display Fraction"], fraction.inputs["True"])
-    b.link(fraction.outputs[0], keep_frac.inputs[1])
-    points_only = b.node("FunctionNodeBooleanMath", operation="AND")
-    b.link(gin["Points Only"], points_only.inputs[0])
-    b.link(display.outputs[0], points_only.inputs[1])
-    select = b.node("FunctionNodeBooleanMath", operation="AND")
-    b.link(keep_op.outputs[0], select.inputs[0])
-    b.link(keep_frac.outputs[0], select.inputs[1])
+    is_viewport = outp(b.node("GeometryNodeIsViewport"), "Is Viewport", "BOOLEAN")
+    display = b.boolean("OR", is_viewport, b.boolean("NOT", gin["Viewport Only"]))  # viewport, or not viewport-only
+    fraction = b.switch("FLOAT", display, 1.0, gin["Display Fraction"])
+    points_only = b.boolean("AND", gin["Points Only"], display)
+    select = b.boolean("AND", _compare(b, "GREATER_EQUAL", opacity, m("MAXIMUM", gin["Min Opacity"], ALPHA_MIN)),
+                       _compare(b, "LESS_THAN", outp(rand, "Value", "VALUE"), fraction))
 
     # Colour: SH_C0 * f_dc + 0.5 (+ the SH bands seen from the active camera), clamped at 0.
     colour = b.vmath("MULTIPLY_ADD", b.combine([_named(b, f"f_dc_{i}") for i in range(3)]), SH_C0, 0.5)
@@ -372,29 +434,26 @@ def _build_group(ng, degree: int) -> None:
             coeff = b.combine([_named(b, f"f_rest_{c * k + j}") for c in range(3)])
             rest = (b.vmath("SCALE", coeff, scale=basis) if rest is None
                     else b.vmath("MULTIPLY_ADD", coeff, basis, rest))
-        switch = b.node("GeometryNodeSwitch", input_type="VECTOR")
-        b.link(gin["View-Dependent Colour"], switch.inputs["Switch"])
-        b.link(rest, switch.inputs["True"])
-        colour = b.vmath("ADD", colour, switch.outputs[0])
+        colour = b.vmath("ADD", colour, b.switch("VECTOR", gin["View-Dependent Colour"], 0.0, rest))
     colour = b.vmath("MAXIMUM", colour, 0.0)
     linear = b.combine([_srgb_to_linear(b, ch) for ch in b.separate(colour)])
 
     # Evaluate everything on the full points, then drop every named attribute (SH, scales, extras:
     # none is copied per instance) and store only what the material reads.
+    # ("Shown", not "Selection": Capture Attribute has a Selection input of its own from 5.2.)
     cap = b.node("GeometryNodeCaptureAttribute", domain="POINT")
-    captured = (("Rotation", "ROTATION", q.outputs[0]), ("Scale", "VECTOR", scale),
-                ("Selection", "BOOLEAN", select.outputs[0]), ("Colour", "VECTOR", linear),
-                ("Opacity", "FLOAT", opacity), ("Std", "VECTOR", b.combine(std_tot)),
-                ("Facing", "VECTOR", b.vmath("DIVIDE", b.vmath("SCALE", u.outputs[0], scale=-1.0),
-                                             b.combine(std_tot))))
+    captured = (("Rotation", "ROTATION", rotation), ("Scale", "VECTOR", scale), ("Shown", "BOOLEAN", select),
+                ("Colour", "VECTOR", linear), ("Opacity", "FLOAT", opacity), ("Std", "VECTOR", b.combine(std_tot)),
+                ("Facing", "VECTOR", b.vmath("DIVIDE", b.vmath("SCALE", u, scale=-1.0), b.combine(std_tot))))
     for name, kind, _ in captured:
         cap.capture_items.new(kind, name)
-    b.link(gin["Geometry"], cap.inputs["Geometry"])
-    for name, _, value in captured:
-        b.link(value, cap.inputs[name])
-    geo = _remove_attributes(b, cap.outputs["Geometry"], "*")
-    geo = _store(b, geo, COLOR_ATTR, cap.outputs["Colour"], "FLOAT_VECTOR")
-    geo = _store(b, geo, ALPHA_ATTR, cap.outputs["Opacity"], "FLOAT")
+    b.link(gin["Geometry"], inp(cap, "Geometry", "GEOMETRY"))
+    for name, kind, value in captured:
+        b.link(value, inp(cap, name, SOCKET_KIND[kind]))
+    got = {name: outp(cap, name, SOCKET_KIND[kind]) for name, kind, _ in captured}
+    geo = _remove_attributes(b, outp(cap, "Geometry", "GEOMETRY"), "*")
+    geo = _store(b, geo, COLOR_ATTR, got["Colour"], "FLOAT_VECTOR")
+    geo = _store(b, geo, ALPHA_ATTR, got["Opacity"], "FLOAT")
 
     # Ellipsoids: an icosphere enclosing the unit sphere, instanced per point with the Gaussian's
     # rotation and scale (instance space = its whitened frame). Renders (Camera-Facing): a disc
@@ -404,57 +463,44 @@ def _build_group(ng, degree: int) -> None:
     radius_ico = m("MULTIPLY_ADD", m("POWER", _ICO_ENCLOSE[1], m("SUBTRACT", 1.0, gin["Detail"])),
                    _ICO_ENCLOSE[0], 1.0)
     ico = b.node("GeometryNodeMeshIcoSphere")
-    b.link(radius_ico, ico.inputs["Radius"])
-    b.link(gin["Detail"], ico.inputs["Subdivisions"])
+    b.link(radius_ico, inp(ico, "Radius", "VALUE"))
+    b.link(gin["Detail"], inp(ico, "Subdivisions", "INT"))
     disc = b.node("GeometryNodeMeshCircle", fill_type="NGON")
-    disc.inputs["Vertices"].default_value = DISC_SIDES
-    disc.inputs["Radius"].default_value = DISC_RADIUS / math.cos(math.pi / DISC_SIDES)
-    facing = b.node("FunctionNodeBooleanMath", operation="NIMPLY")  # camera-facing and not viewport
-    b.link(gin["Camera-Facing in Renders"], facing.inputs[0])
-    b.link(b.node("GeometryNodeIsViewport").outputs[0], facing.inputs[1])
-    shape = b.node("GeometryNodeSwitch", input_type="GEOMETRY")
-    b.link(facing.outputs[0], shape.inputs["Switch"])
-    b.link(ico.outputs["Mesh"], shape.inputs["False"])
-    b.link(disc.outputs["Mesh"], shape.inputs["True"])
-    ico_mat = b.node("GeometryNodeSetMaterial")
-    b.link(shape.outputs[0], ico_mat.inputs["Geometry"])
-    b.link(gin["Material"], ico_mat.inputs["Material"])
+    inp(disc, "Vertices", "INT").default_value = DISC_SIDES
+    inp(disc, "Radius", "VALUE").default_value = DISC_RADIUS / math.cos(math.pi / DISC_SIDES)
+    facing = b.boolean("NIMPLY", gin["Camera-Facing in Renders"], is_viewport)  # camera-facing and not viewport
+    shape = b.switch("GEOMETRY", facing, outp(ico, "Mesh", "GEOMETRY"), outp(disc, "Mesh", "GEOMETRY"))
     inst = b.node("GeometryNodeInstanceOnPoints")
-    b.link(geo, inst.inputs["Points"])
-    b.link(cap.outputs["Selection"], inst.inputs["Selection"])
-    b.link(ico_mat.outputs["Geometry"], inst.inputs["Instance"])
-    b.link(cap.outputs["Rotation"], inst.inputs["Rotation"])
-    b.link(cap.outputs["Scale"], inst.inputs["Scale"])
+    b.link(geo, inp(inst, "Points", "GEOMETRY"))
+    b.link(got["Shown"], inp(inst, "Selection", "BOOLEAN"))
+    b.link(_set_material(b, shape, gin["Material"]), inp(inst, "Instance", "GEOMETRY"))
+    b.link(got["Rotation"], inp(inst, "Rotation", "ROTATION"))
+    b.link(got["Scale"], inp(inst, "Scale", "VECTOR"))
     # The camera in the whitened frame is -diag(1 / std) R^T (centre - camera): the disc's normal.
     # Instance transform T R diag(std) becomes T R diag(std) R_turn (Rotate Instances would turn
     # the instance between R and diag(std)).
     turn = b.node("FunctionNodeAlignRotationToVector", axis="Z")
-    b.link(cap.outputs["Facing"], turn.inputs["Vector"])
+    b.link(got["Facing"], inp(turn, "Vector", "VECTOR"))
     turn_m = b.node("FunctionNodeCombineTransform")
-    b.link(turn.outputs[0], turn_m.inputs["Rotation"])
+    b.link(outp(turn, "Rotation", "ROTATION"), inp(turn_m, "Rotation", "ROTATION"))
     turned = b.node("FunctionNodeMatrixMultiply")
-    b.link(b.node("GeometryNodeInstanceTransform").outputs[0], turned.inputs[0])
-    b.link(turn_m.outputs[0], turned.inputs[1])
+    b.link(outp(b.node("GeometryNodeInstanceTransform"), "Transform", "MATRIX"), inp(turned, "Matrix", "MATRIX", 0))
+    b.link(outp(turn_m, "Transform", "MATRIX"), inp(turned, "Matrix", "MATRIX", 1))
     rotate = b.node("GeometryNodeSetInstanceTransform")
-    b.link(inst.outputs["Instances"], rotate.inputs["Instances"])
-    b.link(facing.outputs[0], rotate.inputs["Selection"])
-    b.link(turned.outputs[0], rotate.inputs["Transform"])
+    b.link(outp(inst, "Instances", "GEOMETRY"), inp(rotate, "Instances", "GEOMETRY"))
+    b.link(facing, inp(rotate, "Selection", "BOOLEAN"))
+    b.link(outp(turned, "Matrix", "MATRIX"), inp(rotate, "Transform", "MATRIX"))
 
     # Points only: a point cloud; radius sqrt(2) x the mean std-dev (a disc of that radius holds
     # the Gaussian's integrated opacity), constant alpha.
     pts = b.node("GeometryNodeMeshToPoints")
-    b.link(geo, pts.inputs["Mesh"])
-    b.link(cap.outputs["Selection"], pts.inputs["Selection"])
-    b.link(m("MULTIPLY", b.vmath("LENGTH", cap.outputs["Std"]), math.sqrt(2.0 / 3.0)), pts.inputs["Radius"])
-    pts_mat = b.node("GeometryNodeSetMaterial")
-    b.link(pts.outputs["Points"], pts_mat.inputs["Geometry"])
-    b.link(gin["Material"], pts_mat.inputs["Material"])
+    b.link(geo, inp(pts, "Mesh", "GEOMETRY"))
+    b.link(got["Shown"], inp(pts, "Selection", "BOOLEAN"))
+    b.link(m("MULTIPLY", b.vmath("LENGTH", got["Std"]), math.sqrt(2.0 / 3.0)), inp(pts, "Radius", "VALUE"))
+    points = _set_material(b, outp(pts, "Points", "GEOMETRY"), gin["Material"])
 
-    switch = b.node("GeometryNodeSwitch", input_type="GEOMETRY")
-    b.link(points_only.outputs[0], switch.inputs["Switch"])
-    b.link(rotate.outputs["Instances"], switch.inputs["False"])
-    b.link(pts_mat.outputs["Geometry"], switch.inputs["True"])
-    b.link(switch.outputs[0], gout.inputs["Geometry"])
+    shown = b.switch("GEOMETRY", points_only, outp(rotate, "Instances", "GEOMETRY"), points)
+    b.link(shown, inp(gout, "Geometry", "GEOMETRY"))
     b.arrange()
     ng["gvae_nodes_version"] = NODES_VERSION
     ng["gvae_sh_degree"] = degree
@@ -479,30 +525,31 @@ def ensure_node_group(degree: int = 0):
 
 def _attr_sum(b: _Builder, name: str, vector: bool = False):
     """Attribute `name` as instancer attribute plus as geometry attribute (one of them is 0)."""
-    out = 1 if vector else 2  # outputs: Color, Vector, Fac(tor), Alpha
+    output = ("Vector", "VECTOR") if vector else ("Fac", "VALUE")  # "Fac" is shown as "Factor" from 5.0
     inst = b.node("ShaderNodeAttribute", attribute_type="INSTANCER", attribute_name=name)
     geom = b.node("ShaderNodeAttribute", attribute_type="GEOMETRY", attribute_name=name)
-    return (b.vmath if vector else b.math)("ADD", inst.outputs[out], geom.outputs[out])
+    return (b.vmath if vector else b.math)("ADD", outp(inst, *output), outp(geom, *output))
 
 
 def _build_material(mat) -> None:
-    if not mat.use_nodes:
+    if mat.node_tree is None:  # from 5.0 every material has its node tree (use_nodes is deprecated)
         mat.use_nodes = True
     tree = mat.node_tree
     tree.nodes.clear()
     b = _Builder(tree)
     m = b.math
     colour = _attr_sum(b, COLOR_ATTR, vector=True)
-    inst_o = b.node("ShaderNodeAttribute", attribute_type="INSTANCER", attribute_name=ALPHA_ATTR).outputs[2]
-    pts_o = b.node("ShaderNodeAttribute", attribute_type="GEOMETRY", attribute_name=ALPHA_ATTR).outputs[2]
+    inst_o, pts_o = (outp(b.node("ShaderNodeAttribute", attribute_type=kind, attribute_name=ALPHA_ATTR), "Fac", "VALUE")
+                     for kind in ("INSTANCER", "GEOMETRY"))
 
     # Ellipsoids: the ray p + t v in instance space (the Gaussian's whitened frame, unit = its
     # visible radius): squared distance of the closest approach q = |p|² - (p.v)² / |v|²;
     # alpha = o exp(-radius² q / 2) = o (255 o)^(-q) = o exp(-q ln(255 o)).
-    p = b.node("ShaderNodeTexCoord").outputs["Object"]
+    p = outp(b.node("ShaderNodeTexCoord"), "Object", "VECTOR")
+    geometry = b.node("ShaderNodeNewGeometry")
     v = b.node("ShaderNodeVectorTransform", vector_type="VECTOR", convert_from="WORLD", convert_to="OBJECT")
-    b.link(b.node("ShaderNodeNewGeometry").outputs["Incoming"], v.inputs[0])
-    v = v.outputs[0]
+    b.link(outp(geometry, "Incoming", "VECTOR"), inp(v, "Vector", "VECTOR"))
+    v = outp(v, "Vector", "VECTOR")
     pv = b.vmath("DOT_PRODUCT", p, v)
     q = m("MAXIMUM", m("SUBTRACT", b.vmath("DOT_PRODUCT", p, p),
                        m("DIVIDE", m("MULTIPLY", pv, pv), b.vmath("DOT_PRODUCT", v, v))), 0.0)
@@ -511,19 +558,17 @@ def _build_material(mat) -> None:
     alpha = m("MINIMUM", m("ADD", m("MULTIPLY", inst_o, falloff), pts_o), ALPHA_MAX)
     visible = m("GREATER_THAN", alpha, ALPHA_MIN * (1.0 - 1e-6))  # 1/255 itself is drawn
     # Only front faces draw: a ray through a closed mesh would blend the Gaussian twice.
-    front = m("SUBTRACT", 1.0, b.node("ShaderNodeNewGeometry").outputs["Backfacing"])
+    front = m("SUBTRACT", 1.0, outp(geometry, "Backfacing", "VALUE"))
     alpha = b.product([alpha, visible, front])
 
     emit = b.node("ShaderNodeEmission")
-    b.link(colour, emit.inputs["Color"])
-    emit.inputs["Strength"].default_value = 1.0
-    transparent = b.node("ShaderNodeBsdfTransparent")
+    b.link(colour, inp(emit, "Color", "RGBA"))
+    inp(emit, "Strength", "VALUE").default_value = 1.0
     mix = b.node("ShaderNodeMixShader")
-    b.link(alpha, mix.inputs["Fac"])
-    b.link(transparent.outputs[0], mix.inputs[1])
-    b.link(emit.outputs[0], mix.inputs[2])
-    out = b.node("ShaderNodeOutputMaterial")
-    b.link(mix.outputs[0], out.inputs["Surface"])
+    b.link(alpha, inp(mix, "Fac", "VALUE"))
+    b.link(outp(b.node("ShaderNodeBsdfTransparent"), "BSDF", "SHADER"), inp(mix, "Shader", "SHADER", 0))
+    b.link(outp(emit, "Emission", "SHADER"), inp(mix, "Shader", "SHADER", 1))
+    b.link(outp(mix, "Shader", "SHADER"), inp(b.node("ShaderNodeOutputMaterial"), "Surface", "SHADER"))
     b.arrange()
     # EEVEE: dithered (stochastic) transparency is order-independent, so the overlapping splats of
     # one object composite in depth order as samples accumulate; "Blended" would sort per object.
@@ -543,8 +588,35 @@ def ensure_material():
 
 
 def _socket_id(ng, name: str) -> str:
-    return next(item.identifier for item in ng.interface.items_tree
-                if getattr(item, "in_out", None) == "INPUT" and item.name == name)
+    found = [item.identifier for item in ng.interface.items_tree
+             if getattr(item, "in_out", None) == "INPUT" and item.name == name]
+    if not found:
+        raise LookupError(f"Blender {bpy.app.version_string}: node group {ng.name!r} has no input {name!r}")
+    return found[0]
+
+
+def modifier_input(mod, name: str) -> tuple:
+    """(owner, property path) of the value of the modifier's group input `name`, for
+    `layout.prop(owner, path)`: an ID property of the modifier up to Blender 5.1, the `value` of
+    its `properties.inputs` item from 5.2 (a Nodes modifier holds no ID properties there)."""
+    ident = _socket_id(mod.node_group, name)
+    props = getattr(mod, "properties", None)
+    if props is not None:
+        return getattr(props.inputs, ident), "value"
+    return mod, f'["{ident}"]'
+
+
+def get_modifier_input(mod, name: str):
+    owner, path = modifier_input(mod, name)
+    return owner.path_resolve(path)
+
+
+def set_modifier_input(mod, name: str, value) -> None:
+    owner, path = modifier_input(mod, name)
+    if path == "value":
+        owner.value = value
+    else:
+        owner[path[2:-2]] = value
 
 
 def add_splat_modifier(obj, *, scale_factor: float = DEFAULT_SCALE_FACTOR, fraction: float = 1.0,
@@ -564,7 +636,7 @@ def add_splat_modifier(obj, *, scale_factor: float = DEFAULT_SCALE_FACTOR, fract
               "Min Opacity": float(min_opacity), "Material": mat,
               "Screen Filter": MIP_2D_VARIANCE if mip else CLASSIC_DILATION, "Compensate Screen Filter": mip}
     for name, value in values.items():
-        mod[_socket_id(ng, name)] = value
+        set_modifier_input(mod, name, value)
     if mat.name not in obj.data.materials:
         obj.data.materials.append(mat)
     return mod
@@ -574,7 +646,3 @@ def splat_modifier(obj):
     """The splat modifier of `obj`, or None."""
     mod = obj.modifiers.get(MODIFIER_NAME) if obj is not None else None
     return mod if mod is not None and mod.type == "NODES" and mod.node_group is not None else None
-
-
-def modifier_input_id(mod, name: str) -> str:
-    return _socket_id(mod.node_group, name)

@@ -79,7 +79,8 @@ class GVAE_AddonPreferences(AddonPreferences):
         if not runtime.runtime_installed():
             box.label(text="Import and Export work without it")
             box.operator(GVAE_OT_install_torch.bl_idname,
-                         text=f"Install PyTorch ({runtime.TORCH_REQUIREMENT}, CPU)", icon="IMPORT")
+                         text=f"Install PyTorch ({runtime.TORCH_REQUIREMENT}, CPU, for {runtime.PYTHON})",
+                         icon="IMPORT")
         box.label(text=f"Install directory: {runtime.torch_dir()}")
 
 

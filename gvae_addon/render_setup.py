@@ -81,9 +81,8 @@ def sync_focal_length(scene) -> int:
         mod = nodes.splat_modifier(obj)
         if mod is None or not any(i.name == FOCAL_INPUT for i in mod.node_group.interface.items_tree):
             continue
-        key = nodes.modifier_input_id(mod, FOCAL_INPUT)
-        if abs(float(mod.get(key, 0.0)) - focal) > 1e-6 * max(1.0, focal):
-            mod[key] = focal
+        if abs(float(nodes.get_modifier_input(mod, FOCAL_INPUT)) - focal) > 1e-6 * max(1.0, focal):
+            nodes.set_modifier_input(mod, FOCAL_INPUT, focal)
             obj.update_tag()
             changed += 1
     return changed

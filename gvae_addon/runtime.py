@@ -1,9 +1,13 @@
 """Where the add-on's optional runtime (PyTorch, `gvae_core.refine`) comes from.
 
 Import and export need only numpy; Refine needs torch. Blender's Python can get torch two ways:
-an offline build of the extension that bundles the wheels, or the preferences button that
-pip-installs the pinned CPU build into the extension's own user directory. That directory is put
-on `sys.path` (appended, so it never shadows Blender's own modules) when the add-on registers.
+an offline build of the extension that bundles the wheels (for each Python it is meant for: Blender
+installs the ones for its own), or the preferences button that pip-installs the pinned CPU build,
+for the running Python, into the extension's own user directory, one folder per Python version
+(Blender 4.2 to 5.0 run Python 3.11, 5.1 and later 3.13: a torch built for one does not load in the
+other, and a user directory copied from an older Blender must not pass for an installed torch).
+That directory is put on `sys.path` (appended, so it never shadows Blender's own modules) when the
+add-on registers.
 """
 
 from __future__ import annotations
@@ -25,12 +29,17 @@ REFINE_REQUIREMENTS = (TORCH_REQUIREMENT, "safetensors==0.8.0")
 ADDON_ID = __package__.rpartition(".")[0] or __package__
 
 
+#: The running Python, as the folder the install button uses names it (python3.11, python3.13).
+PYTHON = "python{}.{}".format(*sys.version_info[:2])
+
+
 def torch_dir(create: bool = False) -> str:
-    """The directory the preferences button installs torch into."""
+    """The directory the preferences button installs torch into, for the running Python."""
+    sub = os.path.join("lib", PYTHON, "site-packages")
     try:
-        return bpy.utils.extension_path_user(ADDON_ID, path="site-packages", create=create)
+        return bpy.utils.extension_path_user(ADDON_ID, path=sub, create=create)
     except ValueError:  # not running as an extension (source checkout): a config sub-directory
-        path = os.path.join(bpy.utils.user_resource("CONFIG"), "gvae_addon", "site-packages")
+        path = os.path.join(bpy.utils.user_resource("CONFIG"), "gvae_addon", sub)
         if create:
             os.makedirs(path, exist_ok=True)
         return path
@@ -108,7 +117,8 @@ def _core(module_name: str, function: str, label: str):
 
 def pip_install_command(target: str, requirements: tuple[str, ...] = REFINE_REQUIREMENTS,
                         extra_args: tuple[str, ...] | None = None) -> list[str]:
-    """The pip command line that installs `requirements` into `target` with Blender's Python.
+    """The pip command line that installs `requirements` into `target` with Blender's Python: pip
+    picks the wheels built for it (cp311 or cp313), binary wheels only (nothing is compiled).
 
     On Linux and Windows the CPU wheels come from the PyTorch index (PyPI's Linux wheels pull in
     CUDA); macOS wheels on PyPI are CPU builds already."""
@@ -117,4 +127,4 @@ def pip_install_command(target: str, requirements: tuple[str, ...] = REFINE_REQU
                       else ("--index-url", "https://download.pytorch.org/whl/cpu",
                             "--extra-index-url", "https://pypi.org/simple"))
     return [sys.executable, "-m", "pip", "install", "--upgrade", "--disable-pip-version-check",
-            "--no-warn-script-location", "--target", target, *extra_args, *requirements]
+            "--no-warn-script-location", "--only-binary=:all:", "--target", target, *extra_args, *requirements]

@@ -75,7 +75,7 @@ class GVAE_PT_display(Panel):
             layout.label(text="No splat modifier (re-import to add one)", icon="ERROR")
             return
         for name, *_ in nodes.INPUTS:
-            layout.prop(mod, f'["{nodes.modifier_input_id(mod, name)}"]', text=name)
+            layout.prop(*nodes.modifier_input(mod, name), text=name)
 
 
 class _JobPanel(Panel):

@@ -22,9 +22,9 @@ import numpy as np
 
 from .atomic import atomic_write
 from .cloud import GaussianCloud
-from .conventions import SH_REST_COUNTS
+from .conventions import LOG_SCALE_RANGE, OPACITY_LOGIT_RANGE, SH_REST_COUNTS
 
-__all__ = ["PlyError", "read_ply", "write_ply"]
+__all__ = ["PlyError", "InfinitiesReadWarning", "read_ply", "write_ply"]
 
 
 class PlyError(ValueError):
@@ -193,10 +193,25 @@ def read_ply(path, *, sanitize: bool = False) -> GaussianCloud:
     return drop_nonfinite(cloud, finite, where, sanitize, stacklevel=3)
 
 
+class InfinitiesReadWarning(UserWarning):
+    """A file held infinite values with a meaning (an opacity logit of +-inf, a log-scale of -inf),
+    read as that meaning: the clamped finite value the renderer uses."""
+
+
 def drop_nonfinite(cloud: GaussianCloud, finite: np.ndarray, where: str, sanitize: bool, *,
                    stacklevel: int = 2) -> GaussianCloud:
-    """The reading policy for rows with non-finite parameters (`finite` is False for them): a
-    PlyError naming them, or with `sanitize` the cloud without them and a warning saying how many."""
+    """The reading policy for rows with non-finite parameters (`finite` is False for them).
+
+    First, infinities with a meaning are read as that meaning (DESIGN.md, Numerical guards): an
+    opacity logit of +inf / -inf is opacity 1 / 0 and becomes the end of OPACITY_LOGIT_RANGE, a
+    log-scale of -inf is a flat axis and becomes LOG_SCALE_RANGE[0]; the row is kept and an
+    InfinitiesReadWarning says how many. What is still non-finite (NaN anywhere, an infinite
+    position or colour, a log-scale of +inf) raises a PlyError naming the rows, or with `sanitize`
+    the cloud without them and a warning saying how many. `cloud`'s arrays are changed in place."""
+    if finite.all():
+        return cloud
+    bad = np.flatnonzero(~finite)
+    finite[bad] = _read_meaningful_infinities(cloud, bad, where, stacklevel + 1)
     if finite.all():
         return cloud
     bad = np.flatnonzero(~finite)
@@ -207,6 +222,30 @@ def drop_nonfinite(cloud: GaussianCloud, finite: np.ndarray, where: str, sanitiz
     warnings.warn(f"{where}: dropped {len(bad)} of {len(finite)} Gaussians with non-finite parameters",
                   stacklevel=stacklevel)
     return cloud.select(finite)
+
+
+def _read_meaningful_infinities(cloud: GaussianCloud, rows: np.ndarray, where: str, stacklevel: int) -> np.ndarray:
+    """Clamp the infinite opacity logits and the -inf log-scales of `rows` in place (warning with
+    their numbers); whether each of those rows is finite now."""
+    opacities, scales = cloud.opacities[rows], cloud.scales[rows]
+    infinite_opacity = np.isinf(opacities)
+    flat = np.isneginf(scales)
+    n_opacity, n_flat = int(infinite_opacity.sum()), int(flat.sum())
+    if n_opacity:
+        cloud.opacities[rows] = np.where(infinite_opacity, np.clip(opacities, *OPACITY_LOGIT_RANGE), opacities)
+    if n_flat:
+        cloud.scales[rows] = np.where(flat, np.float32(LOG_SCALE_RANGE[0]), scales)
+    if n_opacity or n_flat:
+        said = []
+        if n_opacity:
+            said.append(f"{n_opacity} opacity logit(s) of +-inf as +-{OPACITY_LOGIT_RANGE[1]:g} (opacity 1 or 0)")
+        if n_flat:
+            said.append(f"{n_flat} log-scale(s) of -inf as {LOG_SCALE_RANGE[0]:g} (flat axes)")
+        warnings.warn(f"{where}: read " + " and ".join(said), InfinitiesReadWarning, stacklevel=stacklevel)
+    ok = np.ones(len(rows), bool)
+    for a in cloud.arrays().values():
+        ok &= np.isfinite(a[rows].reshape(len(rows), -1)).all(1)
+    return ok
 
 
 def _locate_vertex(header: _Header, where: str) -> tuple[_Element, int, int]:

@@ -25,6 +25,7 @@ from gvae_core.conventions import LOG_SCALE_RANGE, SH_C0, rgb_to_dc
 from gvae_core.formats import (detect_format, read_compressed_ply, read_splat, read_spz, write_compressed_ply,
                                write_splat, write_splat_file, write_spz)
 from gvae_core.formats.spz import read_spz_header
+from gvae_core.ply import InfinitiesReadWarning
 from gvae_core.quaternions import normalize
 
 K_OF_DEGREE = {0: 0, 1: 3, 2: 8, 3: 15}
@@ -314,8 +315,22 @@ def test_reference_ply_round_trip_stays_byte_identical(tmp_path):
 def test_write_splat_file_dispatches_on_the_name(tmp_path):
     cloud = make_cloud(n=10, degree=1)
     for name, fmt in (("a.spz", "spz"), ("a.splat", "splat"), ("a.compressed.ply", "compressed_ply"),
-                      ("a.ply", "ply")):
+                      ("a.ply", "ply"), ("A.SOG", "sog"), ("scene/meta.json", "sog")):
         assert detect_format(quiet(write_splat_file, cloud, tmp_path / name)) == fmt
+    assert read_spz_header(write_splat_file(cloud, tmp_path / "v2.spz", spz_version=2)).version == 2
+
+
+def test_write_splat_file_refuses_names_it_cannot_write(tmp_path):
+    """A name without a known ending is refused before any file is touched (no silent PLY)."""
+    cloud = make_cloud(n=10, degree=1)
+    (tmp_path / "keep.xyz").write_bytes(b"old")
+    for name in ("x.sogg", "keep.xyz", "noext", "lod-meta.json", "x.ply.bak"):
+        with pytest.raises(PlyError, match=r"cannot tell which splat format.*\.compressed\.ply, \.ply, \.spz, "
+                           r"\.splat, \.sog, meta\.json") as exc:
+            write_splat_file(cloud, tmp_path / name)
+        assert str(tmp_path / name) in str(exc.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.xyz"]
+    assert (tmp_path / "keep.xyz").read_bytes() == b"old"
 
 
 # ========================================================================= numerical robustness
@@ -328,13 +343,33 @@ def test_splat_non_finite_zero_and_negative_values(tmp_path):
     path = tmp_path / "bad.splat"
     path.write_bytes(b"".join(rows))
     with pytest.raises(PlyError, match=r"2 Gaussian\(s\) with non-finite.*rows \[1, 3\]") as exc:
-        read_splat_file(path)
+        quiet(read_splat_file, path)
     assert str(path) in str(exc.value)
-    with pytest.warns(UserWarning, match="dropped 2 of 4"):
+    with pytest.warns(UserWarning, match="dropped 2 of 4"), pytest.warns(InfinitiesReadWarning, match="flat axes"):
         ok = read_splat_file(path, sanitize=True)
     assert len(ok) == 2 and ok.scales[1, 0] == LOG_SCALE_RANGE[0]
     np.testing.assert_array_equal(ok.quats[1], [0, 0, 0, 0])  # the zero quaternion is kept, identity on use
     np.testing.assert_array_equal(ok.validate().zero_quat_rows, [1])
+
+
+def test_every_reader_reads_meaningful_infinities(tmp_path):
+    """The same rule as read_ply (test_ply): a zero .splat scale and a compressed PLY chunk whose
+    smallest log-scale is -inf are flat axes, kept with a warning; the rows stay."""
+    cloud = make_cloud(n=300, degree=0)
+    data = bytearray(quiet(write_splat, cloud, tmp_path / "z.splat").read_bytes())
+    data[12:16] = struct.pack("<f", 0.0)  # the first Gaussian's x scale
+    (tmp_path / "z.splat").write_bytes(bytes(data))
+    with pytest.warns(InfinitiesReadWarning, match=r"1 log-scale\(s\) of -inf as -30"):
+        back = read_splat_file(tmp_path / "z.splat")
+    assert len(back) == 300 and back.scales[0, 0] == LOG_SCALE_RANGE[0]
+    cloud.scales[:256, 1] = np.linspace(-5, -1, 256)
+    data = bytearray(write_compressed_ply(cloud, tmp_path / "c.ply").read_bytes())
+    start = data.index(b"end_header\n") + 11
+    data[start + 4 * 7:start + 4 * 8] = struct.pack("<f", -np.inf)  # chunk 0's min_scale_y
+    (tmp_path / "c.ply").write_bytes(bytes(data))
+    with pytest.warns(InfinitiesReadWarning, match=r"log-scale\(s\) of -inf"):
+        back = read_splat_file(tmp_path / "c.ply")
+    assert len(back) == 300 and back.scales[0, 1] == LOG_SCALE_RANGE[0] and np.isfinite(back.scales).all()
 
 
 def test_compressed_ply_non_finite_chunk_bounds(tmp_path):
@@ -343,10 +378,11 @@ def test_compressed_ply_non_finite_chunk_bounds(tmp_path):
     start = data.index(b"end_header\n") + 11
     data[start + 4 * 18:start + 4 * 19] = struct.pack("<f", float("inf"))  # chunk 1's min_x
     (tmp_path / "c.ply").write_bytes(bytes(data))
-    with pytest.raises(PlyError, match=r"44 Gaussian\(s\) with non-finite.*rows \[256, 257"):
+    # (the one Gaussian at the top of the chunk's x range, t = 1, reads as max_x: finite)
+    with pytest.raises(PlyError, match=r"43 Gaussian\(s\) with non-finite.*rows \[256, 257"):
         read_compressed_ply(tmp_path / "c.ply")
-    with pytest.warns(UserWarning, match="dropped 44 of 300"):
-        assert len(read_splat_file(tmp_path / "c.ply", sanitize=True)) == 256
+    with pytest.warns(UserWarning, match="dropped 43 of 300"):
+        assert len(read_splat_file(tmp_path / "c.ply", sanitize=True)) == 257
 
 
 @pytest.mark.parametrize("writer", [write_splat, write_spz, write_compressed_ply])
@@ -534,6 +570,37 @@ def test_cli_refine_reads_every_format(tmp_path, capsys, monkeypatch):
         for field, value in back.arrays().items():
             np.testing.assert_array_equal(getattr(seen[-1], field), value, err_msg=field)
         np.testing.assert_array_equal(read_ply(tmp_path / "out.ply").means, back.means)
+    # an OUT name no format is written under is refused before the input is read or refined
+    calls = len(seen)
+    assert main(["refine", str(src), str(tmp_path / "out.xyz"), "--budget", "all"]) == 2
+    assert "cannot tell which splat format" in capsys.readouterr().err and len(seen) == calls
+
+
+def test_cli_convert_between_formats(tmp_path, capsys):
+    cloud = make_cloud(n=60, degree=3)
+    src = write_ply(cloud, tmp_path / "in.ply")
+    for name, label in (("a.spz", "Niantic .spz"), ("b.splat", ".splat (web viewers)"),
+                        ("c.compressed.ply", "compressed PLY (SuperSplat)"), ("d.ply", "3DGS PLY")):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # .splat drops the SH and says so
+            assert main(["convert", str(src), str(tmp_path / name)]) == 0
+        out = capsys.readouterr().out
+        assert f"-> {tmp_path / name} ({label}" in out and "60 Gaussians" in out
+        back = read_splat_file(tmp_path / name)
+        assert len(back) == 60 and back.sh_degree == (0 if name.endswith("splat") else 3)
+    assert (tmp_path / "d.ply").read_bytes() == src.read_bytes()
+    assert main(["convert", str(tmp_path / "a.spz"), str(tmp_path / "e.spz"), "--spz-version", "2",
+                 "--sh-degree", "1"]) == 0
+    assert "SH degree 1 (of 3)" in capsys.readouterr().out
+    assert read_spz_header(tmp_path / "e.spz").version == 2 and read_spz(tmp_path / "e.spz").sh_degree == 1
+    # Errors: one line naming the file; an OUT name no format has is refused before IN is read.
+    for argv, message in ((["missing.ply", str(tmp_path / "x.txt")], "cannot tell which splat format"),
+                          ([str(src), str(tmp_path / "x.ply"), "--spz-version", "4"], "applies to .spz output"),
+                          ([str(tmp_path / "nothing.ply"), str(tmp_path / "x.spz")], "nothing.ply")):
+        assert main(["convert", *argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err
+    assert not (tmp_path / "x.txt").exists() and not (tmp_path / "x.ply").exists()
 
 
 def test_spz_version_1_float16_positions(tmp_path):

@@ -67,8 +67,11 @@ def test_agrees_with_package(name):
     ours, ref = niqe(img), reference_niqe(img)
     assert np.isfinite(ours)
     assert ours == pytest.approx(ref, rel=1e-3)
-    # per-patch features match too (measured ~1e-7; float32 vs float64 sums)
-    np.testing.assert_allclose(niqe_features(img), reference_features(img), rtol=1e-5, atol=1e-9)
+    # per-patch features match too (measured ~1e-7; float32 vs float64 sums). Under NumPy 2 the
+    # package's own float32 arithmetic changes with the type promotion rules (NEP 50; numpy 1.26 with
+    # weak promotion gives the same): up to 8e-4 relative; ours is the same under both.
+    rtol = 1e-5 if np.lib.NumpyVersion(np.__version__) < "2.0.0" else 2e-3
+    np.testing.assert_allclose(niqe_features(img), reference_features(img), rtol=rtol, atol=1e-9)
 
 
 def test_blur_raises_score():

@@ -3,6 +3,7 @@
 import os
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import plyfile
@@ -13,6 +14,7 @@ from hypothesis import strategies as st
 from tests.corruption import EDITS, corrupt, read_or_refuse
 
 from gvae_core import GaussianCloud, PlyError, read_ply, write_ply
+from gvae_core.ply import InfinitiesReadWarning
 
 K_OF_DEGREE = {0: 0, 1: 3, 2: 8, 3: 15}
 
@@ -261,6 +263,49 @@ def test_non_finite_rows_are_reported_or_dropped(tmp_path):
     cols["scale_0"][0] = 1e300
     with pytest.raises(PlyError, match=r"rows \[0\]"):
         read_ply(write_with_plyfile(tmp_path / "big.ply", cols, dtype="f8"))
+
+
+def test_infinite_opacities_and_flat_axes_are_read_as_their_meaning(tmp_path):
+    """splat-transform and Niantic's loader write fully opaque / transparent Gaussians as an opacity
+    logit of +inf / -inf, and a flat axis is a log-scale of -inf: every such row is kept, clamped to
+    the finite value the renderer uses, and counted; other infinities and NaN stay bad input."""
+    cloud = random_cloud(n=12, degree=1)
+    cols = reference_rows(cloud)
+    for name in ("opacity", "scale_1", "scale_2", "x", "f_dc_0"):
+        cols[name] = cols[name].copy()
+    cols["opacity"][[1, 2, 5]] = [np.inf, -np.inf, np.inf]
+    cols["scale_1"][[2, 4]] = -np.inf
+    for dtype in ("f4", "f8"):
+        path = write_with_plyfile(tmp_path / "inf.ply", cols, dtype=dtype)
+        with pytest.warns(InfinitiesReadWarning, match=r"read 3 opacity logit\(s\) of \+-inf as \+-50 .*"
+                          r"and 2 log-scale\(s\) of -inf as -30 \(flat axes\)"):
+            back = read_ply(path)
+        want = cloud.copy()
+        want.opacities[[1, 2, 5]] = [50, -50, 50]
+        want.scales[[2, 4], 1] = -30
+        assert_same(want, back)
+        assert back.activated_opacities()[1] == 1.0 and back.activated_opacities()[2] < 1e-21
+    # NaN, an infinite position or colour and a log-scale of +inf are not read as anything.
+    cols["scale_2"][7] = np.inf
+    cols["x"][8] = -np.inf
+    cols["f_dc_0"][9] = np.inf
+    cols["opacity"][10] = np.nan
+    cols["scale_1"][8] = -np.inf  # a flat axis does not save a row that is bad otherwise
+    path = write_with_plyfile(tmp_path / "bad.ply", cols)
+    with pytest.raises(PlyError, match=r"4 Gaussian\(s\) with non-finite .* rows \[7, 8, 9, 10\]"):
+        quiet_read(path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        clean = read_ply(path, sanitize=True)
+    assert len(clean) == 8 and np.isfinite(clean.opacities).all()
+    said = " | ".join(str(w.message) for w in caught)
+    assert "dropped 4 of 12" in said and "3 opacity logit(s)" in said
+
+
+def quiet_read(path, **kwargs):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return read_ply(path, **kwargs)
 
 
 def test_writes_are_atomic(tmp_path, good_file):

@@ -5,8 +5,11 @@ build/extension/gaussian_vae/, fetches the pinned wheels the manifest lists into
 builds and validates the zip with Blender's own `blender_ext.py` (from the bpy module).
 
 `--torch-wheels DIR` bundles every wheel in DIR (PyTorch and its dependencies for ONE platform,
-e.g. from `pip download torch==2.13.0 --only-binary=:all: --platform ... -d DIR`) for offline
-installs; the zip is then marked for that platform only.
+e.g. from `pip download torch==2.13.0 --only-binary=:all: --platform ... --python-version 3.11 -d DIR`)
+for offline installs; the zip is then marked for that platform only. DIR may hold the wheels for
+several Pythons (`--python-version 3.11` and `3.13` into the same DIR): Blender installs those for its
+own (from 4.5 on; such a zip is marked for 4.5 and later). The zip's Blender versions are narrowed to
+those whose Python has a torch wheel in DIR.
 """
 
 from __future__ import annotations
@@ -36,6 +39,13 @@ from .gvae_addon import register, unregister  # noqa: E402
 
 __all__ = ["register", "unregister"]
 '''
+
+#: The Python of each Blender series from that version on: 4.2 to 5.0 run 3.11, 5.1 and later 3.13.
+BLENDER_PYTHONS = (("4.2.0", (3, 11)), ("5.1.0", (3, 13)))
+#: The first series that installs only the bundled wheels of its own Python (4.5.15 does; 4.2.0
+#: filters by platform only and may take a torch built for another Python): a zip with wheels for
+#: several Pythons starts there.
+FILTERS_PYTHON = "4.5.0"
 
 # Wheel platform tag fragment -> Blender platform name.
 _PLATFORMS = (("manylinux", "x86_64", "linux-x64"), ("manylinux", "aarch64", "linux-arm64"),
@@ -78,6 +88,37 @@ def platform_of(wheel: str) -> str | None:
     raise SystemExit(f"cannot tell the platform of wheel {wheel}")
 
 
+def pythons_of(wheel: str) -> set[tuple[int, int]]:
+    """CPython versions of a binary wheel's python tag ("cp311.cp312" -> {(3, 11), (3, 12)});
+    empty for a pure-Python one (py3)."""
+    tags = wheel.rsplit("-", 3)[-3].split(".")
+    return {(int(t[2]), int(t[3:])) for t in tags if re.fullmatch(r"cp3\d+", t)}
+
+
+def _version(v: str) -> tuple[int, ...]:
+    return tuple(int(x) for x in v.split("."))
+
+
+def blender_range(pythons: set[tuple[int, int]], vmin: str, vmax: str | None) -> tuple[str, str | None]:
+    """(blender_version_min, blender_version_max or None) of the Blender series whose Python is in
+    `pythons`, within the manifest's [vmin, vmax); the series must be consecutive (a gap cannot be
+    one range)."""
+    series = [(i, v) for i, (v, py) in enumerate(BLENDER_PYTHONS) if py in pythons]
+    unknown = pythons - {py for _, py in BLENDER_PYTHONS}
+    if unknown or not series or series[-1][0] - series[0][0] != len(series) - 1:
+        runs = ", ".join(f"Blender {v}+: Python {py[0]}.{py[1]}" for v, py in BLENDER_PYTHONS)
+        raise SystemExit(f"--torch-wheels: wheels for Python {sorted(pythons)} do not make one range of "
+                         f"Blender versions ({runs})")
+    last = series[-1][0] + 1
+    hi = [v for v in (vmax, BLENDER_PYTHONS[last][0] if last < len(BLENDER_PYTHONS) else None) if v]
+    lo = max(vmin, series[0][1], *([FILTERS_PYTHON] if len(series) > 1 else []), key=_version)
+    hi = min(hi, key=_version, default=None)
+    if hi is not None and _version(lo) >= _version(hi):
+        raise SystemExit(f"--torch-wheels: Python {sorted(pythons)} is not that of any Blender from {vmin} "
+                         f"to {vmax}")
+    return lo, hi
+
+
 def stage(out: Path, torch_wheels: Path | None, cache: Path) -> Path:
     manifest_text = (ROOT / "blender_manifest.toml").read_text()
     manifest = tomllib.loads(manifest_text)
@@ -101,15 +142,21 @@ def stage(out: Path, torch_wheels: Path | None, cache: Path) -> Path:
         platforms = {p for p in (platform_of(w.name) for w in extra) if p}
         if len(platforms) != 1:
             raise SystemExit(f"--torch-wheels must hold wheels for one platform, found {sorted(platforms)}")
+        pythons = set().union(*(pythons_of(w.name) for w in extra if w.name.startswith("torch-")))
+        vmin, vmax = blender_range(pythons, manifest["blender_version_min"], manifest.get("blender_version_max"))
         for w in extra:
             shutil.copy2(w, out / "wheels")
         listed = [f'  "./wheels/{w.name}",' for w in sorted((out / "wheels").glob("*.whl"))]
         manifest_text = re.sub(r"wheels = \[.*?\]", "wheels = [\n" + "\n".join(listed) + "\n]",
                                manifest_text, count=1, flags=re.S)
-        # A top-level key: it must come before the first [table].
+        manifest_text = re.sub(r'(?m)^blender_version_(min|max) = ".*"\n', "", manifest_text)
+        # Top-level keys: they must come before the first [table].
         head, sep, tail = manifest_text.partition("\n[")
         listed_platforms = ", ".join(f'"{p}"' for p in sorted(platforms))
-        manifest_text = f"{head}\nplatforms = [{listed_platforms}]\n{sep}{tail}"
+        versions = f'blender_version_min = "{vmin}"\n' + (f'blender_version_max = "{vmax}"\n' if vmax else "")
+        manifest_text = f"{head}\nplatforms = [{listed_platforms}]\n{versions}{sep}{tail}"
+        print(f"bundled torch for Python {', '.join(f'{a}.{b}' for a, b in sorted(pythons))}: "
+              f"Blender {vmin} to {vmax or 'the latest'} ({platforms.pop()})", file=sys.stderr)
     (out / "blender_manifest.toml").write_text(manifest_text)
     tomllib.loads(manifest_text)  # fail here, clearly, rather than in Blender
     return out

@@ -7,6 +7,7 @@ are never asserted on (speed goals live here, not in tests).
 
 BENCHMARKS = (
     "ply",
+    "sog",
     "render",
     "antialias",
     "blender",

@@ -7,8 +7,9 @@ with four of its training cameras (what `gvae compact --cameras transforms_train
 compacted to each fraction by: Ours (Hessian-weighted merging, `compact`), the same merging with
 no score (`random` weights: NanoGS-style, what splat-transform does), Hessian pruning (PUP 3D-GS
 without fine-tuning), LightGaussian's global significance, opacity and random pruning, and
-splat-transform 3.7.0's `--decimate` and `--decimate-adaptive` (installed from npm into the
-cache on first use; skipped, with the reason, where `node`/`npm` are missing). PSNR at 1x against
+splat-transform 3.7.0's `--decimate` and `--decimate-adaptive` (`benchmarks.splat_transform`:
+installed from npm into the cache on first use; skipped, with the reason, where `node`/`npm` are
+missing). PSNR at 1x against
 the ground-truth test views (the protocol's 8, `matched` render), minus the input's. With the
 training images (`--images`): two rounds of removal and fine-tuning (the protocol's last-stage
 iterations each) for the Hessian and for LightGaussian's score.
@@ -24,7 +25,6 @@ from __future__ import annotations
 import json
 import os
 import resource
-import shutil
 import statistics
 import subprocess
 import sys
@@ -42,10 +42,10 @@ from ..experiment import PROTOCOLS, Evaluator, prepare_scene
 from ..metrics.image import image_scores
 from ..ply import read_ply, write_ply
 from ..resources import estimate_compact_memory
-from ..scenes import SPLITS, cache_dir
+from ..scenes import SPLITS
+from .splat_transform import PACKAGE
+from .splat_transform import command as splat_transform_command
 
-#: The splat-transform release the comparison uses (npm).
-SPLAT_TRANSFORM = "@playcanvas/splat-transform@3.7.0"
 FRACTIONS = (0.7, 0.5, 0.3, 0.2, 0.1, 0.05)
 #: (label, score, removal) of `compact` rows; splat-transform's rows come after these.
 METHODS = (("ours", "hessian", "merge"), ("merge, no score", "random", "merge"), ("Hessian prune", "hessian", "prune"),
@@ -64,20 +64,13 @@ IMAGE_METHODS = (("ours + fine-tune", "hessian", "merge"), ("Hessian prune + fin
 
 
 def splat_transform() -> tuple[list[str] | None, str]:
-    """The command that runs splat-transform (installed from npm into the cache on first use), and
-    a note; (None, why) where node or npm is missing or the install fails."""
-    node, npm = shutil.which("node"), shutil.which("npm")
-    if node is None or npm is None:
-        return None, "node/npm not found on PATH"
-    folder = cache_dir() / "tools" / SPLAT_TRANSFORM.replace("@playcanvas/", "").replace("@", "-")
-    cli = folder / "node_modules" / "@playcanvas" / "splat-transform" / "bin" / "cli.mjs"
-    if not cli.is_file():
-        folder.mkdir(parents=True, exist_ok=True)
-        done = subprocess.run([npm, "install", "--prefix", str(folder), "--no-audit", "--no-fund", SPLAT_TRANSFORM],
-                              capture_output=True, text=True, timeout=600)
-        if done.returncode != 0 or not cli.is_file():
-            return None, f"npm install {SPLAT_TRANSFORM} failed: {(done.stderr or done.stdout)[-300:]}"
-    return [node, str(cli)], SPLAT_TRANSFORM
+    """The command that runs splat-transform (`benchmarks.splat_transform`: installed from npm into
+    the cache on first use) and its version; (None, why) where node or npm is missing or the
+    install fails."""
+    try:
+        return splat_transform_command(), PACKAGE
+    except RuntimeError as exc:  # (Unavailable is one)
+        return None, str(exc).strip().splitlines()[0]
 
 
 def _decimate(command: list[str], cloud, mode: str, count: int, work: Path):

@@ -1,8 +1,9 @@
-"""`gvae info FILE`: what a splat file (3DGS or compressed PLY, .splat, .spz) holds and whether it is sound."""
+"""`gvae info FILE`: what a splat file (3DGS or compressed PLY, .splat, .spz, .sog) holds and whether it is sound."""
 
 from __future__ import annotations
 
 import argparse
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -12,12 +13,13 @@ from ..conventions import SH_REST_COUNTS
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("info", help="summarise a splat file (.ply, .splat, .spz) and validate it",
+    p = subparsers.add_parser("info", help="summarise a splat file (.ply, .splat, .spz, .sog) and validate it",
                               description="Print the format, Gaussian count, SH degree, bounding box, "
-                              "opacity and scale statistics, extra properties and the validation "
-                              "report of a 3DGS PLY, a compressed (SuperSplat) PLY, a .splat or an .spz "
-                              "file (the format is found from the content).")
-    p.add_argument("file", type=Path, help="the .ply, .splat or .spz file")
+                              "opacity and scale statistics, extra properties, what was read as what it "
+                              "means (infinite opacities, flat axes) and the validation report of a 3DGS "
+                              "PLY, a compressed (SuperSplat) PLY, a .splat, an .spz or a SOG scene (.sog, "
+                              "meta.json or its folder; the format is found from the content).")
+    p.add_argument("file", type=Path, help="the .ply, .splat, .spz or .sog file (or a SOG meta.json or folder)")
     p.add_argument("--sanitize", action="store_true",
                    help="drop Gaussians with non-finite values instead of failing on them")
     p.set_defaults(func=run)
@@ -27,8 +29,10 @@ def run(args: argparse.Namespace) -> int:
     from ..formats import FORMATS, detect_format, read_splat_file
 
     fmt = detect_format(args.file)
-    cloud = read_splat_file(args.file, sanitize=args.sanitize)
-    print(describe(cloud, title=f"{args.file} ({FORMATS[fmt]})"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cloud = read_splat_file(args.file, sanitize=args.sanitize)
+    print(describe(cloud, title=f"{args.file} ({FORMATS[fmt]})", notes=[str(w.message) for w in caught]))
     return 0
 
 
@@ -40,11 +44,12 @@ def _stats(label: str, values: np.ndarray, fmt: str = "{:.4g}") -> str:
     return f"{label}: {parts}, mean {fmt.format(values.mean())}"
 
 
-def describe(cloud: GaussianCloud, title: str = "cloud") -> str:
-    """A human-readable summary of a cloud (the text `gvae info` prints)."""
+def describe(cloud: GaussianCloud, title: str = "cloud", notes: list[str] = ()) -> str:
+    """A human-readable summary of a cloud (the text `gvae info` prints), with `notes` (what the
+    reader said: values read as what they mean, rows dropped) under "read:"."""
     c = cloud.numpy()
     n = len(c)
-    lines = [title,
+    lines = [title, *(f"  read: {note}" for note in notes),
              f"  Gaussians: {n}",
              f"  SH degree: {c.sh_degree} ({SH_REST_COUNTS[c.sh_degree]} rest coefficients per channel)"]
     if n:

@@ -150,10 +150,11 @@ def run_refine(args: argparse.Namespace) -> int:
     from ..budget import parse_budget
     from ..capture import load_cameras
     from ..lineage import Lineage
-    from ..formats import read_splat_file, write_splat_file
+    from ..formats import output_format, read_splat_file, write_splat_file
     from ..fidelity import DEFAULT_TOLERANCE
     from ..refinement import refine
 
+    output_format(args.output)  # a name no format is written under is refused before any work
     budget = parse_budget(args.budget)
     fidelity = _parse_fidelity(args.fidelity, DEFAULT_TOLERANCE)
     t0 = time.perf_counter()

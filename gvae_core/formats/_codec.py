@@ -1,4 +1,4 @@
-"""What the splat codecs share: C-style rounding, 8-bit opacity both ways, refusing non-finite rows.
+"""What the splat codecs share: C-style rounding, 8-bit opacity both ways, what a writer refuses.
 
 Every format here stores opacity as an 8-bit code of the activated value, round(255 * sigmoid(logit)).
 Codes 0 and 255 would decode to logits of -inf and +inf; they decode a quarter step inside
@@ -8,6 +8,8 @@ cap) as the file meant, and encoding the decoded value gives the same code back.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 
@@ -64,17 +66,16 @@ def _opacity_table() -> np.ndarray:
 OPACITY_OF_CODE = _opacity_table()
 
 
-def refuse_nonfinite(cloud: GaussianCloud, where: str) -> None:
-    """PlyError naming the rows with NaN or infinite parameters, which no format here can hold."""
-    bad = cloud.nonfinite_rows()
+def writable(cloud: GaussianCloud, fmt: str, where: str) -> GaussianCloud:
+    """The numpy cloud a writer of `fmt` writes: PlyError naming the rows with NaN or infinite
+    parameters, which no format here can hold, and a warning listing the extra properties `fmt`
+    cannot hold (at the writer's caller)."""
+    c = cloud.numpy()
+    bad = c.nonfinite_rows()
     if len(bad):
         head = ", ".join(str(i) for i in bad[:5]) + (", ..." if len(bad) > 5 else "")
         raise PlyError(f"{where}: refusing to write {len(bad)} Gaussian(s) with non-finite parameters, "
                        f"rows [{head}]; use cloud.sanitize() first")
-
-
-def dropped_extras(cloud: GaussianCloud, fmt: str, where: str) -> str | None:
-    """The warning to give when the cloud has extra properties that `fmt` cannot hold."""
-    if not cloud.extra:
-        return None
-    return (f"{where}: {fmt} holds no extra properties; not written: " + ", ".join(cloud.extra))
+    if c.extra:
+        warnings.warn(f"{where}: {fmt} holds no extra properties; not written: " + ", ".join(c.extra), stacklevel=3)
+    return c

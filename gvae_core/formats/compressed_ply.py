@@ -37,7 +37,7 @@ from ..atomic import atomic_write
 from ..cloud import GaussianCloud
 from ..conventions import SH_C0, SH_DEGREE_OF_REST, activate_opacities, rgb_to_dc
 from ..ply import PlyError, drop_nonfinite, read_header
-from ._codec import OPACITY_OF_CODE, dropped_extras, refuse_nonfinite
+from ._codec import OPACITY_OF_CODE, writable
 
 __all__ = ["read_compressed_ply", "write_compressed_ply", "is_compressed_ply_header", "CHUNK_SIZE"]
 
@@ -134,8 +134,9 @@ def _unorm(packed: np.ndarray, shift: int, bits: int) -> np.ndarray:
 
 
 def _lerp(lo: np.ndarray, hi: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """lo (1 - t) + hi t, exactly lo at t = 0 and hi at t = 1 (also when the other bound is infinite)."""
     with np.errstate(invalid="ignore", over="ignore"):
-        return lo * (1.0 - t) + hi * t
+        return np.where(t == 1.0, hi, np.where(t == 0.0, lo, lo * (1.0 - t) + hi * t))
 
 
 def _decode(data: dict[str, np.ndarray], where: str):
@@ -213,11 +214,7 @@ def write_compressed_ply(cloud: GaussianCloud, path) -> Path:
     Refuses non-finite rows (PlyError); extra properties are not stored (a warning says so)."""
     path = Path(path)
     where = str(path)
-    c = cloud.numpy()
-    refuse_nonfinite(c, where)
-    extras = dropped_extras(c, "a compressed PLY", where)
-    if extras:
-        warnings.warn(extras, stacklevel=2)
+    c = writable(cloud, "a compressed PLY", where)
     n, k = len(c), c.sh_rest.shape[1]
     starts = np.arange(0, n, CHUNK_SIZE)
     ci = np.arange(n) // CHUNK_SIZE

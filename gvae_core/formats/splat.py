@@ -10,8 +10,9 @@ multiple of 32 and the count is size / 32:
     28      4      qw, qx, qy, qz      uint8: 128 * q / |q| + 128 (rot_0..3 order)
 
 There are no SH rest coefficients (degree 0). Decoding (what the viewers do):
-- position exact; log-scale = log(s), a scale of 0 (an underflowed exp) is the smallest log-scale
-  LOG_SCALE_RANGE[0], which renders the same; a negative or non-finite value is a non-finite row;
+- position exact; log-scale = log(s): a scale of 0 (an underflowed exp) is a flat axis, log-scale -inf,
+  read as LOG_SCALE_RANGE[0] with a warning (`ply.drop_nonfinite`); a negative scale or one that is
+  not finite makes a non-finite row;
 - f_dc = (c / 255 - 0.5) / SH_C0: within half a step, 0.5 / 255 / SH_C0 ~ 0.007, for colours in [0, 1]
   (those outside were clipped);
 - opacity: the logit of a / 255, the end codes a quarter step inside (see `_codec`): sigmoid within
@@ -31,9 +32,9 @@ import numpy as np
 
 from ..atomic import atomic_write
 from ..cloud import GaussianCloud
-from ..conventions import LOG_SCALE_RANGE, activate_scales, dc_to_rgb, rgb_to_dc
+from ..conventions import activate_scales, dc_to_rgb, rgb_to_dc
 from ..ply import PlyError, drop_nonfinite
-from ._codec import OPACITY_OF_CODE, dropped_extras, opacity_codes, refuse_nonfinite, unorm_codes
+from ._codec import OPACITY_OF_CODE, opacity_codes, unorm_codes, writable
 
 __all__ = ["RECORD", "read_splat", "write_splat", "looks_like_splat"]
 
@@ -58,8 +59,9 @@ def looks_like_splat(head: bytes, size: int) -> bool:
 def read_splat(path, *, sanitize: bool = False) -> GaussianCloud:
     """Read a .splat file into a numpy GaussianCloud (SH degree 0).
 
-    Rows with non-finite values (or negative scales) raise PlyError naming them, unless `sanitize`
-    is true: then they are dropped with a warning."""
+    Zero scales are flat axes (read as the smallest log-scale, with a warning); rows with other
+    non-finite values (or negative scales) raise PlyError naming them, unless `sanitize` is true:
+    then they are dropped with a warning."""
     path = Path(path)
     where = str(path)
     size = path.stat().st_size
@@ -76,7 +78,6 @@ def read_splat(path, *, sanitize: bool = False) -> GaussianCloud:
     s = rec["scale"]
     with np.errstate(divide="ignore", invalid="ignore"):
         scales = np.log(s)
-    scales[s == 0] = LOG_SCALE_RANGE[0]
     rgba = rec["rgba"]
     cloud = GaussianCloud(means=means, scales=scales, quats=_ROT_OF_CODE[rec["rot"]],
                           opacities=OPACITY_OF_CODE[rgba[:, 3]], sh_dc=_DC_OF_CODE[rgba[:, :3]],
@@ -92,14 +93,10 @@ def write_splat(cloud: GaussianCloud, path) -> Path:
     stored (a warning says so when there are any); non-finite rows are refused (PlyError)."""
     path = Path(path)
     where = str(path)
-    c = cloud.numpy()
-    refuse_nonfinite(c, where)
+    c = writable(cloud, ".splat", where)
     if c.sh_degree:
         warnings.warn(f"{where}: .splat holds no view-dependent colour; the SH degree {c.sh_degree} "
                       "coefficients are not written", stacklevel=2)
-    extras = dropped_extras(c, ".splat", where)
-    if extras:
-        warnings.warn(extras, stacklevel=2)
     rec = np.empty(len(c), RECORD)
     rec["position"] = c.means
     rec["scale"] = activate_scales(c.scales)

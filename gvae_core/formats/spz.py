@@ -61,7 +61,7 @@ import numpy as np
 from ..atomic import atomic_write
 from ..cloud import GaussianCloud
 from ..ply import PlyError, drop_nonfinite
-from ._codec import OPACITY_OF_CODE, byte_codes, dropped_extras, opacity_codes, refuse_nonfinite, round_half_away
+from ._codec import OPACITY_OF_CODE, byte_codes, opacity_codes, round_half_away, writable
 
 __all__ = ["read_spz", "write_spz", "SpzHeader", "WRITE_VERSION"]
 
@@ -364,11 +364,7 @@ def write_spz(cloud: GaussianCloud, path, *, version: int = WRITE_VERSION, sh1_b
         raise ValueError(f"write_spz: version must be 2, 3 or 4, not {version}")
     if not (1 <= sh1_bits <= 8 and 1 <= sh_rest_bits <= 8):
         raise ValueError(f"write_spz: SH bits must be 1..8, not {sh1_bits}, {sh_rest_bits}")
-    c = cloud.numpy()
-    refuse_nonfinite(c, where)
-    extras = dropped_extras(c, ".spz", where)
-    if extras:
-        warnings.warn(extras, stacklevel=2)
+    c = writable(cloud, ".spz", where)
     bits = _fractional_bits(c.means, where)
     header = SpzHeader(version, len(c), c.sh_degree, bits, 0)
     streams = _pack(c, header, sh1_bits, sh_rest_bits)

@@ -22,6 +22,8 @@ def setup(args: dict):
     os.makedirs(home, exist_ok=True)
     if args.get("block_torch"):
         sys.modules["torch"] = None  # as in a Blender without torch: `import torch` fails
+    if args.get("block_pillow"):
+        sys.modules["PIL"] = None  # as in Blender, which bundles no Pillow
     os.environ["HOME"] = home
     os.environ["BLENDER_USER_RESOURCES"] = os.path.join(home, "blender")
     import bpy
@@ -40,7 +42,8 @@ def counts(bpy) -> dict:
     return {"objects": sorted(o.name for o in bpy.data.objects),
             "meshes": sorted(m.name for m in bpy.data.meshes),
             "materials": sorted(m.name for m in bpy.data.materials),
-            "node_groups": sorted(g.name for g in bpy.data.node_groups)}
+            "node_groups": sorted(g.name for g in bpy.data.node_groups),
+            "images": sorted(i.name for i in bpy.data.images)}
 
 
 def evaluated(bpy, obj) -> dict:
@@ -110,18 +113,13 @@ def scenario_io(bpy, args: dict) -> dict:
     res["eval"] = evaluated(bpy, obj)
     np.savez(args["out"] + ".attrs.npz", **attributes(obj))
 
-    mod = obj.modifiers[0]
-    ids = {item.name: item.identifier for item in mod.node_group.interface.items_tree
-           if getattr(item, "in_out", None) == "INPUT"}
-    mod[ids["Display Fraction"]] = 0.5
+    _splat_inputs(obj, {"Display Fraction": 0.5})
     res["eval_half"] = evaluated(bpy, obj)
-    mod[ids["Display Fraction"]] = 1.0
-    mod[ids["Min Opacity"]] = 0.5
+    _splat_inputs(obj, {"Display Fraction": 1.0, "Min Opacity": 0.5})
     res["eval_opaque"] = evaluated(bpy, obj)
-    mod[ids["Min Opacity"]] = 0.0
-    mod[ids["Points Only"]] = True
+    _splat_inputs(obj, {"Min Opacity": 0.0, "Points Only": True})
     res["eval_points"] = evaluated(bpy, obj)
-    mod[ids["Points Only"]] = False
+    _splat_inputs(obj, {"Points Only": False})
 
     bpy.ops.export_scene.gaussian_splat(filepath=args["export"])
 
@@ -140,6 +138,20 @@ def scenario_io(bpy, args: dict) -> dict:
 
     bpy.ops.import_scene.gaussian_splat(filepath=args["ply"], axis_conversion="Y_DOWN")
     res["y_down_rotation"] = list(bpy.context.active_object.rotation_euler)
+
+    # The add-on finds sockets by name and type: Random Value's float output whichever its place,
+    # and a clear error for a socket the node does not have (Probability is its boolean mode's).
+    from bl_ext.user_default.gaussian_vae.gvae_addon import nodes
+
+    ng = bpy.data.node_groups.new("socket probe", "GeometryNodeTree")
+    rand = ng.nodes.new("FunctionNodeRandomValue")
+    rand.data_type = "FLOAT"
+    res["random_value"] = [nodes.socket(rand, "Value", "VALUE", output=True).identifier,
+                           [s.identifier for s in rand.outputs]]
+    try:
+        nodes.socket(rand, "Probability", "VALUE")
+    except LookupError as exc:
+        res["missing_socket"] = str(exc)
     return res
 
 
@@ -254,7 +266,15 @@ def scenario_refine_glue(bpy, args: dict) -> dict:
     n0 = len(obj.data.vertices)
     res["unavailable"] = failure(bpy, lambda: bpy.ops.gvae.refine(steps=1))
     res["unavailable_count"] = len(obj.data.vertices)
-    # 2. A refine that raises: reported, object unchanged.
+    # 2. A refine that raises: reported, object unchanged. Refine asks for PyTorch and safetensors
+    # before it calls gvae_core.refinement: where Blender's Python has none (Python 3.13 here), an
+    # empty placeholder module answers for each (the stand-in needs neither).
+    import importlib.util
+    import types
+
+    for module in ("torch", "safetensors"):
+        if importlib.util.find_spec(module) is None:
+            sys.modules[module] = types.ModuleType(f"{module} (test placeholder)")
     sys.modules["gvae_core.refinement"] = _stand_in_module(fail=True)
     res["failing"] = failure(bpy, lambda: bpy.ops.gvae.refine(steps=1))
     res["failing_count"] = len(obj.data.vertices)
@@ -282,13 +302,18 @@ def scenario_refine_glue(bpy, args: dict) -> dict:
 
 
 def scenario_install_package(bpy, args: dict) -> dict:
-    """The preferences' install button with a local wheel instead of torch (no network)."""
+    """The extension zip's bundled stand-in (`gvae_probe`, which says its wheel's Python), then the
+    preferences' install button with local wheels instead of torch (no network)."""
+    import gvae_probe
+
     from bl_ext.user_default.gaussian_vae.gvae_addon import runtime
 
     target = runtime.torch_dir()
     result = bpy.ops.gvae.install_torch(requirement=args["requirement"], pip_args=args["pip_args"])
-    return {"result": sorted(result), "target": target, "on_path": target in sys.path,
-            "listing": sorted(os.listdir(target)) if os.path.isdir(target) else []}
+    installed = os.path.join(target, "gvae_probe", "__init__.py")
+    return {"bundled": gvae_probe.PYTHON, "result": sorted(result), "target": target, "on_path": target in sys.path,
+            "listing": sorted(os.listdir(target)) if os.path.isdir(target) else [],
+            "installed": open(installed).read() if os.path.exists(installed) else None}
 
 
 def scenario_cycles(bpy, args: dict) -> dict:
@@ -326,12 +351,7 @@ def scenario_cycles(bpy, args: dict) -> dict:
     scene.render.image_settings.file_format = "OPEN_EXR"
     scene.render.image_settings.color_depth = "32"
     for tag, points in (("ellipsoids", False), ("points", True)):
-        mod = splat.modifiers[0]
-        ident = next(i.identifier for i in mod.node_group.interface.items_tree
-                     if getattr(i, "in_out", None) == "INPUT" and i.name == "Points Only")
-        mod[ident] = points
-        _splat_inputs(splat, {"Viewport Only": False})  # Points Only in the render too
-        splat.update_tag()
+        _splat_inputs(splat, {"Points Only": points, "Viewport Only": False})  # Points Only in the render too
         scene.render.filepath = os.path.join(os.path.dirname(args["out"]), f"{tag}.exr")
         bpy.ops.render.render(write_still=True)
         img = bpy.data.images.load(scene.render.filepath)
@@ -342,12 +362,13 @@ def scenario_cycles(bpy, args: dict) -> dict:
 
 
 def scenario_formats(bpy, args: dict) -> dict:
-    """File > Import of every splat format (one file at a time, then all at once), File > Export to .spz,
-    bad files of each format, and the drag-and-drop file handler's extensions."""
+    """File > Import of every splat format (one file at a time, then all at once; a SOG folder's
+    meta.json), File > Export to .spz and .sog, bad files of each format, and the drag-and-drop file
+    handler's extensions."""
     import numpy as np
 
     res: dict = {"imported": {}}
-    for name, path in args["files"].items():
+    for name, path in {**args["files"], "sog_folder": args["sog_folder"]}.items():
         before = counts(bpy)
         bpy.ops.import_scene.gaussian_splat(filepath=path)
         obj = bpy.context.active_object
@@ -362,6 +383,15 @@ def scenario_formats(bpy, args: dict) -> dict:
     res["export_spz_poll"] = bpy.ops.export_scene.gaussian_splat_spz.poll()
     res["export_spz"] = sorted(bpy.ops.export_scene.gaussian_splat_spz(filepath=args["export_spz"]))
     res["export_ply"] = sorted(bpy.ops.export_scene.gaussian_splat(filepath=args["export_ply"]))
+    sog_obj = bpy.data.objects[res["imported"]["sog"]["object"]]
+    spz_obj.select_set(False)
+    sog_obj.select_set(True)
+    bpy.context.view_layer.objects.active = sog_obj
+    images = counts(bpy)["images"]
+    res["export_sog"] = sorted(bpy.ops.export_scene.gaussian_splat_sog(filepath=args["export_sog"]))
+    np.savez(args["out"] + ".exported_sog_object.npz", **attributes(sog_obj))
+    res["images_left"] = sorted(set(counts(bpy)["images"]) - set(images))
+    res["images"] = counts(bpy)["images"]
     res["bad"] = {name: failure(bpy, lambda p=path: bpy.ops.import_scene.gaussian_splat(filepath=p))
                   for name, path in args["bad"].items()}
     files = [{"name": os.path.basename(p)} for p in args["files"].values()]
@@ -373,16 +403,28 @@ def scenario_formats(bpy, args: dict) -> dict:
     return res
 
 
+def _input_names(obj) -> list[str]:
+    return [item.name for item in obj.modifiers[0].node_group.interface.items_tree
+            if getattr(item, "in_out", None) == "INPUT"]
+
+
 def _splat_inputs(obj, values: dict) -> list[str]:
-    """Set inputs of the splat modifier by name; returns the names it does not have."""
-    mod = obj.modifiers[0]
-    ids = {item.name: item.identifier for item in mod.node_group.interface.items_tree
-           if getattr(item, "in_out", None) == "INPUT"}
+    """Set inputs of the splat modifier by name (through the add-on's accessor: where the values
+    live depends on the Blender version); returns the names it does not have."""
+    from bl_ext.user_default.gaussian_vae.gvae_addon import nodes
+
+    names = _input_names(obj)
     for name, value in values.items():
-        if name in ids:
-            mod[ids[name]] = value
+        if name in names:
+            nodes.set_modifier_input(obj.modifiers[0], name, value)
     obj.update_tag()
-    return [name for name in values if name not in ids]
+    return [name for name in values if name not in names]
+
+
+def _splat_input(obj, name: str):
+    from bl_ext.user_default.gaussian_vae.gvae_addon import nodes
+
+    return nodes.get_modifier_input(obj.modifiers[0], name)
 
 
 def _camera(bpy, args: dict):
@@ -429,9 +471,7 @@ def scenario_display(bpy, args: dict) -> dict:
         scene.cycles.transparent_max_bounces = scene.cycles.min_transparent_bounces = bounces
         scene.render.filepath = os.path.join(os.path.dirname(args["out"]), f"{variant['name']}.png")
         bpy.ops.render.render(write_still=True)
-    mod = obj.modifiers[0]
-    res["focal"] = next((mod[i.identifier] for i in mod.node_group.interface.items_tree
-                         if getattr(i, "in_out", None) == "INPUT" and i.name == "Focal Length (px)"), None)
+    res["focal"] = _splat_input(obj, "Focal Length (px)")
 
     # Import with Set Up Scene off into a scene that shows splats wrong: the scene is left as it
     # is, with a warning for each problem.
@@ -477,9 +517,9 @@ def scenario_display_nodes(bpy, args: dict) -> dict:
                 pc.attributes["gvae_alpha"].data.foreach_get("value", pts["gvae_alpha"])
         np.savez(args["out"] + f".{key}.npz", matrices=np.array(mats).reshape(-1, 4, 4),
                  **{k: v for k, v in (pts or {}).items()})
-        mod = obj.modifiers[0]
+        items = obj.modifiers[0].node_group.interface.items_tree
         res[key] = {"matrix_world": [list(r) for r in obj.matrix_world], "points": pts is not None,
-                    "inputs": {i.name: mod[i.identifier] for i in mod.node_group.interface.items_tree
+                    "inputs": {i.name: _splat_input(obj, i.name) for i in items
                                if getattr(i, "in_out", None) == "INPUT" and i.socket_type in
                                ("NodeSocketFloat", "NodeSocketBool", "NodeSocketInt")}}
         if "inradius" not in res:  # the icosphere of each Detail, in instance space
@@ -494,9 +534,7 @@ def scenario_display_nodes(bpy, args: dict) -> dict:
     # The focal length follows the render size and the camera (depsgraph handler).
     scene.render.resolution_percentage = 50
     bpy.context.evaluated_depsgraph_get().update()
-    mod = bpy.context.active_object.modifiers[0]
-    res["focal_half"] = next(mod[i.identifier] for i in mod.node_group.interface.items_tree
-                             if getattr(i, "in_out", None) == "INPUT" and i.name == "Focal Length (px)")
+    res["focal_half"] = _splat_input(bpy.context.active_object, "Focal Length (px)")
     return res
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gvae_core.ply import write_ply
-from tests.blender.conftest import run_scenario
+from tests.blender.conftest import requires_blender_torch, run_scenario
 from tests.blender.test_extension import make_cloud
 from tests.conftest import requires_bpy
 
@@ -17,6 +17,7 @@ pytestmark = requires_bpy
 
 def test_refine_job_progress_cancel_failure_and_modal_events(extension_zip, tmp_path):
     pytest.importorskip("torch", reason="the real refine needs PyTorch (an optional runtime in Blender)")
+    requires_blender_torch()
     from gvae_core.vae import GaussianVAE  # noqa: PLC0415 - after the check for torch
 
     n = 48
