@@ -389,6 +389,13 @@ class GVAE_OT_refine(JobOperator, Operator):
                 f"{info['seconds']:.2f} s" + back + _timing_text(info))
 
 
+#: Compact's removal choices and what its fine-tuning does (the operator and the panel's settings).
+REMOVAL_ITEMS = (("MERGE", "Merge", "Merge Gaussians into their neighbours (moments kept)"),
+                 ("PRUNE", "Prune", "Drop the Gaussians with the lowest scores"))
+DISTILL_DESCRIPTION = ("Fine-tune the result against the object's own renders for this many iterations a round "
+                       "(0: merge only; slower, keeps the picture closer)")
+
+
 class GVAE_OT_compact(JobOperator, Operator):
     """Remove the Gaussians the active splat object's picture does not need: merge them into their
     neighbours, the Hessian choosing which (needs PyTorch). Runs in the background: progress in
@@ -402,12 +409,8 @@ class GVAE_OT_compact(JobOperator, Operator):
                         description="Fraction of the Gaussians to keep")
     count: IntProperty(name="Count", default=0, min=0,
                        description="Number of Gaussians to keep (0: use Keep)")
-    removal: EnumProperty(name="Removal", default="MERGE",
-                          items=(("MERGE", "Merge", "Merge Gaussians into their neighbours (moments kept)"),
-                                 ("PRUNE", "Prune", "Drop the Gaussians with the lowest scores")))
-    distill: IntProperty(name="Fine-Tune Iterations", default=0, min=0,
-                         description="Fine-tune the result against the object's own renders for this many "
-                         "iterations a round (0: merge only; slower, keeps the picture closer)")
+    removal: EnumProperty(name="Removal", default="MERGE", items=REMOVAL_ITEMS)
+    distill: IntProperty(name="Fine-Tune Iterations", default=0, min=0, description=DISTILL_DESCRIPTION)
     seed: IntProperty(name="Seed", default=0, min=0, description="Random seed (repeatable runs)")
 
     def _job(self, context) -> CompactJob:

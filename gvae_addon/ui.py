@@ -29,12 +29,9 @@ class GVAE_Settings(PropertyGroup):
                                  "training resolution (off: keep everything, which measurably lowers quality)")
     compact_keep: FloatProperty(name="Keep", default=0.5, min=0.001, max=1.0, subtype="FACTOR",
                                 description="Fraction of the Gaussians Compact keeps")
-    compact_removal: EnumProperty(name="Removal", default="MERGE",
-                                  items=(("MERGE", "Merge", "Merge Gaussians into their neighbours (moments kept)"),
-                                         ("PRUNE", "Prune", "Drop the Gaussians with the lowest scores")))
+    compact_removal: EnumProperty(name="Removal", default="MERGE", items=refine_ops.REMOVAL_ITEMS)
     compact_distill: IntProperty(name="Fine-Tune Iterations", default=0, min=0,
-                                 description="Fine-tune the result against the object's own renders for this many "
-                                 "iterations a round (0: merge only; slower, keeps the picture closer)")
+                                 description=refine_ops.DISTILL_DESCRIPTION)
 
 
 class GVAE_PT_main(Panel):
