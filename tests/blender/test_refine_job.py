@@ -74,7 +74,10 @@ def test_compact_job_batch_button_and_undo(extension_zip, tmp_path):
     assert res["cancel"]["error"] == "Compact cancelled" and res["cancel_same"]
     assert "count must be between 1 and the input's 60" in res["bad"]["error"] and res["bad_same"]
     assert res["info"]["before"] == n and res["info"]["after"] == n // 2 and res["info"]["psnr"] > 10
-    assert {"Hessian", "removing", "comparing"} <= set(res["messages"]), res["messages"]
+    # progress while it ran (which parts a 50 ms poll catches depends on the machine), the summary last
+    assert res["messages"] and set(res["messages"]) <= {"starting", "scoring", "Hessian", "removing", "merging:",
+                                                        "comparing"}, res["messages"]
+    assert "60 Gaussians in, 30 out" in res["last_message"], res["last_message"]
     got = np.load(tmp_path / "compact_job.json.job.npz")
     assert len(got["position"]) == n // 2 and {"f_dc_0", "f_rest_8", "label", "big", "weight"} <= set(got.files)
     ids = np.ascontiguousarray(got["big"]).view(np.int64).ravel()  # (int64 is stored as two int32s)
