@@ -1,16 +1,18 @@
-"""Refine: run `gvae_core.refine` on the active splat object and write the result back into it.
+"""Refine and Compact: run `gvae_core.refine` / `gvae_core.compaction.compact` on the active splat
+object and write the result back into it.
 
-Refining a capture takes seconds to minutes, so the work runs as a job that keeps Blender alive:
-`RefineJob` reads the object's Gaussians on the main thread (`start`), refines them in a worker
-thread (torch releases the GIL while it computes), reports progress (`poll`), can be cancelled
-(`cancel`: the worker stops at its next progress report) and writes the result back on the main
-thread (`finish`), in one change, only if the refine succeeded and the object was not changed
-meanwhile. Nothing in the blend file changes on cancel or failure.
+Both take seconds to minutes on a capture, so the work runs as a job that keeps Blender alive:
+a `CoreJob` reads the object's Gaussians on the main thread (`start`), runs the core function in a
+worker thread (torch releases the GIL while it computes), reports progress (`poll`), can be
+cancelled (`cancel`: the worker stops at its next progress report) and writes the result back on
+the main thread (`finish`), in one change, only if the work succeeded and the object was not
+changed meanwhile. Nothing in the blend file changes on cancel or failure. `RefineJob` and
+`CompactJob` say only what to call and how to write its result.
 
-The operator drives the job two ways: `invoke` (the panel's button) starts it and returns to
-Blender, which calls `modal` on a timer: progress in the status bar and the panel, Esc cancels,
-one undo step on success. `execute` (scripts and `blender -b` batch runs) runs the same job and
-waits for it.
+The operators (`JobOperator`) drive a job two ways: `invoke` (the panel's button) starts it and
+returns to Blender, which calls `modal` on a timer: progress in the status bar and the panel, Esc
+cancels, one undo step on success. `execute` (scripts and `blender -b` batch runs) runs the same
+job and waits for it.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import time
 
 import bpy
 import numpy as np
-from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 from bpy.types import Operator
 
 from gvae_core.budget import DEFAULT_FIDELITY, parse_budget
@@ -30,49 +32,35 @@ from gvae_core.budget import DEFAULT_FIDELITY, parse_budget
 from . import convert, runtime
 
 
-class RefineCancelled(Exception):
+class JobCancelled(Exception):
     """Raised inside the worker (from its progress report) when the job is cancelled."""
 
 
-def _write_result(obj, cloud, result, old_steps) -> None:
-    """Replace the object's mesh by one holding the refined cloud, with a `gvae_step` attribute (0
-    for the original Gaussians, the refine step for added ones, counted on from an earlier refine)."""
-    out = result.cloud
-    n_in = len(cloud)
-    marks = np.zeros(len(out), np.int32)
-    if old_steps is not None:
-        marks[:n_in] = old_steps
-    base = 0 if old_steps is None else int(old_steps.max(initial=0))
-    marks[result.added] = base + result.step
-    old = obj.data
-    new = convert.mesh_from_cloud(out, old.name, steps=marks)
-    for mat in old.materials:
-        new.materials.append(mat)
-    obj.data = new
-    if old.users == 0:
-        bpy.data.meshes.remove(old)
+RefineCancelled = JobCancelled  # (the name the Refine job's callers knew first)
 
 
-class RefineJob:
-    """One refine of a splat object, in steps that need no window (the modal operator, `execute`
-    and the tests drive it the same way):
+class CoreJob:
+    """One run of a `gvae_core` function on a splat object, in steps that need no window (the modal
+    operator, `execute` and the tests drive it the same way):
 
     - `start()` (main thread): read the object's Gaussians, start the worker thread;
     - `poll()` (main thread, any time): (done, fraction, message);
     - `cancel()`: ask the worker to stop; it does at its next progress report;
     - `finish()` (main thread, once done): write the result into the object and return counts and
-      timings; raises RefineCancelled when cancelled, or the worker's error, leaving the object as
+      timings; raises JobCancelled when cancelled, or the worker's error, leaving the object as
       it was. Also refuses to write when the object was deleted or its mesh replaced meanwhile.
 
+    Subclasses set `label` and define `_load()` (the core function, imported on the main thread),
+    `_run(function, cloud, progress)` (in the worker) and `_write(obj)` / `_info()` (main thread).
     Only the worker thread runs torch: once the main thread has run torch's parallel loops, their
     idle OpenMP threads make the worker's twice as slow (measured on two cores).
     """
 
-    def __init__(self, obj, *, steps: int = 1, budget="auto", model=None, seed: int = 0,
-                 fidelity: float | None = DEFAULT_FIDELITY["detail"], refine=None):
+    label, participle = "Job", "worked on"
+
+    def __init__(self, obj, core=None):
         self.obj_name = obj.name
-        self.steps, self.budget, self.model, self.seed, self.fidelity = steps, budget, model, seed, fidelity
-        self._refine = refine
+        self._core = core
         self.fraction, self.message = 0.0, "starting"
         self.result = None
         self.info: dict | None = None
@@ -83,18 +71,19 @@ class RefineJob:
         self.started = self.ended = None
 
     # ------------------------------------------------------------------ main thread
-    def start(self) -> RefineJob:
+    def start(self) -> CoreJob:
         obj = bpy.data.objects.get(self.obj_name)
         if obj is None or not convert.is_splat(obj):
             raise ValueError(f"{self.obj_name!r} is not a splat object")
-        refine = self._refine or runtime.core_refine()  # imports torch: fails here, not in the worker
+        function = self._core or self._load()  # imports torch: fails here, not in the worker
         self.cloud, self.old_steps = convert.cloud_from_object(obj)
         if len(self.cloud) == 0:
-            raise ValueError(f"object {obj.name!r} has no Gaussians to refine")
+            raise ValueError(f"object {obj.name!r} has no Gaussians to {self.label.lower()}")
         self._mesh_pointer = obj.data.as_pointer()
         self._n_vertices = len(obj.data.vertices)
         self.started = time.perf_counter()
-        self._thread = threading.Thread(target=self._work, args=(refine,), name="gvae-refine", daemon=True)
+        self._thread = threading.Thread(target=self._work, args=(function,), name=f"gvae-{self.label.lower()}",
+                                        daemon=True)
         self._thread.start()
         return self
 
@@ -121,56 +110,134 @@ class RefineJob:
 
     def finish(self) -> dict:
         if not self.done:
-            raise RuntimeError("RefineJob.finish: the job is still running")
+            raise RuntimeError(f"{type(self).__name__}.finish: the job is still running")
         if self.info is not None:
             return self.info  # written already
         if self.error is not None:
             raise self.error
         if self.cancelled or self.result is None:
-            raise RefineCancelled("Refine cancelled")
+            raise JobCancelled(f"{self.label} cancelled")
         obj = bpy.data.objects.get(self.obj_name)
         if obj is None or obj.data is None or obj.data.as_pointer() != self._mesh_pointer \
                 or len(obj.data.vertices) != self._n_vertices:
-            raise RuntimeError(f"object {self.obj_name!r} was deleted or changed while it was being refined; "
-                               f"the result was not written")
-        _write_result(obj, self.cloud, self.result, self.old_steps)
-        r, n_in = self.result, len(self.cloud)
+            raise RuntimeError(f"object {self.obj_name!r} was deleted or changed while it was being "
+                               f"{self.participle}; the result was not written")
+        self._write(obj)
+        self.info = {"before": len(self.cloud), "seconds": self.ended - self.started, **self._info()}
         self.result = self.cloud = None  # the object holds it now
-        self.info = {"before": n_in, "after": len(r.cloud), "added": len(r.added), "timings": dict(r.timings),
-                     "seconds": self.ended - self.started, "selected": len(getattr(r, "selected", ())),
-                     "put_back": len(getattr(r, "reverted", ()))}
         return self.info
+
+    def _write(self, obj) -> None:
+        raise NotImplementedError
+
+    def _info(self) -> dict:
+        raise NotImplementedError
+
+    def _replace_mesh(self, obj, cloud, steps) -> None:
+        """Give the object a new mesh holding `cloud` (with `gvae_step` marks), materials kept."""
+        old = obj.data
+        new = convert.mesh_from_cloud(cloud, old.name, steps=steps)
+        for mat in old.materials:
+            new.materials.append(mat)
+        obj.data = new
+        if old.users == 0:
+            bpy.data.meshes.remove(old)
 
     # ------------------------------------------------------------------ worker thread
     def _progress(self, fraction: float, message: str = "") -> None:
         if self._cancel.is_set():
-            raise RefineCancelled("Refine cancelled")
+            raise JobCancelled(f"{self.label} cancelled")
         self.fraction = max(self.fraction, min(1.0, float(fraction)))
         self.message = message
 
-    def _work(self, refine) -> None:
+    def _work(self, function) -> None:
         try:
-            self.result = refine(self.cloud, steps=self.steps, budget=self.budget, model=self.model, seed=self.seed,
-                                 fidelity=self.fidelity, progress=self._progress)
-        except RefineCancelled:
+            self.result = self._run(function, self.cloud, self._progress)
+        except JobCancelled:
             self.result = None
         except BaseException as exc:  # reported on the main thread by finish()
             self.error = exc
         finally:
             self.ended = time.perf_counter()
 
+    def _load(self):
+        raise NotImplementedError
+
+    def _run(self, function, cloud, progress):
+        raise NotImplementedError
+
+
+class RefineJob(CoreJob):
+    """`gvae_core.refine` on a splat object; added Gaussians get `gvae_step` = their refine step
+    (counted on from an earlier refine), the original ones keep theirs (0 at first). `refine`: a
+    stand-in for the core function (tests)."""
+
+    label, participle = "Refine", "refined"
+
+    def __init__(self, obj, *, steps: int = 1, budget=None, model=None, seed: int = 0,
+                 fidelity: float | None = DEFAULT_FIDELITY["detail"], refine=None):
+        super().__init__(obj, refine)
+        self.steps, self.budget, self.model, self.seed, self.fidelity = steps, budget, model, seed, fidelity
+
+    def _load(self):
+        return runtime.core_refine()
+
+    def _run(self, refine, cloud, progress):
+        return refine(cloud, steps=self.steps, budget=self.budget, model=self.model, seed=self.seed,
+                      fidelity=self.fidelity, progress=progress)
+
+    def _write(self, obj) -> None:
+        r, n_in = self.result, len(self.cloud)
+        marks = np.zeros(len(r.cloud), np.int32)
+        if self.old_steps is not None:
+            marks[:n_in] = self.old_steps
+        base = 0 if self.old_steps is None else int(self.old_steps.max(initial=0))
+        marks[r.added] = base + r.step
+        self._replace_mesh(obj, r.cloud, marks)
+
+    def _info(self) -> dict:
+        r = self.result
+        return {"after": len(r.cloud), "added": len(r.added), "timings": dict(r.timings),
+                "selected": len(getattr(r, "selected", ())), "put_back": len(getattr(r, "reverted", ()))}
+
+
+class CompactJob(CoreJob):
+    """`gvae_core.compaction.compact` on a splat object (`keep` a fraction or `count` Gaussians,
+    scored from views placed around it); each remaining Gaussian keeps the `gvae_step` of the input
+    row it stands for. `compact`: a stand-in for the core function (tests)."""
+
+    label, participle = "Compact", "compacted"
+
+    def __init__(self, obj, *, keep: float | None = 0.5, count: int | None = None, removal: str = "merge",
+                 distill: int = 0, seed: int = 0, compact=None):
+        super().__init__(obj, compact)
+        self.keep, self.count, self.removal, self.distill, self.seed = keep, count, removal, distill, seed
+
+    def _load(self):
+        return runtime.core_compact()
+
+    def _run(self, compact, cloud, progress):
+        return compact(cloud, keep=self.keep, count=self.count, removal=self.removal, distill=self.distill,
+                       seed=self.seed, progress=progress)
+
+    def _write(self, obj) -> None:
+        r = self.result
+        marks = None if self.old_steps is None else np.asarray(self.old_steps)[r.rows]
+        self._replace_mesh(obj, r.cloud, marks)
+
+    def _info(self) -> dict:
+        r = self.result
+        return {"after": len(r.cloud), "psnr": float(r.psnr), "timings": dict(r.timings)}
+
 
 #: Jobs running now, by object name (the panel shows their progress; one job per object).
-RUNNING: dict[str, RefineJob] = {}
+RUNNING: dict[str, CoreJob] = {}
 
 
-def _report_text(info: dict) -> str:
+def _timing_text(info: dict) -> str:
     parts = ", ".join(f"{k} {v:.2f} s" for k, v in info["timings"].items()
                       if isinstance(v, (int, float)) and k != "total")
-    back = (f"; {info['put_back']} of {info['selected']} refined Gaussians put back by the fidelity check"
-            if info.get("put_back") else "")
-    return (f"Refine: {info['before']} -> {info['after']} Gaussians (+{info['added']}) in {info['seconds']:.2f} s"
-            + back + (f" ({parts})" if parts else ""))
+    return f" ({parts})" if parts else ""
 
 
 def _redraw(context) -> None:
@@ -180,43 +247,21 @@ def _redraw(context) -> None:
             area.tag_redraw()
 
 
-class GVAE_OT_refine(Operator):
-    """Add detail to the active splat object with GaussianVAE (needs PyTorch). Runs in the
-    background: progress in the status bar, Esc cancels"""
-
-    bl_idname = "gvae.refine"
-    bl_label = "Refine"
-    bl_options = {"REGISTER", "UNDO"}
-
-    steps: IntProperty(name="Steps", default=1, min=1, max=4,
-                       description="Resolution steps to extrapolate past the trained one")
-    budget: StringProperty(name="Budget", default="auto",
-                           description="'auto' (the Hessian score decides), 'all', a fraction of the "
-                           "Gaussians such as 0.25, or a count")
-    model: StringProperty(name="Model", default="", subtype="DIR_PATH",
-                          description="Model folder (config.json + weights); empty for the bundled model")
-    seed: IntProperty(name="Seed", default=0, min=0, description="Random seed (repeatable runs)")
-    fidelity_check: BoolProperty(name="Fidelity Check", default=True,
-                                 description="Put back what the models did wherever it changes the picture at the "
-                                 "training resolution (off: keep everything, which measurably lowers quality)")
-    fidelity: FloatProperty(name="Tolerance", default=DEFAULT_FIDELITY["detail"], min=0.0, max=1.0, precision=4,
-                            description="Largest colour change (0..1) a refined Gaussian may make at the "
-                            "training resolution")
+class JobOperator:
+    """What the job operators share (mixed in before `bpy.types.Operator`): `execute` runs the job
+    to the end (scripts, `blender -b`), `invoke` starts it and `modal` follows it (progress in the
+    status bar, Esc cancels, one undo step). Subclasses define `_job(context)` and `_report_text`."""
 
     @classmethod
     def poll(cls, context):
         obj = context.active_object
         return convert.is_splat(obj) and obj.name not in RUNNING
 
-    def _job(self, context) -> RefineJob:
-        budget = parse_budget(self.budget)
-        model = None
-        if self.model:
-            model = bpy.path.abspath(self.model)
-            if os.path.isfile(model):  # a file picked inside the model folder
-                model = os.path.dirname(model)
-        return RefineJob(context.active_object, steps=self.steps, budget=budget, model=model, seed=self.seed,
-                         fidelity=self.fidelity if self.fidelity_check else None)
+    def _job(self, context) -> CoreJob:
+        raise NotImplementedError
+
+    def _report_text(self, info: dict) -> str:
+        raise NotImplementedError
 
     def execute(self, context):
         """Blocking: scripts and batch runs (`blender -b`)."""
@@ -224,7 +269,7 @@ class GVAE_OT_refine(Operator):
         try:
             job = self._job(context).start()
         except Exception as exc:
-            self.report({"ERROR"}, f"Refine failed: {exc}")
+            self.report({"ERROR"}, f"{self.bl_label} failed: {exc}")
             return {"CANCELLED"}
         RUNNING[job.obj_name] = job
         wm.progress_begin(0.0, 1.0)
@@ -234,15 +279,15 @@ class GVAE_OT_refine(Operator):
                 wm.progress_update(job.fraction)
                 if bpy.app.background and job.message != shown:
                     shown = job.message
-                    print(f"gvae.refine: {100 * job.fraction:5.1f}% {job.message}", file=sys.stderr)
+                    print(f"{self.bl_idname}: {100 * job.fraction:5.1f}% {job.message}", file=sys.stderr)
             info = job.finish()
         except Exception as exc:
-            self.report({"ERROR"}, f"Refine failed: {exc}")
+            self.report({"ERROR"}, f"{self.bl_label} failed: {exc}")
             return {"CANCELLED"}
         finally:
             RUNNING.pop(job.obj_name, None)
             wm.progress_end()
-        self.report({"INFO"}, _report_text(info))
+        self.report({"INFO"}, self._report_text(info))
         return {"FINISHED"}
 
     def invoke(self, context, event):
@@ -253,7 +298,7 @@ class GVAE_OT_refine(Operator):
         try:
             self._running = self._job(context).start()
         except Exception as exc:
-            self.report({"ERROR"}, f"Refine failed: {exc}")
+            self.report({"ERROR"}, f"{self.bl_label} failed: {exc}")
             return {"CANCELLED"}
         RUNNING[self._running.obj_name] = self._running
         wm = context.window_manager
@@ -266,7 +311,7 @@ class GVAE_OT_refine(Operator):
     def _status(self, context) -> None:
         job = self._running
         context.workspace.status_text_set(
-            f"GaussianVAE Refine {job.obj_name}: {100 * job.fraction:.0f}% {job.message}   (Esc: cancel)")
+            f"GaussianVAE {job.label} {job.obj_name}: {100 * job.fraction:.0f}% {job.message}   (Esc: cancel)")
         context.window_manager.progress_update(job.fraction)
         _redraw(context)
 
@@ -290,13 +335,13 @@ class GVAE_OT_refine(Operator):
         self._end(context)
         try:
             info = job.finish()
-        except RefineCancelled:
-            self.report({"WARNING"}, "Refine cancelled; the object is unchanged")
+        except JobCancelled:
+            self.report({"WARNING"}, f"{job.label} cancelled; the object is unchanged")
             return {"CANCELLED"}
         except Exception as exc:
-            self.report({"ERROR"}, f"Refine failed: {exc}")
+            self.report({"ERROR"}, f"{job.label} failed: {exc}")
             return {"CANCELLED"}
-        self.report({"INFO"}, _report_text(info))
+        self.report({"INFO"}, self._report_text(info))
         return {"FINISHED"}
 
     def cancel(self, context):  # Blender closes the window or the file while the job runs
@@ -304,7 +349,82 @@ class GVAE_OT_refine(Operator):
         self._end(context)
 
 
-classes = (GVAE_OT_refine,)
+class GVAE_OT_refine(JobOperator, Operator):
+    """Add detail to the active splat object with GaussianVAE (needs PyTorch). Runs in the
+    background: progress in the status bar, Esc cancels"""
+
+    bl_idname = "gvae.refine"
+    bl_label = "Refine"
+    bl_options = {"REGISTER", "UNDO"}
+
+    steps: IntProperty(name="Octaves", default=1, min=1, max=4,
+                       description="Resolution doublings above the trained one that the refined Gaussians "
+                       "get detail for")
+    budget: StringProperty(name="Budget", default="",
+                           description="Which Gaussians to refine: empty for the model's default (all), 'auto' "
+                           "(the Hessian score decides), 'all', a fraction such as 0.25, or a count")
+    model: StringProperty(name="Model", default="", subtype="DIR_PATH",
+                          description="Model folder (config.json + weights); empty for the bundled model")
+    seed: IntProperty(name="Seed", default=0, min=0, description="Random seed (repeatable runs)")
+    fidelity_check: BoolProperty(name="Fidelity Check", default=True,
+                                 description="Put back what the models did wherever it changes the picture at the "
+                                 "training resolution (off: keep everything, which measurably lowers quality)")
+    fidelity: FloatProperty(name="Tolerance", default=DEFAULT_FIDELITY["detail"], min=0.0, max=1.0, precision=4,
+                            description="Largest colour change (0..1) a refined Gaussian may make at the "
+                            "training resolution")
+
+    def _job(self, context) -> RefineJob:
+        budget = parse_budget(self.budget) if self.budget.strip() else None
+        model = None
+        if self.model:
+            model = bpy.path.abspath(self.model)
+            if os.path.isfile(model):  # a file picked inside the model folder
+                model = os.path.dirname(model)
+        return RefineJob(context.active_object, steps=self.steps, budget=budget, model=model, seed=self.seed,
+                         fidelity=self.fidelity if self.fidelity_check else None)
+
+    def _report_text(self, info: dict) -> str:
+        back = (f"; {info['put_back']} of {info['selected']} refined Gaussians put back by the fidelity check"
+                if info.get("put_back") else "")
+        return (f"Refine: {info['before']} -> {info['after']} Gaussians (+{info['added']}) in "
+                f"{info['seconds']:.2f} s" + back + _timing_text(info))
+
+
+#: Compact's removal choices and what its fine-tuning does (the operator and the panel's settings).
+REMOVAL_ITEMS = (("MERGE", "Merge", "Merge Gaussians into their neighbours (moments kept)"),
+                 ("PRUNE", "Prune", "Drop the Gaussians with the lowest scores"))
+DISTILL_DESCRIPTION = ("Fine-tune the result against the object's own renders for this many iterations a round "
+                       "(0: merge only; slower, keeps the picture closer)")
+
+
+class GVAE_OT_compact(JobOperator, Operator):
+    """Remove the Gaussians the active splat object's picture does not need: merge them into their
+    neighbours, the Hessian choosing which (needs PyTorch). Runs in the background: progress in
+    the status bar, Esc cancels"""
+
+    bl_idname = "gvae.compact"
+    bl_label = "Compact"
+    bl_options = {"REGISTER", "UNDO"}
+
+    keep: FloatProperty(name="Keep", default=0.5, min=0.0001, max=1.0, subtype="FACTOR",
+                        description="Fraction of the Gaussians to keep")
+    count: IntProperty(name="Count", default=0, min=0,
+                       description="Number of Gaussians to keep (0: use Keep)")
+    removal: EnumProperty(name="Removal", default="MERGE", items=REMOVAL_ITEMS)
+    distill: IntProperty(name="Fine-Tune Iterations", default=0, min=0, description=DISTILL_DESCRIPTION)
+    seed: IntProperty(name="Seed", default=0, min=0, description="Random seed (repeatable runs)")
+
+    def _job(self, context) -> CompactJob:
+        return CompactJob(context.active_object, keep=None if self.count else self.keep, count=self.count or None,
+                          removal=self.removal.lower(), distill=self.distill, seed=self.seed)
+
+    def _report_text(self, info: dict) -> str:
+        return (f"Compact: {info['before']} -> {info['after']} Gaussians ({info['after'] / max(info['before'], 1):.0%})"
+                f" in {info['seconds']:.2f} s; PSNR against the input's render {info['psnr']:.2f} dB"
+                + _timing_text(info))
+
+
+classes = (GVAE_OT_refine, GVAE_OT_compact)
 
 
 def register():

@@ -78,28 +78,41 @@ def runtime_installed() -> bool:
     return torch_available() and _has_module("safetensors")
 
 
-def refine_status() -> tuple[bool, str]:
-    """(available, message) for Refine, without importing torch."""
-    if not _has_module("gvae_core.refinement"):
-        return False, "Refine is not in this build: gvae_core.refinement is missing"
+def refine_status(module: str = "gvae_core.refinement", label: str = "Refine") -> tuple[bool, str]:
+    """(available, message) for Refine (or the job `label` that `module` runs), without importing torch."""
+    if not _has_module(module):
+        return False, f"{label} is not in this build: {module} is missing"
     if not torch_available():
-        return False, "Refine needs PyTorch: install it in the add-on preferences"
+        return False, f"{label} needs PyTorch: install it in the add-on preferences"
     if not _has_module("safetensors"):
-        return False, "Refine needs safetensors: use Install PyTorch in the add-on preferences"
-    return True, "Refine is ready"
+        return False, f"{label} needs safetensors: use Install PyTorch in the add-on preferences"
+    return True, f"{label} is ready"
+
+
+#: The core module Compact runs (what `refine_status(COMPACT_MODULE, "Compact")` looks for).
+COMPACT_MODULE = "gvae_core.compaction"
 
 
 def core_refine():
     """`gvae_core.refinement.refine`, imported on first use (this imports torch). Raises RuntimeError
     with a user-facing message when it cannot be imported."""
-    ok, message = refine_status()
+    return _core("gvae_core.refinement", "refine", "Refine")
+
+
+def core_compact():
+    """`gvae_core.compaction.compact`, imported on first use (this imports torch), as `core_refine`."""
+    return _core(COMPACT_MODULE, "compact", "Compact")
+
+
+def _core(module_name: str, function: str, label: str):
+    ok, message = refine_status(module_name, label)
     if not ok:
         raise RuntimeError(message)
     try:
-        module = importlib.import_module("gvae_core.refinement")
+        module = importlib.import_module(module_name)
     except ImportError as exc:
-        raise RuntimeError(f"Refine could not be loaded: {exc}") from exc
-    return module.refine
+        raise RuntimeError(f"{label} could not be loaded: {exc}") from exc
+    return getattr(module, function)
 
 
 def pip_install_command(target: str, requirements: tuple[str, ...] = REFINE_REQUIREMENTS,

@@ -1,4 +1,4 @@
-"""Sidebar (N-panel) tab "GaussianVAE" in the 3D viewport: display options, Refine, import/export."""
+"""Sidebar (N-panel) tab "GaussianVAE" in the 3D viewport: display options, Refine, Compact, import/export."""
 
 from __future__ import annotations
 
@@ -10,14 +10,17 @@ from . import convert, nodes, refine_ops, runtime
 
 
 class GVAE_Settings(PropertyGroup):
-    """Refine settings kept with the scene (the panel passes them to `gvae.refine`)."""
+    """Refine and Compact settings kept with the scene (the panels pass them to `gvae.refine` and
+    `gvae.compact`)."""
 
-    steps: IntProperty(name="Steps", default=1, min=1, max=4,
-                       description="Resolution steps to extrapolate past the trained one")
-    budget_auto: BoolProperty(name="Auto Budget", default=True,
-                              description="Let the Hessian score decide which Gaussians to densify")
+    steps: IntProperty(name="Octaves", default=1, min=1, max=4,
+                       description="Resolution doublings above the trained one that the refined Gaussians "
+                       "get detail for")
+    budget_auto: BoolProperty(name="All Gaussians", default=True,
+                              description="Refine every Gaussian (the model's default); off: only the fraction "
+                              "with the highest Hessian scores")
     budget_fraction: FloatProperty(name="Budget", default=0.25, min=0.001, max=1.0, subtype="FACTOR",
-                                   description="Fraction of Gaussians densified (the highest Hessian scores)")
+                                   description="Fraction of Gaussians refined (the highest Hessian scores)")
     model_source: EnumProperty(name="Model", default="BUNDLED",
                                items=(("BUNDLED", "Bundled", "The model shipped with the extension"),
                                       ("FILE", "Folder", "A model folder (config.json + weights)")))
@@ -26,6 +29,11 @@ class GVAE_Settings(PropertyGroup):
     fidelity_check: BoolProperty(name="Fidelity Check", default=True,
                                  description="Put back what the models did wherever it changes the picture at the "
                                  "training resolution (off: keep everything, which measurably lowers quality)")
+    compact_keep: FloatProperty(name="Keep", default=0.5, min=0.001, max=1.0, subtype="FACTOR",
+                                description="Fraction of the Gaussians Compact keeps")
+    compact_removal: EnumProperty(name="Removal", default="MERGE", items=refine_ops.REMOVAL_ITEMS)
+    compact_distill: IntProperty(name="Fine-Tune Iterations", default=0, min=0,
+                                 description=refine_ops.DISTILL_DESCRIPTION)
 
 
 class GVAE_PT_main(Panel):
@@ -69,17 +77,23 @@ class GVAE_PT_display(Panel):
             layout.prop(*nodes.modifier_input(mod, name), text=name)
 
 
-class GVAE_PT_refine(Panel):
-    bl_label = "Refine"
+class _JobPanel(Panel):
+    """A sub-panel that runs a job on the active splat object: its settings, then the job's
+    progress while one runs on the object, else the button (greyed out, with the install button
+    above, while PyTorch is missing) and a note on what it does. Subclasses set `operator`, `icon`,
+    `note`, `module` (the core module it needs) and define `_settings(col, settings, obj)` and
+    `_fill(op, settings)`."""
+
     bl_parent_id = "GVAE_PT_main"
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "GaussianVAE"
+    operator, icon, note, module = "", "NONE", (), "gvae_core.refinement"
 
     def draw(self, context):
         layout = self.layout
         settings = context.scene.gvae
-        ok, message = runtime.refine_status()
+        ok, message = runtime.refine_status(self.module, self.bl_label)
         if not ok:
             box = layout.box()
             box.label(text=message, icon="ERROR")
@@ -87,6 +101,52 @@ class GVAE_PT_refine(Panel):
                 box.operator("gvae.install_torch", text="Install PyTorch (CPU)", icon="IMPORT")
         col = layout.column()
         col.use_property_split = True
+        obj = context.active_object
+        self._settings(col, settings, obj)
+        job = refine_ops.RUNNING.get(obj.name) if obj is not None else None
+        if job is not None:
+            layout.progress(factor=job.fraction, type="BAR", text=f"{100 * job.fraction:.0f}% {job.message}")
+            layout.label(text=f"{job.label} running in the background (Esc: cancel)", icon="TIME")
+            return
+        row = layout.row()
+        row.enabled = ok and convert.is_splat(obj)
+        row.scale_y = 1.4
+        self._fill(row.operator(self.operator, icon=self.icon), settings)
+        box = layout.box().column(align=True)
+        for line in self.note:
+            box.label(text=line)
+
+    def _settings(self, col, settings, obj) -> None:
+        raise NotImplementedError
+
+    def _fill(self, op, settings) -> None:
+        raise NotImplementedError
+
+
+#: What Refine does and does not do (README, "What to expect"), under its button.
+REFINE_NOTE = (
+    "Resizes each Gaussian for viewing above its",
+    "training resolution, from how it changed while",
+    "training; the training-resolution picture stays.",
+    "Held-out scenes: +0.25 dB at 2x, short of the",
+    "oracle's +0.5 (README: What to expect).",
+)
+
+#: What Compact does (README, "Compaction"), under its button.
+COMPACT_NOTE = (
+    "Drops what no view sees and merges the rest",
+    "pairwise, the Hessian choosing which: scored",
+    "from views placed around the object; then, with",
+    "Fine-Tune Iterations, fine-tunes against the",
+    "object's own renders (README: Compaction).",
+)
+
+
+class GVAE_PT_refine(_JobPanel):
+    bl_label = "Refine"
+    operator, icon, note = "gvae.refine", "SHADERFX", REFINE_NOTE
+
+    def _settings(self, col, settings, obj) -> None:
         col.prop(settings, "steps")
         col.prop(settings, "budget_auto")
         sub = col.column()
@@ -97,37 +157,34 @@ class GVAE_PT_refine(Panel):
             col.prop(settings, "model_path")
         col.prop(settings, "seed")
         col.prop(settings, "fidelity_check")
-        obj = context.active_object
-        job = refine_ops.RUNNING.get(obj.name) if obj is not None else None
-        if job is not None:
-            layout.progress(factor=job.fraction, type="BAR", text=f"{100 * job.fraction:.0f}% {job.message}")
-            layout.label(text="Refining in the background (Esc: cancel)", icon="TIME")
-            return
-        row = layout.row()
-        row.enabled = ok and convert.is_splat(obj)
-        row.scale_y = 1.4
-        op = row.operator("gvae.refine", icon="SHADERFX")
+
+    def _fill(self, op, settings) -> None:
         op.steps = settings.steps
-        op.budget = "auto" if settings.budget_auto else f"{settings.budget_fraction:.6g}"
+        op.budget = "" if settings.budget_auto else f"{settings.budget_fraction:.6g}"
         op.model = settings.model_path if settings.model_source == "FILE" else ""
         op.seed = settings.seed
         op.fidelity_check = settings.fidelity_check
-        box = layout.box().column(align=True)
-        for line in REFINE_NOTE:
-            box.label(text=line)
 
 
-#: What Refine does and does not do (README, "What to expect"), under its button.
-REFINE_NOTE = (
-    "Adds Gaussians for viewing above the training",
-    "resolution; lineages that change the picture at",
-    "that resolution are put back as they were.",
-    "Measured on held-out scenes: no sharper than the",
-    "unrefined splat at 2x (README: What to expect).",
-)
+class GVAE_PT_compact(_JobPanel):
+    bl_label = "Compact"
+    operator, icon, note, module = "gvae.compact", "MOD_DECIM", COMPACT_NOTE, runtime.COMPACT_MODULE
+
+    def _settings(self, col, settings, obj) -> None:
+        col.prop(settings, "compact_keep")
+        col.prop(settings, "compact_removal")
+        col.prop(settings, "compact_distill")
+        if convert.is_splat(obj):
+            n = len(obj.data.vertices)
+            col.label(text=f"{n:,} -> {max(1, round(settings.compact_keep * n)):,} Gaussians")
+
+    def _fill(self, op, settings) -> None:
+        op.keep = settings.compact_keep
+        op.removal = settings.compact_removal
+        op.distill = settings.compact_distill
 
 
-classes = (GVAE_Settings, GVAE_PT_main, GVAE_PT_display, GVAE_PT_refine)
+classes = (GVAE_Settings, GVAE_PT_main, GVAE_PT_display, GVAE_PT_refine, GVAE_PT_compact)
 
 
 def register():

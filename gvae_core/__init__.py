@@ -1,7 +1,7 @@
 """GaussianVAE core: Blender-free, importable without torch.
 
 `import gvae_core` and the numpy parts (clouds, PLY, cameras, datasets) never import torch; the
-torch-based stages (render, train, lineage, vae, hessian, refine, metrics) load on first use.
+torch-based stages (render, train, lineage, vae, hessian, refine, compact, metrics) load on first use.
 """
 
 from __future__ import annotations
@@ -31,6 +31,8 @@ _LAZY = {
     "hessian_scores": "gvae_core.hessian",
     "refine": "gvae_core.refinement",
     "RefineResult": "gvae_core.refinement",
+    "compact": "gvae_core.compaction",
+    "CompactResult": "gvae_core.compaction",
     "train_progressive": "gvae_core.train",
     "TrainConfig": "gvae_core.train",
     "TrainResult": "gvae_core.train",

@@ -35,10 +35,10 @@ from PIL import Image, UnidentifiedImageError
 
 from .camera import Camera
 from .cloud import GaussianCloud
-from .datasets import DatasetError, read_transforms
+from .datasets import DatasetError, Views, load_nerf_synthetic, read_transforms, resize_area
 
-__all__ = ["load_cameras", "read_colmap_cameras", "COLMAP_MODELS", "scoring_views", "default_views",
-           "surround_radius", "DEFAULT_VIEWS", "DEFAULT_RESOLUTION"]
+__all__ = ["load_cameras", "load_capture_images", "read_colmap_cameras", "COLMAP_MODELS", "scoring_views",
+           "default_views", "surround_radius", "DEFAULT_VIEWS", "DEFAULT_RESOLUTION"]
 
 #: COLMAP camera models: id -> (name, number of parameters).
 COLMAP_MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5),
@@ -59,12 +59,19 @@ _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".webp", ".JPG", ".PNG", ".J
 def load_cameras(path) -> list[Camera]:
     """The capture's cameras from a `transforms*.json` file, a COLMAP sparse model folder (binary
     or text) or one of its files; see the module docstring."""
-    path = Path(path)
+    kind, found = _find_capture(Path(path))
+    if kind == "json":
+        return _load_transforms(found)
+    return _colmap_images(found[1], read_colmap_cameras(found[0]))[0]
+
+
+def _find_capture(path: Path):
+    """("json", the transforms file) or ("colmap", (cameras file, images file)) that `path` names."""
     if not path.exists():
         raise DatasetError(f"{path}: no such file or folder (expected a transforms*.json file or a COLMAP "
                            f"sparse model)")
     if path.is_file() and path.suffix.lower() == ".json":
-        return _load_transforms(path)
+        return "json", path
     folder = path if path.is_dir() else path.parent
     if path.is_dir() and not _colmap_files(folder):
         for sub in ("sparse/0", "sparse", "colmap/sparse/0", "distorted/sparse/0"):
@@ -74,17 +81,60 @@ def load_cameras(path) -> list[Camera]:
         else:
             found = sorted(folder.glob("transforms*.json"))
             if len(found) == 1 or (folder / "transforms.json").is_file():
-                return _load_transforms(folder / "transforms.json" if (folder / "transforms.json").is_file()
-                                        else found[0])
+                return "json", (folder / "transforms.json" if (folder / "transforms.json").is_file() else found[0])
             raise DatasetError(f"{path}: no cameras found (no transforms*.json and no COLMAP cameras/images "
                                f".bin or .txt)")
     files = _colmap_files(folder)
     if not files:
         raise DatasetError(f"{path}: not a COLMAP sparse model (needs cameras.bin and images.bin, or cameras.txt "
                            f"and images.txt, in {folder})")
-    cams_file, images_file = files
-    intrinsics = read_colmap_cameras(cams_file)
-    return _colmap_images(images_file, intrinsics)
+    return "colmap", files
+
+
+def load_capture_images(path, resolution: int | None = None) -> Views:
+    """A capture's training images with their cameras, for fine-tuning a cloud trained from it:
+    a NeRF-Synthetic folder (`transforms_train.json` and its images, `datasets.load_nerf_synthetic`)
+    or a COLMAP capture (its sparse model, as `load_cameras` finds it, and the images it names in
+    the `images` folder beside the model, read as RGB with alpha 1), scaled to `resolution` pixels
+    high (None: as stored; never up for COLMAP images, whose cameras are scaled to each image's
+    size first). Raises DatasetError naming the file that is missing or unreadable."""
+    path = Path(path)
+    if resolution is not None and int(resolution) <= 0:
+        raise ValueError(f"capture images: resolution must be a positive height, got {resolution}")
+    if path.is_dir() and (path / "transforms_train.json").is_file():
+        return load_nerf_synthetic(path, "train", resolution)
+    if path.is_file() and path.name.startswith("transforms_") and path.suffix == ".json":
+        return load_nerf_synthetic(path.parent, path.stem[len("transforms_"):], resolution)
+    kind, found = _find_capture(path)
+    if kind == "json":
+        raise DatasetError(f"{found}: images are read from NeRF-Synthetic folders (transforms_train.json) or "
+                           f"COLMAP captures")
+    cams, names = _colmap_images(found[1], read_colmap_cameras(found[0]))
+    folder = next((d / "images" for d in (found[0].parent, *found[0].parents[:3]) if (d / "images").is_dir()), None)
+    if folder is None:
+        raise DatasetError(f"{found[0].parent}: no 'images' folder beside the COLMAP model")
+    images, out_cams = [], []
+    for cam, name in zip(cams, names):
+        file = folder / name
+        if not file.is_file():
+            raise DatasetError(f"{file}: image not found (named in {found[1]})")
+        try:
+            with Image.open(file) as im:
+                rgb = np.asarray(im.convert("RGB"), np.float32) / 255.0
+        except (UnidentifiedImageError, OSError, ValueError) as exc:
+            raise DatasetError(f"{file}: cannot read image: {exc}") from None
+        if rgb.shape[:2] != (cam.height, cam.width):  # a downscaled copy of the images: scale the camera
+            cam = cam.scaled(rgb.shape[0])
+        height = cam.height if resolution is None else min(int(resolution), cam.height)
+        if height != cam.height:
+            cam = cam.scaled(height)
+            rgb = resize_area(rgb, cam.height, cam.width)
+        if images and rgb.shape != images[0].shape:
+            raise DatasetError(f"{file}: size {rgb.shape[1]}x{rgb.shape[0]} differs from the first image's "
+                               f"{images[0].shape[1]}x{images[0].shape[0]} (one camera size per capture)")
+        images.append(rgb)
+        out_cams.append(cam)
+    return Views(out_cams, np.stack(images), None, [Path(n).stem for n in names])
 
 
 def _colmap_files(folder: Path):
@@ -355,8 +405,8 @@ def _camera(path: Path, what: str, q, t, intr) -> Camera:
         raise DatasetError(f"{path}: {what}: {exc}") from None
 
 
-def _colmap_images(path: Path, intrinsics: dict) -> list[Camera]:
-    """COLMAP `images.bin` or `images.txt` as cameras, in image-id order."""
+def _colmap_images(path: Path, intrinsics: dict) -> tuple[list[Camera], list[str]]:
+    """COLMAP `images.bin` or `images.txt` as cameras, and their image names, in image-id order."""
     cam_file = path.with_name("cameras" + path.suffix)
     warned: set = set()
     found: list[tuple[int, Camera]] = []
@@ -369,7 +419,7 @@ def _colmap_images(path: Path, intrinsics: dict) -> list[Camera]:
             (points,) = r.read("Q", f"the point count of image {image_id}")
             r.skip(24 * points, f"the points of image {image_id}")
             intr = _pinhole(cam_file, cam_id, intrinsics, warned)
-            found.append((image_id, _camera(path, f"image {image_id} ({name})", pose[:4], pose[4:], intr)))
+            found.append((image_id, _camera(path, f"image {image_id} ({name})", pose[:4], pose[4:], intr), name))
         if r.pos != len(r.data):
             raise DatasetError(f"{path}: corrupt: {len(r.data) - r.pos} bytes after the last of {count} images")
     else:
@@ -391,18 +441,19 @@ def _colmap_images(path: Path, intrinsics: dict) -> list[Camera]:
             if parsed is None:
                 raise DatasetError(f"{path}: line {lineno}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, got "
                                    f"{line[:80]!r}")
-            image_id, pose, cam_id = parsed
+            image_id, pose, cam_id, name = parsed
             if i < len(lines) and _pose_line(lines[i][1]) is None:
                 i += 1  # its points line
             intr = _pinhole(cam_file, cam_id, intrinsics, warned)
-            found.append((image_id, _camera(path, f"line {lineno}", pose[:4], pose[4:], intr)))
+            found.append((image_id, _camera(path, f"line {lineno}", pose[:4], pose[4:], intr), name))
     if not found:
         raise DatasetError(f"{path}: no images")
-    return [cam for _, cam in sorted(found, key=lambda item: item[0])]
+    found.sort(key=lambda item: item[0])
+    return [cam for _, cam, _ in found], [name for _, _, name in found]
 
 
 def _pose_line(line: str):
-    """(image id, 7 pose numbers, camera id) of an images.txt pose line, else None."""
+    """(image id, 7 pose numbers, camera id, image name) of an images.txt pose line, else None."""
     parts = line.split()
     if len(parts) < 10:
         return None
@@ -416,7 +467,7 @@ def _pose_line(line: str):
         float(name)
         return None  # all numbers: a points line
     except ValueError:
-        return image_id, pose, cam_id
+        return image_id, pose, cam_id, name
 
 
 # ------------------------------------------------------------------------- transforms.json

@@ -23,7 +23,7 @@ from collections.abc import Iterator
 from .conventions import SH_REST_COUNTS
 
 __all__ = ["NotEnoughMemoryError", "available_memory", "estimate_refine_memory", "check_refine_memory",
-           "reuse_freed_memory"]
+           "estimate_compact_memory", "check_compact_memory", "reuse_freed_memory"]
 
 #: Bytes of the Python process with torch and the models loaded, before any cloud.
 BASE_BYTES = 600 << 20
@@ -46,8 +46,15 @@ DETAIL_PER_GAUSSIAN = 1000
 #: (3.1 GiB for 1M before scoring, when half the cloud is the most 'auto' can select).
 
 
+#: Bytes per Gaussian of a compaction's merging, per neighbour in its graph (edge ends, costs and
+#: the per-edge 3x3 temporaries of the cost), and per Gaussian (moments: mass, centre, covariance).
+MERGE_PER_EDGE = 260
+MERGE_PER_GAUSSIAN = 400
+
+
 class NotEnoughMemoryError(ValueError):
-    """A refine that would need more memory than the machine has free (the message says how much)."""
+    """A refine or compaction that would need more memory than the machine has free (the message
+    says how much)."""
 
 
 def available_memory() -> int | None:
@@ -113,14 +120,39 @@ def _gib(b: int) -> str:
 def check_refine_memory(n: int, sh_degree: int = 3, **kwargs) -> int:
     """The estimate of `estimate_refine_memory`; raises NotEnoughMemoryError when it exceeds the
     memory available now (skipped where that cannot be told)."""
-    need = estimate_refine_memory(n, sh_degree, **kwargs)
+    return _check(estimate_refine_memory(n, sh_degree, **kwargs), f"refining {n:,} Gaussians (SH degree {sh_degree})",
+                  "refine a smaller part of the cloud (or a lower SH degree), use a smaller budget or fewer/smaller "
+                  "Hessian views")
+
+
+def _check(need: int, what: str, advice: str) -> int:
+    """`need` bytes, or NotEnoughMemoryError when that is more than is available now."""
     free = available_memory()
     if free is not None and need > free:
-        raise NotEnoughMemoryError(
-            f"refining {n:,} Gaussians (SH degree {sh_degree}) needs about {_gib(need)} of memory, but only "
-            f"{_gib(free)} is available; refine a smaller part of the cloud (or a lower SH degree), use a smaller "
-            f"budget or fewer/smaller Hessian views, or close other programs")
+        raise NotEnoughMemoryError(f"{what} needs about {_gib(need)} of memory, but only {_gib(free)} is available; "
+                                   f"{advice}, or close other programs")
     return need
+
+
+def estimate_compact_memory(n: int, sh_degree: int = 3, *, extra_values: int = 0, views: int = 4,
+                            resolution: int = 256, width: int | None = None, neighbours: int = 4) -> int:
+    """Estimated peak bytes of `compact` on `n` Gaussians: the input and output clouds, then the
+    larger of the Hessian scoring (as for a refine) and the merging over a graph of `neighbours`
+    edges a Gaussian."""
+    k = SH_REST_COUNTS[min(int(sh_degree), 3)]
+    values = 14 + 3 * k + int(extra_values)
+    pixels = int(resolution) * int(width or resolution)
+    hessian = n * HESSIAN_PER_GAUSSIAN + int(views) * pixels * HESSIAN_PER_PIXEL // 4
+    merge = n * (MERGE_PER_GAUSSIAN + int(neighbours) * MERGE_PER_EDGE)
+    return int(BASE_BYTES + n * values * PER_VALUE + max(hessian, merge))
+
+
+def check_compact_memory(n: int, sh_degree: int = 3, **kwargs) -> int:
+    """The estimate of `estimate_compact_memory`; raises NotEnoughMemoryError when it exceeds the
+    memory available now (skipped where that cannot be told)."""
+    return _check(estimate_compact_memory(n, sh_degree, **kwargs),
+                  f"compacting {n:,} Gaussians (SH degree {sh_degree})",
+                  "compact a smaller part of the cloud or use fewer/smaller scoring views")
 
 
 # glibc's mallopt parameters (malloc.h)

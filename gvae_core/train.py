@@ -499,47 +499,15 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         targets = _targets(train_views, bg).to(device)
         cams = train_views.cameras
         n_iter = sched["iterations"]
-        counts = {"cloned": 0, "split": 0, "pruned": 0}
         reset_ok = _reset_peak_rss()
         rss_before = _peak_rss_mb()
         rss_start = _current_rss_mb()
-        order: list[int] = []
         bar = _progress_bar(n_iter, f"stage {s + 1}/{len(config.resolutions)} {height}px", progress)
         t0, c0 = time.perf_counter(), time.process_time()
-        filt = _model_filter(model, cams) if config.antialias == "mip" else None
-        for it in range(1, n_iter + 1):
-            model.set_lr("means", position_lr(config, extent, it - 1, n_iter))
-            degree = config.sh_degree_at(global_iter)
-            if not order:
-                order = list(rng.permutation(len(cams)))
-            v = int(order.pop())
-            current = model.cloud() if filt is None else model.cloud().replace(extra={FILTER_KEY: filt})
-            result = render(current, cams[v], background=bg, sh_degree=degree, settings=settings)
-            means2d = result.means2d
-            if means2d.requires_grad:
-                means2d.retain_grad()
-            loss = photometric_loss(result.image, targets[v], config.lambda_dssim)
-            loss.backward()
-            with torch.no_grad():
-                grad2d = means2d.grad if means2d.grad is not None else torch.zeros_like(means2d)
-                model.add_stats(grad2d, result.visible, result.radii, cams[v].width, cams[v].height)
-                model.optimizer.step()
-                model.optimizer.zero_grad(set_to_none=True)
-                if sched["densify_from"] <= it <= sched["densify_until"]:
-                    if it % sched["densify_every"] == 0 and it < n_iter:
-                        done = strategy.densify_and_prune(model, gen, image_height=height,
-                                                          prune_large=it > sched["opacity_reset_every"])
-                        for k in counts:
-                            counts[k] += done[k]
-                    if it % sched["opacity_reset_every"] == 0 and it < sched["densify_until"]:
-                        model.reset_opacity(config.reset_opacity_value)
-                if filt is not None and (it % sched["densify_every"] == 0 or len(filt) != len(model)):
-                    filt = _model_filter(model, cams)  # after densification, and as the centres move
-            global_iter += 1
-            if bar is not None and (it % 10 == 0 or it == n_iter):
-                bar.set_postfix(loss=f"{float(loss):.4f}", psnr=f"{psnr(result.image, targets[v]):.2f}",
-                                n=len(model))
-                bar.update(10 if it % 10 == 0 else it % 10)
+        counts = _optimise(model, cams, targets, config, sched, rng, gen, settings, height,
+                           lambda it, start=global_iter: config.sh_degree_at(start + it - 1), bar=bar,
+                           densify=strategy)
+        global_iter += n_iter
         seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
         if bar is not None:
             bar.close()
@@ -579,6 +547,93 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
                                    size_fn)
     final = final.replace(extra={**final.extra, size_key: final_size})
     return TrainResult(final, lineage, log, out, stage_paths)
+
+
+def _optimise(model: GaussianModel, cams: list[Camera], targets: torch.Tensor, config: TrainConfig, sched: dict,
+              rng: np.random.Generator, gen: torch.Generator, settings: RenderSettings, height: int,
+              degree_at: Callable[[int], int], *, densify: DensifyStrategy | None, bar=None,
+              progress: Callable[[int], None] | None = None) -> dict[str, int]:
+    """One stage's iterations (`sched`, `TrainConfig.stage_schedule`) on `model`: the reference
+    recipe (views in random order without repetition, the position learning rate decaying over
+    the stage, 0.8·L1 + 0.2·(1 − SSIM)), with the `densify` strategy's density control and opacity
+    resets when given, without any when None (a fine-tune keeps its Gaussians). `degree_at(it)`:
+    the SH degree at the stage's iteration `it` (1-based); `progress(it)` every 10 iterations.
+    Returns the counts of cloned, split and pruned Gaussians."""
+    counts = {"cloned": 0, "split": 0, "pruned": 0}
+    n_iter, bg = sched["iterations"], config.background
+    order: list[int] = []
+    filt = _model_filter(model, cams) if config.antialias == "mip" else None
+    for it in range(1, n_iter + 1):
+        model.set_lr("means", position_lr(config, model.extent, it - 1, n_iter))
+        if not order:
+            order = list(rng.permutation(len(cams)))
+        v = int(order.pop())
+        current = model.cloud() if filt is None else model.cloud().replace(extra={FILTER_KEY: filt})
+        result = render(current, cams[v], background=bg, sh_degree=degree_at(it), settings=settings)
+        means2d = result.means2d
+        if means2d.requires_grad:
+            means2d.retain_grad()
+        loss = photometric_loss(result.image, targets[v], config.lambda_dssim)
+        loss.backward()
+        with torch.no_grad():
+            grad2d = means2d.grad if means2d.grad is not None else torch.zeros_like(means2d)
+            model.add_stats(grad2d, result.visible, result.radii, cams[v].width, cams[v].height)
+            model.optimizer.step()
+            model.optimizer.zero_grad(set_to_none=True)
+            if densify is not None and sched["densify_from"] <= it <= sched["densify_until"]:
+                if it % sched["densify_every"] == 0 and it < n_iter:
+                    done = densify.densify_and_prune(model, gen, image_height=height,
+                                                     prune_large=it > sched["opacity_reset_every"])
+                    for k in counts:
+                        counts[k] += done[k]
+                if it % sched["opacity_reset_every"] == 0 and it < sched["densify_until"]:
+                    model.reset_opacity(config.reset_opacity_value)
+            if filt is not None and (it % sched["densify_every"] == 0 or len(filt) != len(model)):
+                filt = _model_filter(model, cams)  # after densification, and as the centres move
+        if it % 10 == 0 or it == n_iter:
+            if bar is not None:
+                bar.set_postfix(loss=f"{float(loss):.4f}", psnr=f"{psnr(result.image, targets[v]):.2f}",
+                                n=len(model))
+                bar.update(10 if it % 10 == 0 else it % 10)
+            if progress is not None:
+                progress(it)
+    return counts
+
+
+def fine_tune(cloud: GaussianCloud, views: Views, iterations: int, *, config: TrainConfig | None = None,
+              seed: int = 0, progress: Callable[[float, str], None] | None = None, device=None) -> GaussianCloud:
+    """`cloud` trained on `views` (at their resolution) for `iterations` more iterations with
+    the trainer's recipe and one stage's schedule (`_optimise`: its learning rates, the position
+    rate decaying over the iterations, the anti-aliasing of `config.antialias`), without density
+    control: the Gaussians stay the same rows, only their parameters change (how PUP 3D-GS
+    fine-tunes after pruning). The SH degree is the cloud's. Returns a numpy cloud with the input's
+    extra properties, its anti-aliasing size (`gvae_dilation_3D`, or `filter_3D` when
+    `config.antialias` is "mip") recomputed from the views' cameras. `progress(fraction, message)`
+    every 10 iterations (an exception it raises stops the fine-tune)."""
+    config = config or TrainConfig()
+    iterations = int(iterations)
+    if iterations < 0:
+        raise ValueError(f"fine_tune: iterations must be >= 0, got {iterations}")
+    if len(views) == 0:
+        raise ValueError("fine_tune: no views")
+    src = cloud.numpy()
+    dev = resolve_device(device)
+    config = dataclasses.replace(config, resolutions=(views.cameras[0].height,), iterations=(iterations,),
+                                 sh_degree=src.sh_degree)
+    rng = np.random.default_rng([seed, 7_000_003])
+    gen = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
+    _, extent = scene_extent(views.cameras)
+    model = GaussianModel(src.replace(extra={}), np.arange(len(src)), np.full(len(src), -1),
+                          config.learning_rates(extent), extent, len(src), dev)
+    sched = config.stage_schedule(0)
+    say = (lambda it: progress(it / max(iterations, 1), f"fine-tuning {it}/{iterations}")) if progress else None
+    _optimise(model, views.cameras, _targets(views, config.background).to(dev), config, sched, rng, gen,
+              RenderSettings(antialias=config.antialias), views.cameras[0].height, lambda it: src.sh_degree,
+              densify=None, progress=say)
+    out = model.snapshot()
+    key, size_fn = (FILTER_KEY, filter_3d) if config.antialias == "mip" else (DILATION_KEY, dilation_3d)
+    extra = {k: v for k, v in src.extra.items() if k not in (FILTER_KEY, DILATION_KEY)}
+    return out.replace(extra={**extra, key: size_fn(out.means, views.cameras)})
 
 
 def _model_filter(model: GaussianModel, cameras: list[Camera]) -> torch.Tensor:

@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from gvae_core import Camera
-from gvae_core.capture import load_cameras
+from gvae_core.capture import load_cameras, load_capture_images
 from gvae_core.datasets import DatasetError
 from gvae_core.quaternions import from_rotmat
 
@@ -196,3 +196,34 @@ def test_transforms_json_nerf_synthetic_and_nerfstudio(tmp_path):
     (tmp_path / "nosize" / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames[:1]}))
     with pytest.raises(DatasetError, match="no image size"):
         load_cameras(tmp_path / "nosize")
+
+
+def test_capture_images_from_colmap_and_nerf_synthetic(tmp_path):
+    """A COLMAP capture's images come with their cameras, scaled to the height asked for (never up);
+    a missing image is refused by name; a NeRF-Synthetic folder reads its training split."""
+    cams = [Camera.look_at((3 * math.cos(a), 3 * math.sin(a), 1.0), (0, 0, 0), width=40, height=30, fov_x=0.9)
+            for a in (0.2, 1.9, 3.7)]
+    _write_text(tmp_path / "cap" / "sparse" / "0", cams)
+    (tmp_path / "cap" / "images").mkdir()
+    rng = np.random.default_rng(0)
+    pixels = [rng.integers(0, 255, (30, 40, 3), dtype=np.uint8) for _ in cams]
+    for i, px in enumerate(pixels):
+        Image.fromarray(px).save(tmp_path / "cap" / "images" / f"img_{i}.jpg", format="PNG")
+    views = load_capture_images(tmp_path / "cap")
+    assert views.images.shape == (3, 30, 40, 3) and views.names == ["img_0", "img_1", "img_2"]
+    np.testing.assert_allclose(views.images[1], pixels[1] / 255.0, atol=1e-6)
+    assert (views.alphas == 1).all()
+    _same_cameras(views.cameras, cams)
+    small = load_capture_images(tmp_path / "cap" / "sparse" / "0", resolution=15)
+    assert small.images.shape == (3, 15, 20, 3) and small.cameras[0].fx == pytest.approx(cams[0].fx / 2)
+    assert load_capture_images(tmp_path / "cap", resolution=60).images.shape[1] == 30  # never up
+    (tmp_path / "cap" / "images" / "img_2.jpg").unlink()
+    with pytest.raises(DatasetError, match="img_2.jpg"):
+        load_capture_images(tmp_path / "cap")
+    nerf = tmp_path / "nerf"
+    nerf.mkdir()
+    Image.fromarray(pixels[0]).save(nerf / "r_0.png")
+    (nerf / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.9, "frames": [
+        {"file_path": "r_0", "transform_matrix": cams[0].to_blender_c2w().tolist()}]}))
+    got = load_capture_images(nerf, resolution=15)
+    assert got.images.shape == (1, 15, 20, 3)

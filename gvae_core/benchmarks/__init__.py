@@ -15,4 +15,5 @@ BENCHMARKS = (
     "quality",
     "scenes",
     "train",
+    "compact",
 )

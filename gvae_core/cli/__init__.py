@@ -19,6 +19,7 @@ COMMAND_MODULES = (
     "train",
     "scenes",
     "report",
+    "compact",
 )
 
 #: --device help of the commands that train or render.

@@ -236,13 +236,18 @@ def draw_panels(bpy) -> list[str]:
     from unittest import mock
 
     labels = []
-    for name in ("GVAE_PT_main", "GVAE_PT_display", "GVAE_PT_refine"):
+    for name in ("GVAE_PT_main", "GVAE_PT_display", "GVAE_PT_refine", "GVAE_PT_compact"):
         cls = getattr(bpy.types, name)
         layout = mock.MagicMock()
         layout.label.side_effect = lambda text="", **kw: labels.append(text)
-        layout.box.return_value = layout
+        layout.box.return_value = layout.column.return_value = layout.row.return_value = layout
+        me = mock.MagicMock(layout=layout)  # the panel: its class attributes, its methods bound
+        for attr in ("bl_label", "operator", "icon", "note", "module", "_settings", "_fill"):
+            if hasattr(cls, attr):
+                value = getattr(cls, attr)
+                setattr(me, attr, value.__get__(me) if callable(value) and attr.startswith("_") else value)
         if cls.poll(bpy.context) if hasattr(cls, "poll") else True:
-            cls.draw(mock.MagicMock(layout=layout), bpy.context)
+            cls.draw(me, bpy.context)
     prefs = bpy.context.preferences.addons["bl_ext.user_default.gaussian_vae"].preferences
     layout = mock.MagicMock()
     layout.label.side_effect = lambda text="", **kw: labels.append(text)
@@ -674,7 +679,7 @@ def scenario_refine_job(bpy, args: dict) -> dict:
     status = []
     context.workspace.status_text_set.side_effect = status.append
     op = types.SimpleNamespace(report=lambda kind, text: reports.append((sorted(kind), text)), _timer=object())
-    for name_ in ("_status", "_end"):
+    for name_ in ("_status", "_end", "_report_text"):
         setattr(op, name_, getattr(op_cls, name_).__get__(op))
     release = threading.Event()
     op._running = refine_ops.RefineJob(bpy.data.objects[name], refine=_job_stand_in(release)).start()
@@ -714,15 +719,66 @@ def scenario_refine_job(bpy, args: dict) -> dict:
     res["checked_vertices"] = len(bpy.data.objects[name].data.vertices)
 
     # 8. one undo step: undo brings the object back as it was before the refine, redo refines again
-    # (called as a button does: with the undo push that scripts leave out by default)
-    bpy.ops.ed.undo_push(message="before refine")
-    before = len(bpy.data.objects[name].data.vertices)
-    bpy.ops.gvae.refine("EXEC_DEFAULT", True, steps=1, budget="0.5", model=args["model"], fidelity_check=False)
-    after = len(bpy.data.objects[name].data.vertices)
+    res["undo"] = undo_round(bpy, name, lambda: bpy.ops.gvae.refine("EXEC_DEFAULT", True, steps=1, budget="0.5",
+                                                                    model=args["model"], fidelity_check=False))
+    return res
+
+
+def undo_round(bpy, name: str, run) -> list[int]:
+    """The object's vertex count before `run()` (an operator called as a button calls it: with the
+    undo push that scripts leave out by default), after it, after undo and after redo."""
+    bpy.ops.ed.undo_push(message="before the operator")
+    counts = [len(bpy.data.objects[name].data.vertices)]
+    run()
+    counts.append(len(bpy.data.objects[name].data.vertices))
     bpy.ops.ed.undo()
-    undone = len(bpy.data.objects[name].data.vertices)
+    counts.append(len(bpy.data.objects[name].data.vertices))
     bpy.ops.ed.redo()
-    res["undo"] = [before, after, undone, len(bpy.data.objects[name].data.vertices)]
+    return counts + [len(bpy.data.objects[name].data.vertices)]
+
+
+def scenario_compact_job(bpy, args: dict) -> dict:
+    """The Compact job (the Refine job's machinery) with the real gvae_core.compact: cancelled at
+    its first progress report, a bad count (refused, nothing changed), a run through the job,
+    the operator in batch (`execute`) and as a button without a window (`invoke`), one undo step."""
+    import numpy as np
+
+    from bl_ext.user_default.gaussian_vae.gvae_addon import refine_ops, runtime
+
+    bpy.ops.import_scene.gaussian_splat(filepath=args["ply"])
+    name = bpy.context.active_object.name
+    res = {"available": runtime.refine_status()[0]}
+    if not res["available"]:
+        return res
+
+    def state():
+        o = bpy.data.objects[name]
+        return {"counts": counts(bpy), "vertices": len(o.data.vertices), "mesh": o.data.name}
+
+    before = state()
+    job = refine_ops.CompactJob(bpy.data.objects[name], keep=0.5).start()
+    job.cancel()
+    job.wait(120)
+    res["cancel"] = failure(bpy, job.finish)
+    res["cancel_same"] = state() == before
+    job = refine_ops.CompactJob(bpy.data.objects[name], keep=None, count=10 ** 6).start()
+    job.wait(120)
+    res["bad"] = failure(bpy, job.finish)
+    res["bad_same"] = state() == before
+    job = refine_ops.CompactJob(bpy.data.objects[name], keep=0.5).start()
+    messages = set()
+    while not job.wait(0.05):
+        messages.add(job.poll()[2].split(" ")[0])
+    res["last_message"] = job.poll()[2]
+    res["info"] = {k: v for k, v in job.finish().items() if k in ("before", "after", "psnr")}
+    res["messages"] = sorted(messages)
+    np.savez(args["out"] + ".job.npz", **attributes(bpy.data.objects[name]))
+    res["batch"] = sorted(bpy.ops.gvae.compact(keep=0.5, distill=1))  # (fine-tuned: a glimpse of the plumbing)
+    res["batch_vertices"] = len(bpy.data.objects[name].data.vertices)
+    res["batch_attrs"] = sorted(attributes(bpy.data.objects[name]))
+    res["invoke"] = sorted(bpy.ops.gvae.compact("INVOKE_DEFAULT", count=5, removal="PRUNE"))
+    res["invoke_vertices"] = len(bpy.data.objects[name].data.vertices)
+    res["undo"] = undo_round(bpy, name, lambda: bpy.ops.gvae.compact("EXEC_DEFAULT", True, count=2))
     return res
 
 

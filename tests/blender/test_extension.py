@@ -274,6 +274,7 @@ def test_refine_glue_with_test_stand_in(extension_zip, tmp_path):
     assert f"in: {n:,} Gaussians" in " ".join(res["panel_unavailable"])
     assert not any("Refine is not" in t or "needs PyTorch" in t for t in res["panel_available"])
     assert "PyTorch is available: Refine can run" in res["panel_available"]
+    assert f"{n:,} -> {n // 2:,} Gaussians" in res["panel_available"]  # the Compact panel, Keep 0.5
     assert "stand-in failure" in res["failing"]["error"] and res["failing"]["unchanged"]
     assert res["failing_count"] == n
     assert "budget" in res["bad_budget"]["error"]

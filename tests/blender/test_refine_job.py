@@ -58,3 +58,31 @@ def test_refine_job_progress_cancel_failure_and_modal_events(extension_zip, tmp_
     assert res["checked_vertices"] == res["invoke_vertices"]  # the fidelity check, tolerance 0: all put back
     before, after, undone, redone = res["undo"]
     assert after > before and undone == before and redone == after  # one undo step
+
+
+def test_compact_job_batch_button_and_undo(extension_zip, tmp_path):
+    """Compact runs through the same job as Refine: cancel and a bad count leave the object as it
+    was; a run keeps every attribute (the input's values where nothing was merged) and one undo
+    step takes it back."""
+    pytest.importorskip("torch", reason="Compact needs PyTorch (an optional runtime in Blender)")
+    n = 60
+    cloud = make_cloud(n, degree=1)
+    src = tmp_path / "in.ply"
+    write_ply(cloud, src)
+    res = run_scenario("compact_job", tmp_path, extension_zip, ply=str(src))
+    assert res["available"]
+    assert res["cancel"]["error"] == "Compact cancelled" and res["cancel_same"]
+    assert "count must be between 1 and the input's 60" in res["bad"]["error"] and res["bad_same"]
+    assert res["info"]["before"] == n and res["info"]["after"] == n // 2 and res["info"]["psnr"] > 10
+    # progress while it ran (which parts a 50 ms poll catches depends on the machine), the summary last
+    assert res["messages"] and set(res["messages"]) <= {"starting", "scoring", "Hessian", "removing", "merging:",
+                                                        "comparing"}, res["messages"]
+    assert "60 Gaussians in, 30 out" in res["last_message"], res["last_message"]
+    got = np.load(tmp_path / "compact_job.json.job.npz")
+    assert len(got["position"]) == n // 2 and {"f_dc_0", "f_rest_8", "label", "big", "weight"} <= set(got.files)
+    ids = np.ascontiguousarray(got["big"]).view(np.int64).ravel()  # (int64 is stored as two int32s)
+    assert set(ids.tolist()) <= set(cloud.extra["big"].tolist())  # a kept Gaussian carries its own extras
+    assert res["batch"] == ["FINISHED"] and res["batch_vertices"] == n // 4 and "gvae_dilation_3D" in res["batch_attrs"]
+    assert res["invoke"] == ["FINISHED"] and res["invoke_vertices"] == 5
+    before, after, undone, redone = res["undo"]
+    assert (before, after, undone, redone) == (5, 2, 5, 2)

@@ -1,0 +1,286 @@
+"""Compaction: PSNR against the kept fraction for every way of removing Gaussians, on the quick
+protocol's 3DGS runs (the runs `make report` trains; test split by default), splat-transform's
+two decimations included, and the speed of a compaction at capture scale.
+
+Per (scene, seed): the 100 px stage (the training resolution, its `gvae_dilation_3D`), scored
+with four of its training cameras (what `gvae compact --cameras transforms_train.json` does),
+compacted to each fraction by: Ours (Hessian-weighted merging, `compact`), the same merging with
+no score (`random` weights: NanoGS-style, what splat-transform does), Hessian pruning (PUP 3D-GS
+without fine-tuning), LightGaussian's global significance, opacity and random pruning, and
+splat-transform 3.7.0's `--decimate` and `--decimate-adaptive` (`benchmarks.splat_transform`:
+installed from npm into the cache on first use; skipped, with the reason, where `node`/`npm` are
+missing). PSNR at 1x against
+the ground-truth test views (the protocol's 8, `matched` render), minus the input's. With the
+training images (`--images`): two rounds of removal and fine-tuning (the protocol's last-stage
+iterations each) for the Hessian and for LightGaussian's score.
+
+`python -m gvae_core.benchmarks compact` (environment: GVAE_COMPACT_SPLIT=test|validation,
+GVAE_COMPACT_SEEDS=0,1,2, GVAE_COMPACT_OUT=folder for results.json and the plot;
+GVAE_COMPACT_SPEED=0 skips the speed rows); `--quick`: one validation scene, one seed, the speed
+at 100k only.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..antialias import DILATION_KEY, with_training_cameras
+from ..compaction import compact
+from ..datasets import load_nerf_synthetic
+from ..examples import example_cloud
+from ..experiment import PROTOCOLS, Evaluator, prepare_scene
+from ..metrics.image import image_scores
+from ..ply import read_ply, write_ply
+from ..resources import estimate_compact_memory
+from ..scenes import SPLITS
+from .splat_transform import PACKAGE
+from .splat_transform import command as splat_transform_command
+
+FRACTIONS = (0.7, 0.5, 0.3, 0.2, 0.1, 0.05)
+#: (label, score, removal) of `compact` rows; splat-transform's rows come after these.
+METHODS = (("ours", "hessian", "merge"), ("merge, no score", "random", "merge"), ("Hessian prune", "hessian", "prune"),
+           ("LightGaussian", "lightgaussian", "prune"), ("opacity", "opacity", "prune"),
+           ("random", "random", "prune"))
+ST_MODES = ("decimate", "decimate-adaptive")
+#: Scoring views of every `compact` row: this many of the training cameras.
+VIEWS = 4
+#: Ours fine-tuned against the input's own renders (`--distill`, no images), at these fractions.
+DISTILLED = "ours + distill (no images)"
+DISTILL_FRACTIONS = (0.5, 0.3, 0.1)
+#: Fractions compacted with fine-tuning (`--images`) and the scores compared there.
+IMAGE_FRACTIONS = (0.1,)
+IMAGE_METHODS = (("ours + fine-tune", "hessian", "merge"), ("Hessian prune + fine-tune", "hessian", "prune"),
+                 ("LightGaussian + fine-tune", "lightgaussian", "prune"))
+
+
+def splat_transform() -> tuple[list[str] | None, str]:
+    """The command that runs splat-transform (`benchmarks.splat_transform`: installed from npm into
+    the cache on first use) and its version; (None, why) where node or npm is missing or the
+    install fails."""
+    try:
+        return splat_transform_command(), PACKAGE
+    except RuntimeError as exc:  # (Unavailable is one)
+        return None, str(exc).strip().splitlines()[0]
+
+
+def _decimate(command: list[str], cloud, mode: str, count: int, work: Path):
+    """splat-transform's `--<mode> count` on `cloud`: the result and the seconds it took."""
+    src, out = work / "in.ply", work / f"{mode}_{count}.ply"
+    if not src.is_file():
+        write_ply(cloud, src)
+    t0 = time.perf_counter()
+    done = subprocess.run(command + ["-q", "-w", "-g", "cpu", str(src), f"--{mode}", str(count), str(out)],
+                          capture_output=True, text=True, timeout=1800)
+    seconds = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise RuntimeError(f"splat-transform --{mode} {count} failed: {done.stderr[-500:]}")
+    return read_ply(out), seconds
+
+
+def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, images: bool = True, image_methods=IMAGE_METHODS,
+                   distill: bool = True, say=print) -> list[dict]:
+    """Every method at every fraction on one (scene, seed) of the quick protocol; one row each.
+    `images`: also the rows with fine-tuning (`image_methods`, and the input fine-tuned as long);
+    `distill`: also ours fine-tuned against the input's own renders (no images) at DISTILL_FRACTIONS."""
+    p = PROTOCOLS["quick"]
+    run = prepare_scene(name, p, seed=seed, threads=1, say=say)
+    k = p.train_stage
+    train = load_nerf_synthetic(run.scene_dir, "train", resolution=p.resolutions[k])
+    base = run.stage_cloud(k)
+    base = base.replace(extra={DILATION_KEY: base.extra[DILATION_KEY]})  # the anti-aliasing size only
+    evaluate = Evaluator(run)
+    views = evaluate.views["1x"]
+
+    def score(cloud) -> float:
+        if DILATION_KEY not in cloud.extra:  # (a tool that drops it: the training cameras give it back)
+            cloud = with_training_cameras(cloud, train.cameras)
+        return image_scores(cloud, views, evaluate.background, no_reference=False, antialias=p.antialias).psnr
+
+    tag = {"scene": name, "seed": seed, "n_input": len(base)}
+    base_psnr = score(base)
+    rows = [{**tag, "method": "input", "fraction": 1.0, "count": len(base), "psnr": base_psnr, "seconds": 0.0}]
+
+    def add(method: str, fraction: float, cloud, seconds: float, **info) -> None:
+        value = score(cloud)
+        rows.append({**tag, "method": method, "fraction": fraction, "count": len(cloud), "psnr": value,
+                     "drop": base_psnr - value, "seconds": seconds, **info})
+        say(f"[{name} s{seed}] {method:26s} {fraction:5.0%} n={len(cloud):6d} PSNR {value:6.2f} "
+            f"({value - base_psnr:+.2f}) {seconds:6.2f} s")
+
+    for fraction in fractions:
+        for label, score_name, removal in METHODS:
+            t0 = time.perf_counter()
+            r = compact(base, keep=fraction, cameras=train.cameras, views=VIEWS, score=score_name, removal=removal,
+                        seed=seed)
+            add(label, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr)
+    if distill:
+        distilled_rows(base, p.iterations[k], seed, add)
+    command, note = splat_transform()
+    if command is None:
+        say(f"[{name} s{seed}] splat-transform skipped: {note}")
+        rows.append({**tag, "method": "splat-transform", "skipped": note})
+    else:
+        with tempfile.TemporaryDirectory() as tmp:
+            for fraction in fractions:
+                for mode in ST_MODES:
+                    cloud, seconds = _decimate(command, base, mode, max(1, round(fraction * len(base))), Path(tmp))
+                    add(f"splat-transform --{mode}", fraction, cloud, seconds)
+    if images:
+        iterations = p.iterations[k]
+        t0 = time.perf_counter()  # the input itself fine-tuned as long: what compaction is measured against too
+        r = compact(base, keep=1.0, images=train, views=VIEWS, iterations=iterations, seed=seed)
+        add("input + fine-tune", 1.0, r.cloud, time.perf_counter() - t0, iterations=iterations)
+        for fraction in IMAGE_FRACTIONS:
+            for label, score_name, removal in image_methods:
+                t0 = time.perf_counter()
+                r = compact(base, keep=fraction, images=train, views=VIEWS, score=score_name, removal=removal,
+                            iterations=iterations, seed=seed)
+                add(label, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr,
+                    iterations=iterations, rounds=[dict(x) for x in r.rounds])
+    return rows
+
+
+def distilled_rows(base, iterations: int, seed: int, add) -> None:
+    """`add` the rows of ours with `compact(distill=iterations)` (views placed around the cloud) at
+    DISTILL_FRACTIONS."""
+    for fraction in DISTILL_FRACTIONS:
+        t0 = time.perf_counter()
+        r = compact(base, keep=fraction, distill=iterations, seed=seed)
+        add(DISTILLED, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr, iterations=iterations)
+
+
+def _mean_ci(values) -> str:
+    v = np.asarray(values, np.float64)
+    if len(v) == 0:
+        return "-"
+    if len(v) == 1:
+        return f"{v[0]:+.2f}"
+    half = 1.96 * v.std(ddof=1) / np.sqrt(len(v))
+    return f"{v.mean():+.2f} ± {half:.2f}"
+
+
+def tables(rows: list[dict]) -> list[str]:
+    """Markdown: mean change of PSNR against the input (± 95% interval over scenes x seeds) per
+    method and fraction; then per scene, the change at 50/30/10% of ours, ours distilled and
+    splat-transform's better mode."""
+    scored = [r for r in rows if "drop" in r]
+    methods = list(dict.fromkeys(r["method"] for r in scored))
+    fractions = sorted({r["fraction"] for r in scored}, reverse=True)
+    lines = ["| method | " + " | ".join(f"{f:.0%} kept" for f in fractions) + " |",
+             "|---|" + "---|" * len(fractions)]
+    for m in methods:
+        cells = [_mean_ci([-r["drop"] for r in scored if r["method"] == m and r["fraction"] == f]) for f in fractions]
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    lines += ["", "| scene | seed | input PSNR | " + " | ".join(
+        f"{f:.0%}: ours / distilled / best splat-transform" for f in (0.5, 0.3, 0.1)) + " |",
+        "|---|---|---|---|---|---|"]
+    pairs = sorted({(r["scene"], r["seed"]) for r in scored})
+    for scene, seed in pairs:
+        mine = {(r["method"], r["fraction"]): r for r in scored if r["scene"] == scene and r["seed"] == seed}
+        base = next(r["psnr"] for r in rows if r["scene"] == scene and r["seed"] == seed and r["method"] == "input")
+        cells = []
+        for f in (0.5, 0.3, 0.1):
+            change = {m: -r["drop"] for (m, fr), r in mine.items() if fr == f}
+            st = [change[f"splat-transform --{m}"] for m in ST_MODES if f"splat-transform --{m}" in change]
+            values = [change.get("ours"), change.get(DISTILLED), max(st) if st else None]
+            cells.append(" / ".join("-" if v is None else f"{v:+.2f}" for v in values))
+        lines.append(f"| {scene} | {seed} | {base:.2f} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def plot(rows: list[dict], out: Path) -> Path:
+    """PSNR change against the kept fraction, one line per method (mean over scenes x seeds)."""
+    import matplotlib  # noqa: PLC0415 - drawn without a screen
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    scored = [r for r in rows if "drop" in r]
+    fig, axes = plt.subplots(1, 2, figsize=(14, 4.8))
+    for ax, low in zip(axes, (-16.0, -4.5)):
+        for m in dict.fromkeys(r["method"] for r in scored):
+            fr = sorted({r["fraction"] for r in scored if r["method"] == m})
+            ys = [np.mean([-r["drop"] for r in scored if r["method"] == m and r["fraction"] == f]) for f in fr]
+            style = "-o" if m == "ours" else "--s" if m.startswith("splat") else "^" if "fine-tune" in m else ":."
+            ax.plot(fr, ys, style, label=m, lw=2.2 if m == "ours" else 1.2, ms=8 if "fine-tune" in m else 5)
+        ax.set_xscale("log")
+        ax.set_xlabel("fraction of Gaussians kept")
+        ax.set_ylabel("PSNR change at 1x against the input (dB)")
+        ax.set_ylim(low, 1.8)
+        ax.grid(True, alpha=0.3)
+    axes[0].set_title("every method")
+    axes[1].set_title("close up")
+    fig.legend(*axes[1].get_legend_handles_labels(), fontsize=8, loc="center left", bbox_to_anchor=(0.81, 0.5))
+    fig.tight_layout(rect=(0, 0, 0.8, 1))
+    path = out / "compact_psnr_vs_fraction.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _speed(counts, fractions=(0.5, 0.1), repeats: int = 3) -> None:
+    """Seconds and peak memory of `compact` without images on example_cloud(N) (SH 3, default
+    views), each size in a fresh process; `uptime` beside."""
+    print("\n| Gaussians | kept | seconds (median) | parts (median s) | peak RSS | estimate | PSNR vs input | load |")
+    print("|---|---|---|---|---|---|---|---|")
+    for n in counts:
+        for fraction in fractions:
+            code = (f"import json, sys; from gvae_core.benchmarks.compact import _speed_child; "
+                    f"print(json.dumps(_speed_child({n}, {fraction}, {repeats})))")
+            done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                  env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
+            if done.returncode != 0:
+                print(f"| {n:,} | {fraction:.0%} | failed: {done.stderr.strip()[-200:]} |")
+                continue
+            r = json.loads(done.stdout.strip().splitlines()[-1])
+            parts = ", ".join(f"{k} {v:.2f}" for k, v in r["parts"].items())
+            print(f"| {n:,} | {fraction:.0%} | {r['seconds']:.2f} | {parts} | {r['peak_gib']:.2f} GiB | "
+                  f"{r['estimate_gib']:.2f} GiB | {r['psnr']:.2f} dB | {r['load']} |", flush=True)
+
+
+def _speed_child(n: int, fraction: float, repeats: int) -> dict:
+    cloud = example_cloud(n, seed=1)
+    times, parts = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        r = compact(cloud, keep=fraction)
+        times.append(time.perf_counter() - t0)
+        parts.append(r.timings)
+    med = {k: statistics.median(p[k] for p in parts) for k in parts[0] if k != "total"}
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    return {"seconds": statistics.median(times), "parts": med, "peak_gib": peak / 2 ** 30,
+            "estimate_gib": estimate_compact_memory(n, 3) / 2 ** 30, "psnr": r.psnr,
+            "load": " ".join(f"{x:.2f}" for x in os.getloadavg())}
+
+
+def run(args) -> None:
+    quick = bool(getattr(args, "quick", False))
+    split = os.environ.get("GVAE_COMPACT_SPLIT", "validation" if quick else "test")
+    seeds = [int(s) for s in os.environ.get("GVAE_COMPACT_SEEDS", "0" if quick else "0,1,2").split(",")]
+    scenes = SPLITS[split][:1] if quick else SPLITS[split]
+    out = Path(os.environ.get("GVAE_COMPACT_OUT", "reports/compact"))
+    print(f"compaction on the {split} scenes {', '.join(scenes)}, seeds {seeds} (quick protocol, 100 px runs); "
+          f"load {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    rows = []
+    t0 = time.perf_counter()
+    for name in scenes:
+        for seed in seeds:
+            rows += evaluate_scene(name, seed, images=not quick, say=lambda msg: print(msg, flush=True))
+    print(f"\n{time.perf_counter() - t0:.0f} s in all; PSNR change at 1x against the input (mean ± 95% interval over "
+          f"{len(scenes)} scenes x {len(seeds)} seeds):\n")
+    print("\n".join(tables(rows)))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"results_{split}.json").write_text(json.dumps(rows, indent=1))
+    print(f"\nplot: {plot(rows, out)}; rows: {out / f'results_{split}.json'}")
+    if os.environ.get("GVAE_COMPACT_SPEED", "1") != "0":
+        _speed((100_000,) if quick else (100_000, 1_000_000))

@@ -1,0 +1,145 @@
+"""`gvae compact IN OUT --keep FRACTION | --count N | --tolerance DB`: fewer Gaussians, the picture kept."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS
+
+
+def register(subparsers) -> None:
+    c = subparsers.add_parser(
+        "compact", help="remove the Gaussians a splat's picture does not need",
+        description="Score every Gaussian by how much the picture depends on it (the exact Gauss-Newton block of "
+        "position and log-scale over a few views, as PUP 3D-GS), drop what no view sees and merge the rest pairwise, "
+        "cheapest first, down to the count asked for; with the capture's images (--images), or against the input's "
+        "own renders (--distill), in rounds, each followed by fine-tuning with the project's trainer. The output "
+        "keeps the input's SH degree, extra properties and anti-aliasing sizes; untouched Gaussians keep their "
+        "values.")
+    c.add_argument("input", type=Path, metavar="IN", help="a splat file: 3DGS or compressed PLY, .splat, .spz")
+    c.add_argument("output", type=Path, metavar="OUT",
+                   help="where the compacted cloud goes, in the format its name asks for (.ply, .spz, .splat)")
+    target = c.add_mutually_exclusive_group(required=True)
+    target.add_argument("--keep", metavar="FRACTION", help="fraction of the Gaussians to keep, in (0, 1] (0.3 or 30%%)")
+    target.add_argument("--count", type=int, metavar="N", help="number of Gaussians to keep")
+    target.add_argument("--tolerance", type=float, metavar="DB",
+                        help="keep as few as hold the picture at the training resolution, seen from the scoring views, "
+                        "at or above DB of PSNR against the input's own render (for example 40)")
+    c.add_argument("--cameras", type=Path, default=None, metavar="PATH",
+                   help="the capture's cameras to score from: a transforms*.json file or a COLMAP sparse model; "
+                   "default: views placed around the cloud")
+    c.add_argument("--views", type=int, default=DEFAULT_VIEWS,
+                   help="scoring views (of the capture's cameras, spread out; 0: all of them) (default: %(default)s)")
+    c.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION,
+                   help="scoring view height in pixels (default: %(default)s)")
+    c.add_argument("--score", default="hessian", choices=("hessian", "lightgaussian", "opacity", "random"),
+                   help="what ranks the Gaussians (default: hessian; the others are the baselines it is compared with)")
+    c.add_argument("--removal", default="merge", choices=("merge", "prune"),
+                   help="merge Gaussians pairwise (default) or drop the lowest scores")
+    c.add_argument("--images", type=Path, default=None, metavar="DATASET",
+                   help="the capture's training images (a NeRF-Synthetic folder with transforms_train.json, or a "
+                   "COLMAP capture: sparse model and images/): compact in rounds, fine-tuning after each")
+    c.add_argument("--distill", type=int, default=0, metavar="ITERATIONS",
+                   help="without images: fine-tune this many iterations a round against the input's own renders "
+                   "(32 views of --cameras, else placed around the cloud, at the training resolution); slower, "
+                   "keeps the picture closer (default: 0, merge only)")
+    c.add_argument("--rounds", type=int, default=2,
+                   help="removal and fine-tuning rounds with --images or --distill (default: 2)")
+    c.add_argument("--iterations", type=int, default=None,
+                   help="fine-tuning iterations per round with --images (default: 5000, as PUP 3D-GS)")
+    c.add_argument("--image-height", type=int, default=None, metavar="H",
+                   help="height the images are fine-tuned at (default: the training resolution the cloud's "
+                   "anti-aliasing size says, else the images as they are)")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--sanitize", action="store_true", help="drop non-finite Gaussians of IN first")
+    c.set_defaults(func=run_compact)
+
+
+def parse_keep(text: str) -> float:
+    """--keep: a fraction in (0, 1], as 0.3 or 30%."""
+    t = str(text).strip()
+    try:
+        value = float(t[:-1]) / 100.0 if t.endswith("%") else float(t)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 < value <= 1.0:
+        raise ValueError(f"--keep must be a fraction in (0, 1] (0.3 or 30%), got {text!r}")
+    return value
+
+
+def _image_height(cloud, images_path: Path) -> int | None:
+    """The height at which the capture's cameras sample the cloud as its training did (the median
+    over the cameras of `fidelity.training_rate_views`), or None when the cloud does not say."""
+    import numpy as np  # noqa: PLC0415
+
+    from ..antialias import DILATION_KEY, FILTER_KEY  # noqa: PLC0415
+    from ..capture import load_cameras  # noqa: PLC0415
+    from ..fidelity import training_rate_views  # noqa: PLC0415
+
+    if not {FILTER_KEY, DILATION_KEY} & set(cloud.extra):
+        return None
+    cams = load_cameras(images_path)
+    pick = np.linspace(0, len(cams) - 1, min(len(cams), 8)).round().astype(int)
+    heights = [c.height for c in training_rate_views(cloud, [cams[i] for i in pick])]
+    return int(np.median(heights))
+
+
+def run_compact(args: argparse.Namespace) -> int:
+    from ..capture import load_cameras, load_capture_images  # noqa: PLC0415 - torch-free, but only here
+    from ..compaction import DEFAULT_ITERATIONS, compact  # noqa: PLC0415 - imports torch
+    from ..formats import read_splat_file, write_splat_file  # noqa: PLC0415
+
+    keep = parse_keep(args.keep) if args.keep is not None else None
+    if args.output.resolve() == args.input.resolve():
+        raise ValueError(f"{args.output}: OUT must not be IN (the input is left as it is)")
+    if args.images is None and (args.image_height is not None or args.iterations is not None):
+        raise ValueError("--iterations and --image-height need --images")
+    t0 = time.perf_counter()
+    cloud = read_splat_file(args.input, sanitize=args.sanitize)
+    cameras = load_cameras(args.cameras) if args.cameras is not None else None
+    images = None
+    if args.images is not None:
+        height = args.image_height or _image_height(cloud, args.images)
+        images = load_capture_images(args.images, height)
+    t_read = time.perf_counter() - t0
+    last = [0.0, ""]
+
+    def progress(fraction: float, message: str) -> None:  # a line every few seconds, not every step
+        now = time.perf_counter()
+        if message.split(":")[0] != last[1] or now - last[0] > 5.0:
+            print(f"  [{fraction:4.0%}] {message}", flush=True)
+            last[:] = [now, message.split(":")[0]]
+
+    result = compact(cloud, keep=keep, count=args.count, tolerance=args.tolerance, cameras=cameras, views=args.views,
+                     resolution=args.resolution, score=args.score, removal=args.removal, images=images,
+                     rounds=args.rounds, iterations=DEFAULT_ITERATIONS if args.iterations is None else args.iterations,
+                     distill=args.distill, seed=args.seed,
+                     progress=progress if images is not None or args.distill else None)
+    t0 = time.perf_counter()
+    write_splat_file(result.cloud, args.output)
+    t_write = time.perf_counter() - t0
+    size_in, size_out = args.input.stat().st_size, args.output.stat().st_size
+    print(f"read {args.input} in {t_read:.2f} s"
+          + (f"; {len(cameras)} capture cameras from {args.cameras}" if cameras is not None else "")
+          + (f"; {len(images)} images at {images.cameras[0].height} px from {args.images}" if images is not None
+             else ""))
+    print(result.summary())
+    target = "the training images" if images is not None else "the input's own renders"
+    for k, r in enumerate(result.rounds, 1):
+        print(f"  round {k}: {r['count']:,} Gaussians, fine-tuned {r['seconds']:.1f} s, PSNR on {target} "
+              f"{r['psnr_before']:.2f} -> {r['psnr_after']:.2f} dB")
+    print(f"Gaussians {len(result.groups):,} -> {len(result.cloud):,}; file {_size(size_in)} -> {_size(size_out)} "
+          f"({size_out / max(size_in, 1):.1%}); PSNR against the input's render {result.psnr:.2f} dB; "
+          f"wrote {args.output} in {t_write:.2f} s")
+    return 0
+
+
+def _size(n: int) -> str:
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000.0
+    return f"{n} B"
+

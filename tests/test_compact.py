@@ -1,0 +1,258 @@
+"""Compaction (`gvae_core.compaction`, `gvae compact`): merges held to their slow definition, the
+LightGaussian hit counts to a per-pixel loop, what a compacted cloud keeps of its input, bad input
+refused before any work, degenerate Gaussians, the tolerance search and fine-tuning with images."""
+
+import math
+
+import numpy as np
+import pytest
+
+import gvae_core.compaction as compaction
+import gvae_core.resources as resources
+from gvae_core import Camera, GaussianCloud
+from gvae_core.antialias import DILATION_KEY, FILTER_KEY
+from gvae_core.cli import main
+from gvae_core.compaction import (compact, compaction_scores, merge_groups, merge_groups_reference, pixel_hits,
+                                  pixel_hits_reference, removal_groups)
+from gvae_core.datasets import Views
+from gvae_core.examples import example_cloud
+from gvae_core.ply import read_ply, write_ply
+from gvae_core.rendering import RenderSettings, render
+from gvae_core.resources import NotEnoughMemoryError
+
+
+def _cloud(n=300, seed=0, extras=True):
+    """A small torus with the extras a trained cloud carries: an anti-aliasing size, int64 ids, a float."""
+    c = example_cloud(n, seed=seed).with_sh_degree(1)
+    if not extras:
+        return c
+    rng = np.random.default_rng(seed)
+    return c.replace(extra={DILATION_KEY: rng.uniform(0.002, 0.01, n).astype(np.float32),
+                            "gvae_id": np.arange(100, 100 + n, dtype=np.int64),
+                            "confidence": rng.random(n).astype(np.float32)})
+
+
+def _groups(n, rng):
+    """Random groups: singles, pairs, triples and dropped rows, every output row used."""
+    labels = rng.integers(-1, n // 2, n)
+    used = np.unique(labels[labels >= 0])
+    remap = np.full(n // 2 + 1, -1)
+    remap[used] = np.arange(len(used))
+    return np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
+
+
+@pytest.mark.parametrize("size", [DILATION_KEY, FILTER_KEY])
+def test_merge_groups_matches_its_definition(size):
+    rng = np.random.default_rng(3)
+    cloud = _cloud(40)
+    cloud = cloud.replace(extra={**cloud.extra, size: cloud.extra.pop(DILATION_KEY)})
+    groups = _groups(len(cloud), rng)
+    fast, rows = merge_groups(cloud, groups)
+    slow = merge_groups_reference(cloud, groups)
+    assert len(fast) == groups.max() + 1
+    for name in ("means", "scales", "opacities", "sh_dc", "sh_rest"):
+        np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=2e-4, atol=2e-5, err_msg=name)
+    dots = np.abs((fast.unit_quats() * slow.unit_quats()).sum(1))  # q and -q are one rotation
+    thin = np.ptp(fast.scales, axis=1) > 1e-3  # (a round Gaussian's axes are any axes)
+    np.testing.assert_allclose(dots[thin], 1.0, atol=1e-4)
+    for key, value in slow.extra.items():
+        np.testing.assert_allclose(fast.extra[key], value, rtol=1e-5, err_msg=key)
+    singles = np.flatnonzero(np.bincount(groups[groups >= 0]) == 1)
+    for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):  # untouched: bit for bit
+        assert np.array_equal(getattr(fast, name)[singles], getattr(cloud, name)[rows[singles]])
+    assert all(groups[rows[j]] == j for j in range(len(rows)))
+
+
+def test_a_merge_keeps_mass_centre_and_colour():
+    """Two equal, far apart discs become one at their midpoint, with their colour, spanning both."""
+    c = GaussianCloud(means=np.array([[0, 0, 0], [1, 0, 0]], np.float32), scales=np.full((2, 3), -2.0, np.float32),
+                      quats=np.tile(np.float32([1, 0, 0, 0]), (2, 1)), opacities=np.zeros(2, np.float32),
+                      sh_dc=np.array([[1, 0, 0], [1, 0, 0]], np.float32))
+    out, _ = merge_groups(c, np.array([0, 0]))
+    np.testing.assert_allclose(out.means[0], [0.5, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(out.sh_dc[0], [1, 0, 0], atol=1e-6)
+    s = np.exp(out.scales[0])
+    assert s.max() == pytest.approx(math.sqrt(math.exp(-4.0) + 0.25), rel=1e-4)  # variance + (half the gap)²
+    assert 0.0 < out.activated_opacities()[0] <= 0.75 + 1e-6  # never more than the two draw together
+
+
+def test_pixel_hits_match_a_loop_over_pixels():
+    cloud = example_cloud(60, seed=2).with_sh_degree(0)
+    cams = [Camera.look_at((0.0, -3.0, 1.5), (0, 0, 0), width=14, height=11, fov_x=1.0),
+            Camera.look_at((2.5, 1.0, 2.0), (0, 0, 0), width=9, height=12, fov_x=0.8)]
+    hits = pixel_hits(cloud, cams, RenderSettings(tile_size=4))
+    assert hits.sum() > 0
+    np.testing.assert_array_equal(hits, pixel_hits_reference(cloud, cams, "auto"))
+
+
+def test_compact_keeps_sh_extras_and_untouched_rows():
+    cloud = _cloud(300)
+    before = cloud.copy()
+    r = compact(cloud, keep=0.5)
+    out = r.cloud
+    assert len(out) == 150 and out.sh_degree == cloud.sh_degree
+    assert set(out.extra) == set(cloud.extra)
+    assert all(out.extra[k].dtype == cloud.extra[k].dtype for k in cloud.extra)
+    assert np.all(np.diff(r.rows) > 0) and np.array_equal(out.extra["gvae_id"], cloud.extra["gvae_id"][r.rows])
+    assert all(r.groups[r.rows[j]] == j for j in range(len(out)))
+    alone = np.flatnonzero(np.bincount(r.groups[r.groups >= 0], minlength=len(out)) == 1)
+    assert np.array_equal(out.means[alone], cloud.means[r.rows[alone]])
+    assert r.merged + r.dropped == 150 and r.merged > 0
+    assert 20.0 < r.psnr < 100.0 and "150 out" in r.summary()
+    for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):  # the input is untouched
+        assert np.array_equal(getattr(cloud, name), getattr(before, name))
+
+
+def test_merging_keeps_the_picture_better_than_pruning():
+    """(Which score prunes better is measured on trained scenes, in the benchmark: on this evenly
+    covered torus, any score's pruning leaves holes.)"""
+    cloud = _cloud(1000, extras=False)
+    cams = [Camera.look_at((3 * math.cos(a), 3 * math.sin(a), 1.8), (0, 0, 0), width=48, height=48, fov_x=0.9)
+            for a in (0.3, 2.4, 4.5)]
+    psnr = {}
+    for score, removal in (("hessian", "merge"), ("hessian", "prune"), ("random", "prune")):
+        psnr[score, removal] = compact(cloud, keep=0.5, cameras=cams, resolution=48, score=score,
+                                       removal=removal).psnr
+    assert psnr["hessian", "merge"] > max(psnr["hessian", "prune"], psnr["random", "prune"]) + 5.0
+
+
+def test_unseen_gaussians_go_first():
+    """Gaussians behind three opaque walls change no pixel: their score is 0 and they are dropped
+    first, before any visible one is merged."""
+    rng = np.random.default_rng(4)
+    n = 30
+    walls = GaussianCloud(means=np.float32([[0, 0, 0.5], [0, 0, 0.45], [0, 0, 0.4]]),
+                          scales=np.tile(np.float32([math.log(20.0), math.log(20.0), -7.0]), (3, 1)),
+                          quats=np.tile(np.float32([1, 0, 0, 0]), (3, 1)), opacities=np.full(3, 10.0, np.float32),
+                          sh_dc=np.zeros((3, 3), np.float32))
+    small = GaussianCloud(means=np.concatenate([rng.uniform(-0.5, 0.5, (2 * n, 2)),
+                                                np.repeat([[1.0], [-0.5]], n, 0)], 1).astype(np.float32),
+                          scales=np.full((2 * n, 3), -3.0, np.float32),
+                          quats=np.tile(np.float32([1, 0, 0, 0]), (2 * n, 1)),
+                          opacities=np.zeros(2 * n, np.float32), sh_dc=rng.normal(0, 1, (2 * n, 3)).astype(np.float32))
+    cloud = GaussianCloud.concat([walls, small])  # rows 3..32 in front of the walls, 33..62 behind
+    cam = Camera.look_at((0.0, 0.01, 3.0), (0, 0, 0), up=(0, 1, 0), width=40, height=40, fov_x=0.7)
+    scores = compaction_scores(cloud, "hessian", [cam])
+    assert scores[3 + n:].max() <= 1e-6 < scores[3:3 + n].min()
+    groups = removal_groups(cloud, scores, len(cloud) - n)
+    assert (groups[3 + n:] < 0).all() and (groups[:3 + n] >= 0).all()
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(keep=0.0), "keep"), (dict(keep=1.5), "keep"), (dict(count=0), "count"), (dict(count=10_000), "count"),
+    (dict(count=2.5), "count"), (dict(keep=0.5, count=3), "one of"), (dict(tolerance=-1.0), "tolerance"),
+    (dict(tolerance=float("nan")), "tolerance"), (dict(keep=0.5, score="bogus"), "score"),
+    (dict(keep=0.5, removal="bogus"), "removal"), (dict(), "one of")])
+def test_bad_arguments_are_refused_before_any_work(bad, message, monkeypatch):
+    monkeypatch.setattr(compaction, "compaction_scores", lambda *a, **k: pytest.fail("work started"))
+    with pytest.raises(ValueError, match=message):
+        compact(_cloud(50), **bad)
+
+
+def test_empty_nonfinite_and_too_large_clouds_are_refused(monkeypatch):
+    monkeypatch.setattr(compaction, "compaction_scores", lambda *a, **k: pytest.fail("work started"))
+    with pytest.raises(ValueError, match="empty"):
+        compact(GaussianCloud.empty(1), keep=0.5)
+    bad = _cloud(50)
+    bad.means[7] = np.nan
+    with pytest.raises(ValueError, match="non-finite.*7"):
+        compact(bad, keep=0.5)
+    monkeypatch.setattr(resources, "available_memory", lambda: 10 << 20)
+    with pytest.raises(NotEnoughMemoryError, match="compacting 50 Gaussians"):
+        compact(_cloud(50), keep=0.5)
+
+
+def test_degenerate_gaussians_compact_to_finite_values():
+    c = _cloud(120, extras=False)
+    c.scales[0] = -30.0          # zero size
+    c.scales[1] = [8.0, 8.0, 8.0]  # huge
+    c.quats[2] = 0.0             # zero quaternion: the identity
+    c.opacities[3], c.opacities[4] = 50.0, -50.0  # extreme opacity
+    c.means[5] = [1e5, -3e5, 2e5]  # far from everything
+    c.means[6] = [0.0, 0.0, -0.2]  # (the views look at the centre from all around: some see it from behind)
+    c.scales[7] = [-30.0, -30.0, 0.0]  # flat to a line
+    for keep in (0.5, 0.1):
+        for removal in ("merge", "prune"):
+            r = compact(c, keep=keep, removal=removal, resolution=48)
+            assert len(r.cloud) == round(keep * 120)
+            assert not len(r.cloud.nonfinite_rows()) and math.isfinite(r.psnr)
+
+
+def test_tolerance_keeps_more_for_a_stricter_picture():
+    cloud = _cloud(200, extras=False)
+    loose = compact(cloud, tolerance=22.0, resolution=48)
+    strict = compact(cloud, tolerance=35.0, resolution=48)
+    assert len(loose.cloud) < len(strict.cloud) <= len(cloud)
+    assert loose.tolerance == 22.0 and len(loose.cloud) < 200
+    with pytest.raises(ValueError, match="without images"):
+        compact(cloud, tolerance=30.0, images=_views_of(cloud, 2))
+
+
+def _views_of(cloud, n, size=32):
+    """The cloud's own renders from n cameras around it, as training images."""
+    cams = [Camera.look_at((3 * math.cos(a), 3 * math.sin(a), 1.5), (0, 0, 0), width=size, height=size, fov_x=1.0)
+            for a in np.linspace(0, 2 * math.pi, n, endpoint=False)]
+    imgs = np.stack([render(cloud, c, background=(1.0, 1.0, 1.0)).image.numpy() for c in cams])
+    return Views(cams, np.clip(imgs, 0, 1), np.ones(imgs.shape[:3], np.float32))
+
+
+def test_fine_tuning_rounds_with_images_recover_the_picture():
+    cloud = _cloud(160)
+    images = _views_of(cloud, 4, size=24)
+    r = compact(cloud, keep=0.25, images=images, rounds=2, iterations=12, views=2, resolution=24)
+    assert len(r.cloud) == 40 and len(r.rounds) == 2
+    assert [x["count"] for x in r.rounds] == [80, 40]
+    assert r.rounds[-1]["psnr_after"] > r.rounds[-1]["psnr_before"]
+    assert set(r.cloud.extra) == set(cloud.extra) and not len(r.cloud.nonfinite_rows())
+    assert r.cloud.extra[DILATION_KEY].min() > 0  # recomputed from the images' cameras
+
+
+def test_distilling_against_the_inputs_own_renders_keeps_the_picture_closer():
+    """Without images: fine-tuned against the input's renders from views placed around it."""
+    cloud = _cloud(200, extras=False)  # (no anti-aliasing size: the views stay at 32 px)
+    merged = compact(cloud, keep=0.3, resolution=32)
+    distilled = compact(cloud, keep=0.3, resolution=32, distill=25, rounds=1)
+    assert len(distilled.cloud) == 60 and len(distilled.rounds) == 1
+    assert distilled.psnr > merged.psnr
+    with pytest.raises(ValueError, match="distill"):
+        compact(cloud, keep=0.3, distill=5, images=_views_of(cloud, 2))
+    with pytest.raises(ValueError, match="distill"):
+        compact(cloud, keep=0.3, distill=-1)
+
+
+def test_cli_compacts_a_file_and_refuses_bad_requests(tmp_path, capsys):
+    src = write_ply(_cloud(200), tmp_path / "in.ply")
+    out = tmp_path / "out.ply"
+    assert main(["compact", str(src), str(out), "--keep", "30%", "--resolution", "48"]) == 0
+    text = capsys.readouterr().out
+    assert len(read_ply(out)) == 60 and "200 -> 60" in text and "PSNR" in text and "KB" in text
+    for args, message in ((["--count", "5000"], "count"), (["--keep", "0"], "keep"), (["--keep", "abc"], "keep"),
+                          (["--keep", "0.5", "--iterations", "3"], "need --images")):
+        bad = tmp_path / "never.ply"
+        assert main(["compact", str(src), str(bad), *args]) == 2
+        assert message in capsys.readouterr().err and not bad.exists()
+    assert main(["compact", str(src), str(src), "--keep", "0.5"]) == 2
+    assert "must not be IN" in capsys.readouterr().err
+
+
+def test_cli_fine_tunes_with_the_captures_images(tmp_path, capsys):
+    import json  # noqa: PLC0415
+
+    from PIL import Image  # noqa: PLC0415
+
+    cloud = _cloud(60, extras=False)
+    views = _views_of(cloud, 3, size=16)
+    folder = tmp_path / "capture"
+    folder.mkdir()
+    frames = []
+    for i, (cam, img) in enumerate(zip(views.cameras, views.images)):
+        Image.fromarray((img * 255).round().astype(np.uint8)).save(folder / f"r_{i}.png")
+        frames.append({"file_path": f"r_{i}", "transform_matrix": cam.to_blender_c2w().tolist()})
+    (folder / "transforms_train.json").write_text(json.dumps({"camera_angle_x": views.cameras[0].fov_x,
+                                                              "frames": frames}))
+    src = write_ply(cloud, tmp_path / "in.ply")
+    out = tmp_path / "out.ply"
+    assert main(["compact", str(src), str(out), "--keep", "0.5", "--images", str(folder), "--iterations", "2",
+                 "--rounds", "1", "--views", "2", "--resolution", "16"]) == 0
+    text = capsys.readouterr().out
+    assert "3 images at 16 px" in text and "round 1: 30 Gaussians" in text and len(read_ply(out)) == 30
