@@ -12,7 +12,7 @@ from PIL import Image
 from gvae_core import read_ply, write_ply
 from gvae_core.cli import build_parser, demo, main
 from gvae_core.examples import example_cloud
-from gvae_core.vae import GaussianVAE
+from gvae_core.detail import DetailModel, save_detail
 from tests.test_experiment import _scene
 
 
@@ -106,22 +106,24 @@ def test_demo_without_a_trained_example_writes_then_reuses_the_example(tmp_path,
 
 def test_demo_refines_the_trained_example_and_compares_at_2x(tmp_path, capsys, monkeypatch):
     """The demo's main path on a small stand-in for the bundled example: a cloud and ground-truth
-    test views at twice its resolution (a ball rendered by our renderer), an untrained model."""
+    test views at twice its resolution (a ball rendered by our renderer), an untrained detail model
+    (which changes nothing: its outputs start at zero)."""
     folder = _scene(tmp_path / "example", size=40)
     cloud = example_cloud(400)
     write_ply(cloud.replace(means=cloud.means * 0.4), folder / "scene.ply")
-    GaussianVAE.create(seed=0).save(tmp_path / "model")
+    save_detail(DetailModel(), tmp_path / "model")
     monkeypatch.setenv("GVAE_MODEL_DIR", str(tmp_path / "model"))
     monkeypatch.setattr(demo, "trained_example", lambda: folder)
     assert main(["demo", "--results", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     rows = [line for line in out.splitlines() if line.startswith("| ")]
-    assert rows[0] == "| view | unrefined | refined | change | models, unchecked | change |"
+    assert rows[0] == "| view | unrefined | refined | change | model, unchecked | change |"
     assert len(rows) == 1 + 3 + 1  # head, 3 views, mean
     before, after, unchecked = (float(rows[-1].split(" | ")[k].split()[0]) for k in (1, 2, 4))
-    assert 0 < before < 60 and 0 < after < 60 and 0 < unchecked < 60
+    assert 0 < before < 60 and after == before and unchecked == before
+    assert "refined cloud draws as the unrefined one: PSNR between the two 100.0 dB" in out
     refined = read_ply(tmp_path / "out" / "refined.ply")
-    assert len(refined) >= 400
+    assert len(refined) == 400
     sheet = Image.open(tmp_path / "out" / "comparison.png")
     crop = demo.ZOOM * int(demo.CROP * 40)
     assert sheet.size == (4 * 40 + 4 * crop, 3 * max(40, crop))  # a row per view: 4 panels, 4 crops

@@ -96,8 +96,7 @@ def run_trained(folder: Path, args: argparse.Namespace) -> int:
                   f"unchecked {scores[-1][2]:.2f} dB", "ground truth")
         for img, label in zip(row[:4], labels):
             ImageDraw.Draw(img).text((3, 2), label, fill=(0, 0, 0))
-        draw = ImageDraw.Draw(row[0])
-        draw.rectangle([x, y, x + size, y + size], outline=(255, 0, 0))
+        ImageDraw.Draw(row[0]).rectangle([x, y, x + size, y + size], outline=(255, 0, 0))
         rows.append(row)
     width = sum(img.width for img in rows[0])
     height = sum(max(img.height for img in row) for row in rows)
