@@ -386,6 +386,9 @@ class GVAE_OT_refine(JobOperator, Operator):
     def _report_text(self, info: dict) -> str:
         back = (f"; {info['put_back']} of {info['selected']} refined Gaussians put back by the fidelity check"
                 if info.get("put_back") else "")
+        if info["added"] == 0 and info["selected"]:  # the detail model: changes per octave, no Gaussian added
+            return (f"Refine: {info['selected'] - info['put_back']} of {info['before']} Gaussians given detail above "
+                    f"their training resolution in {info['seconds']:.2f} s" + back + _timing_text(info))
         return (f"Refine: {info['before']} -> {info['after']} Gaussians (+{info['added']}) in "
                 f"{info['seconds']:.2f} s" + back + _timing_text(info))
 

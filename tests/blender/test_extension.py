@@ -304,8 +304,8 @@ def test_refine_glue_with_test_stand_in(extension_zip, tmp_path):
 
 
 def test_batch_command_line(extension_zip, tmp_path):
-    """The README's batch line, with the real gvae_core.refine (the bundled model, or untrained
-    weights while none ships: the data path end to end, not the model's quality). Blender's
+    """The README's batch line, with the real gvae_core.refine (the bundled detail model, or
+    untrained VAE weights where it does not load: the data path end to end, not the model's quality). Blender's
     `-b --python-expr` is here the bpy module, which reads the user preferences (where the
     extension is enabled) only when asked."""
     src = tmp_path / "in.ply"
@@ -336,7 +336,11 @@ def test_batch_command_line(extension_zip, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = read_ply(tmp_path / "out.ply")
     assert len(out) >= n and out.sh_degree == 3 and out.validate().ok
-    if model is not None:
+    if what == "bundled model":  # the detail model: changes per octave, no Gaussian added
+        assert f"of {n} Gaussians given detail" in proc.stdout + proc.stderr, proc.stdout[-2000:]
+        assert len(out) == n and out.extra["gvae_octave_limit"].max() == 2.0
+        np.testing.assert_array_equal(out.extra["label"], cloud.extra["label"])
+    elif model is not None:
         print(f"batch refine ({what}): {n} -> {len(out)} Gaussians")
         assert f"Refine: {n} ->" in proc.stdout + proc.stderr
         steps = read_ply(tmp_path / "steps.ply").extra["gvae_step"]
