@@ -198,7 +198,8 @@ class RefineJob(CoreJob):
     def _info(self) -> dict:
         r = self.result
         return {"after": len(r.cloud), "added": len(r.added), "timings": dict(r.timings),
-                "selected": len(getattr(r, "selected", ())), "put_back": len(getattr(r, "reverted", ()))}
+                "selected": len(getattr(r, "selected", ())), "put_back": len(getattr(r, "reverted", ())),
+                "not_refined": getattr(r, "notes", {}).get("not refined")}
 
 
 class CompactJob(CoreJob):
@@ -386,6 +387,8 @@ class GVAE_OT_refine(JobOperator, Operator):
     def _report_text(self, info: dict) -> str:
         back = (f"; {info['put_back']} of {info['selected']} refined Gaussians put back by the fidelity check"
                 if info.get("put_back") else "")
+        if info.get("not_refined"):
+            return f"Refine: left as it is: {info['not_refined']}"
         if info["added"] == 0 and info["selected"]:  # the detail model: changes per octave, no Gaussian added
             return (f"Refine: {info['selected'] - info['put_back']} of {info['before']} Gaussians given detail above "
                     f"their training resolution in {info['seconds']:.2f} s" + back + _timing_text(info))

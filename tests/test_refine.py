@@ -425,6 +425,17 @@ def test_detail_refine_keeps_the_training_picture_and_adds_nothing():
     assert "octave" in r.summary()
 
 
+def test_detail_refine_leaves_a_cloud_trained_with_the_3d_filter_as_it_is():
+    """The detail model lowered PSNR at 2x on a Mip-Splatting-trained cloud: such a cloud is
+    returned unchanged, and the summary says why."""
+    cloud = _cloud(30)
+    cloud.extra["filter_3D"] = np.full((30, 1), 0.01, np.float32)
+    r = refine(cloud, model=_detail_model())
+    assert len(r.selected) == 0 and not octave_fields(r.cloud)
+    np.testing.assert_array_equal(r.cloud.scales, cloud.scales)
+    assert "filter_3D" in r.summary() and "nothing was changed" in r.summary()
+
+
 def test_detail_refine_changes_only_the_budget_and_says_where_the_rate_came_from():
     cloud = _cloud(80, degree=0)  # no anti-aliasing size: the rate is assumed from placed views
     r = refine(cloud, model=_detail_model(1), budget=0.25, scores=_scores(80))

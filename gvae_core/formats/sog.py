@@ -41,7 +41,8 @@ splat-transform; seeded: the same cloud gives the same file). Bounds: position (
 half a step, (max - min) / 131070, of its axis; rotation 1/255/sqrt 2 ~ 0.0028 for the three smaller
 components, three times that for the largest (derived from them); opacity 0.5/255 after the
 sigmoid; log-scale and f_dc the nearest codebook entry. Measured on the trained chair of
-examples/trained (11,130 Gaussians, SH 3; `python -m gvae_core.benchmarks sog`), RMS / largest
+examples/trained as it was before issue 23 (11,130 Gaussians trained with the 3D filter, SH 3;
+`python -m gvae_core.benchmarks sog`), RMS / largest
 error, splat-transform 3.7.0's on the same cloud in brackets: position 6.3e-6 / 2.0e-5 (1.3e-5 /
 4.1e-5), rotation 0.0014 / 0.0028 (0.0028 / 0.0055), log-scale 0.0034 / 0.017 (0.0033 / 0.016),
 opacity 0.0012 / 0.0020 (0.0022 / 0.0039), f_dc 0.0030 / 0.017 (0.0029 / 0.015), f_rest 0.00089 /
