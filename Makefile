@@ -22,8 +22,14 @@ $(STAMP): pyproject.toml
 lint: install
 	$(PY) -m ruff check .
 
+# The Blender tests run beside the rest (they mostly wait on Blender subprocesses; together they
+# share the 2 cores well), each suite in its own temporary folder; the Blender log follows.
 test: install
-	$(PY) -m pytest -q
+	@mkdir -p build
+	@$(PY) -m pytest -q --basetemp=build/pytest-blender tests/blender > build/test-blender.log 2>&1 & bg=$$!; \
+	$(PY) -m pytest -q --basetemp=build/pytest-core --ignore=tests/blender; core=$$?; \
+	wait $$bg; blender=$$?; echo "--- tests/blender (ran beside the above):"; cat build/test-blender.log; \
+	test $$core -eq 0 && test $$blender -eq 0
 
 # The Blender tests (tests/blender) against each Blender version the manifest claims: the everyday
 # 5.0.1 in .venv, the others each in a venv under build/ with that bpy wheel from PyPI (~0.4 GB each)
