@@ -474,5 +474,7 @@ def test_cli_refine_with_the_detail_model(tmp_path, capsys):
     assert LIMIT_KEY not in baked.extra and not np.array_equal(baked.scales, out.scales)
     assert gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "out.spz"), *args]) == 0
     assert "baked for 2x" in capsys.readouterr().out and len(read_splat_file(tmp_path / "out.spz")) == 50
+    assert gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "out.compressed.ply"), *args]) == 0
+    assert "baked for 2x" in capsys.readouterr().out
     assert gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "x.ply"), "--bake", "0", *args]) == 2
     assert not (tmp_path / "x.ply").exists()

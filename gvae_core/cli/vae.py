@@ -55,7 +55,7 @@ def register(subparsers) -> None:
                    "(default: all for detail, auto for vae)")
     r.add_argument("--bake", type=float, default=None, metavar="FACTOR",
                    help="detail: write a plain cloud, drawn as the refined one is at FACTOR times the training "
-                   "resolution, for other tools (default: keep the changes in the PLY; .spz/.splat, which keep no "
+                   "resolution, for other tools (default: keep the changes in a .ply; the other formats, which keep no "
                    "extra properties, are baked at 2^K)")
     r.add_argument("--model", type=Path, default=None, help="model directory (default: the bundled one)")
     r.add_argument("--lineage", type=Path, default=None,
@@ -184,7 +184,7 @@ def run_refine(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     out = result.cloud
     factor = args.bake
-    if factor is None and has_octaves(out) and args.output.suffix.lower() in (".spz", ".splat"):
+    if factor is None and has_octaves(out) and output_format(args.output) != "ply":  # the others keep no extras
         factor = 2.0 ** args.steps
     if factor is not None and has_octaves(out):
         out = bake(out, factor)
