@@ -9,12 +9,13 @@ user's PLY comes); train the detail model through the renderer on all
 of them (`gvae_core.detail.fit_model`) and score it on the validation scenes at 2x against the
 unrefined cloud. The lineage VAEs (`--model vae`): the full protocol's runs of the training scenes
 and `gvae fit-vae` with the validation scenes held out. Prints how long each part took.
-Usage: python tools/train_model.py [--model detail|vae] [--out models] [--steps N]
+Usage: python tools/train_model.py [--model detail|vae] [--out models] [--steps N] [--antialias classic|mip]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -38,6 +39,9 @@ DETAIL_PATCH = 128
 
 def train_detail(args) -> int:
     protocol = PROTOCOLS[args.protocol]
+    if args.antialias == "mip":  # runs trained (and scored) with Mip-Splatting's filters
+        protocol = dataclasses.replace(protocol, name=f"{protocol.name}-mip", antialias="mip",
+                                       train_overrides={**protocol.train_overrides, "antialias": "mip"})
     start = time.perf_counter()
     config = DetailConfig()
     examples, seconds = [], {"scene": 0.0, "train": 0.0}
@@ -62,10 +66,12 @@ def train_detail(args) -> int:
         if step % 250 == 0:
             print(f"[train-model] step {step}/{args.steps}: loss {np.mean(losses[-250:]):.5f}", flush=True)
 
-    history = fit_model(model, examples, FitConfig(steps=args.steps, patch=DETAIL_PATCH, seed=args.seed), progress)
+    fit = FitConfig(steps=args.steps, patch=DETAIL_PATCH, seed=args.seed, antialias="auto")  # each cloud's own mode
+    history = fit_model(model, examples, fit, progress)
     model.meta = {"train_scenes": list(args.train), "scene_seeds": list(args.scene_seeds),
                   "protocol": protocol.data().name, "examples": len(examples), "steps": args.steps,
                   "patch": DETAIL_PATCH, "seed": args.seed, "seconds": round(history["seconds"], 1),
+                  "antialias": args.antialias,
                   "validation": {}}
     for name in args.holdout:  # (validation scenes: never trained on)
         for seed in VALIDATION_SEEDS:
@@ -121,6 +127,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="scenes kept out of training and evaluated (default: the validation split)")
     p.add_argument("--scene-seeds", nargs="*", type=int, default=list(DETAIL_SCENE_SEEDS),
                    help="detail: the seeded variants of each training scene (default: %(default)s)")
+    p.add_argument("--antialias", choices=("classic", "mip"), default="classic",
+                   help="detail: learn from runs trained the classic way (the shipped model) or with "
+                   "Mip-Splatting's filters (default: %(default)s)")
     p.add_argument("--steps", type=int, default=None,
                    help=f"optimiser steps (default: {DETAIL_STEPS} for detail, 6000 for vae)")
     p.add_argument("--seed", type=int, default=0)
