@@ -150,7 +150,7 @@ def _lineage_for(cloud: GaussianCloud, lineage: Lineage, stage: int | None) -> t
 METHODS = ("detail", "vae")
 DEFAULT_METHOD = "detail"
 #: Each method's budget unless told: the detail model changes every Gaussian (its changes are
-#: small where nothing is to gain; BENCHMARKS.md "Refinement that makes the picture better"), the
+#: small where nothing is to gain; BENCHMARKS.md "Refinement that improves the picture"), the
 #: VAEs densify the Hessian's high-score class.
 DEFAULT_BUDGETS = {"detail": "all", "vae": "auto"}
 #: A cloud with neither an anti-aliasing size nor capture cameras is taken to have been trained by

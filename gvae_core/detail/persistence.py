@@ -7,10 +7,10 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
-from safetensors.torch import load_file, save
+from safetensors.torch import save
 
 from ..atomic import atomic_write, atomic_write_text
-from ..vae.persistence import default_model_dir
+from ..vae.persistence import default_model_dir, load_weights
 from .model import DetailConfig, DetailModel
 
 FORMAT = "gvae-detail-1"
@@ -44,13 +44,7 @@ def load_detail(directory=None) -> DetailModel:
         raise ValueError(f"{path}: not a detail model config ({exc})") from exc
     model = DetailModel(config)
     model.meta = dict(doc.get("meta", {}))
-    weights = directory / WEIGHTS
-    if not weights.is_file():
-        raise FileNotFoundError(f"{weights}: missing model weights")
-    try:
-        model.load_state_dict(load_file(str(weights)))
-    except Exception as exc:  # a truncated file or a mismatched architecture
-        raise ValueError(f"{weights}: cannot load weights ({exc})") from exc
+    load_weights(model, directory / WEIGHTS)
     return model.eval()
 
 

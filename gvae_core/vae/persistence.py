@@ -43,14 +43,19 @@ def load_model(directory: str | Path) -> GaussianVAE:
     except (KeyError, TypeError, json.JSONDecodeError) as exc:
         raise ValueError(f"{cfg_path}: not a GaussianVAE model config ({exc})") from exc
     for name, part in (("geometry", g), ("appearance", a)):
-        path = directory / f"{name}.safetensors"
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: missing model weights")
-        try:
-            part.load_state_dict(load_file(str(path)))
-        except Exception as exc:  # a truncated file or a mismatched architecture
-            raise ValueError(f"{path}: cannot load weights ({exc})") from exc
+        load_weights(part, directory / f"{name}.safetensors")
     return GaussianVAE(g.eval(), a.eval(), dict(config.get("meta", {})))
+
+
+def load_weights(module, path: Path) -> None:
+    """Load a safetensors file into `module`; a missing file or one that does not fit raises an
+    error naming it."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing model weights")
+    try:
+        module.load_state_dict(load_file(str(path)))
+    except Exception as exc:  # a truncated file or a mismatched architecture
+        raise ValueError(f"{path}: cannot load weights ({exc})") from exc
 
 
 def default_model_dir() -> Path:
