@@ -134,11 +134,12 @@ REFINE_NOTE = (
 
 #: What Compact does (README, "Compaction"), under its button.
 COMPACT_NOTE = (
-    "Drops what no view sees and merges the rest",
-    "pairwise, the Hessian choosing which: scored",
-    "from views placed around the object; then, with",
-    "Fine-Tune Iterations, fine-tunes against the",
-    "object's own renders (README: Compaction).",
+    "Drops what no view sees and the tenth the",
+    "picture needs least (by the Hessian), merges",
+    "the rest pairwise; scored from views placed",
+    "around the object. With Fine-Tune Iterations,",
+    "then fine-tunes against the object's own",
+    "renders (README: Compaction).",
 )
 
 

@@ -10,7 +10,9 @@ number, or as few as keep the picture within a PSNR tolerance) in three parts:
    sensitivity of PUP 3D-GS. Baselines for comparison: LightGaussian's global significance
    (pixels hit x opacity x volume^0.1), opacity, random.
 2. **Remove** down to the count. `merge` (the default): the Gaussians no view sees (score 0,
-   they change no pixel) are dropped, the rest are merged pairwise, over a k-nearest-neighbour
+   they change no pixel) are dropped, and so are the lowest-scoring PRUNE_FRACTION of the input
+   (those the picture depends on least: merged into a neighbour, they would change it for
+   little; never more than the removal); the rest are merged pairwise, over a k-nearest-neighbour
    graph, pass after pass, each pass taking the cheapest disjoint pairs (mutually cheapest
    edges), until the count is reached. A pair becomes one Gaussian that matches its moments
    with mass weights (mass = opacity x mean projected area): position, covariance, colour (every
@@ -26,8 +28,9 @@ number, or as few as keep the picture within a PSNR tolerance) in three parts:
 
 What was measured (BENCHMARKS.md, "Compaction"): merging keeps the picture far better than any
 pruning score without fine-tuning; the Hessian's weighting of the merges changes PSNR by less than
-0.01 dB against an unweighted merge (its use here is dropping what no view sees first); with
-fine-tuning, merging then fine-tuning also beats pruning then fine-tuning.
+0.01 dB against an unweighted merge: its use is choosing what is dropped rather than merged (what
+no view sees, and the lowest-scoring tenth); with fine-tuning, merging then fine-tuning also beats
+pruning then fine-tuning.
 
 Untouched Gaussians keep their values bit for bit, their rows in input order; a merged Gaussian
 takes the row (and the extra properties) of its most massive member, with the anti-aliasing size
@@ -81,6 +84,12 @@ NEIGHBOURS = 4
 COLOUR_WEIGHT = 10.0
 #: A Gaussian whose score is at most this changes no pixel of the scoring views.
 UNSEEN = 1e-6
+#: Fraction of the input that `merge` drops (the lowest scores among the seen ones, never more than
+#: the removal) before merging the rest. On the validation and training scenes (6, seed 0), at 50 /
+#: 30 / 10% kept: merging everything -0.44 / -0.84 / -2.19 dB, 0.05 -0.41 / -0.81 / -2.16, 0.1
+#: -0.37 / -0.77 / -2.18 (no scene worse at 50 or 30%), 0.15 -0.35 / -0.78 / -2.18 (one scene
+#: worse), 0.2 -0.39 / -0.82 / -2.20 (BENCHMARKS.md, "Compaction").
+PRUNE_FRACTION = 0.1
 #: LightGaussian's volume exponent (its v_pow) and the quantile its volumes are taken relative to.
 LIGHTGAUSSIAN_POWER = 0.1
 LIGHTGAUSSIAN_QUANTILE = 0.1
@@ -156,9 +165,11 @@ def target_count(n: int, keep=None, count=None) -> int:
     return int(count)
 
 
-def _check_input(src: GaussianCloud, score: str, removal: str) -> None:
+def _check_input(src: GaussianCloud, score: str, removal: str, prune: float) -> None:
     if len(src) == 0:
         raise ValueError("compact: the cloud is empty (nothing to compact)")
+    if isinstance(prune, bool) or not isinstance(prune, (int, float, np.floating)) or not 0.0 <= prune < 1.0:
+        raise ValueError(f"compact: prune must be a fraction in [0, 1), got {prune!r}")
     if score not in SCORES:
         raise ValueError(f"compact: score must be one of {', '.join(SCORES)}, got {score!r}")
     if removal not in REMOVALS:
@@ -526,27 +537,22 @@ def merge_groups(cloud: GaussianCloud, groups: np.ndarray) -> tuple[GaussianClou
     size = np.bincount(groups[member], minlength=g)
     multi = np.flatnonzero(size > 1)
     idx = np.flatnonzero(member & (size[np.maximum(groups, 0)] > 1))
-    m = _moments(src.select(idx), np.zeros(len(idx)))
+    idx = idx[np.argsort(groups[idx], kind="stable")]  # by group: each group's members one segment
+    members = src.select(idx)
+    m = _moments(members, np.zeros(len(idx)))
     rows = _representatives(groups, idx, m.mass)
     out = src.select(rows).copy()
     if len(multi):
         local = np.full(g, -1, np.int64)
         local[multi] = np.arange(len(multi))
         grp = local[groups[idx]]
-        k = len(multi)
-        mass = np.bincount(grp, m.mass, k)
+        starts = np.concatenate([[0], np.cumsum(size[multi])[:-1]])
+        mass = np.add.reduceat(m.mass, starts)
         w = m.mass / np.maximum(mass[grp], 1e-300)
-        mu = _group_sum(grp, w[:, None] * m.mu, k)
-        sigma = _group_sum(grp, w[:, None] * (m.sigma + _outer(m.mu - mu[grp])), k)
-        _write_merged(out, multi, src.select(idx), grp, w, mu + m.origin, sigma, mass, m.floor)
+        mu = np.add.reduceat(w[:, None] * m.mu, starts)
+        sigma = np.add.reduceat(w[:, None] * (m.sigma + _outer(m.mu - mu[grp])), starts)
+        _write_merged(out, multi, members, grp, starts, w, mu + m.origin, sigma, mass, m.floor)
     return out, rows
-
-
-def _group_sum(grp: np.ndarray, values: np.ndarray, k: int) -> np.ndarray:
-    """(k, ...) sums of the rows of `values` (M, ...) by group (every group 0..k-1 has a row)."""
-    order = np.argsort(grp, kind="stable")
-    starts = np.searchsorted(grp[order], np.arange(k))
-    return np.add.reduceat(values[order], starts, axis=0)
 
 
 def _representatives(groups: np.ndarray, idx: np.ndarray, mass: np.ndarray) -> np.ndarray:
@@ -561,9 +567,11 @@ def _representatives(groups: np.ndarray, idx: np.ndarray, mass: np.ndarray) -> n
     return rows
 
 
-def _write_merged(out: GaussianCloud, multi, members: GaussianCloud, grp, w, mu, sigma, mass, floor: float) -> None:
+def _write_merged(out: GaussianCloud, multi, members: GaussianCloud, grp, starts, w, mu, sigma, mass,
+                  floor: float) -> None:
     """Write the merged Gaussians (their moments given; `floor` on the covariances' diagonal)
-    into rows `multi` of `out`; `members`: the rows merged, group `grp` each, mass weight `w`."""
+    into rows `multi` of `out`; `members`: the rows merged, sorted by their group `grp` (each
+    group's first row at `starts`), mass weight `w`."""
     k = len(multi)
     vals, vecs = np.linalg.eigh(_unpack(sigma))
     vecs[np.linalg.det(vecs) < 0, :, 0] *= -1.0  # a rotation, not a reflection
@@ -579,9 +587,10 @@ def _write_merged(out: GaussianCloud, multi, members: GaussianCloud, grp, w, mu,
     out.scales[multi] = log_scale
     out.quats[multi] = quaternions.from_rotmat(vecs)
     out.opacities[multi] = np.log(opacity / (1.0 - opacity))
-    out.sh_dc[multi] = _group_sum(grp, w[:, None] * members.sh_dc, k)
+    w32 = w.astype(np.float32)  # (the SH sums in the cloud's precision: they are most of the work)
+    out.sh_dc[multi] = np.add.reduceat(w32[:, None] * members.sh_dc, starts)
     if members.sh_rest.shape[1]:
-        out.sh_rest[multi] = _group_sum(grp, w[:, None, None] * members.sh_rest, k)
+        out.sh_rest[multi] = np.add.reduceat(w32[:, None, None] * members.sh_rest, starts)
     for key in (FILTER_KEY, DILATION_KEY):
         if key in out.extra and np.asarray(out.extra[key]).ndim == 1:
             v = np.square(np.asarray(members.extra[key], np.float64))
@@ -643,20 +652,25 @@ def _groups_by_pruning(scores: np.ndarray, target: int) -> np.ndarray:
 
 
 def removal_groups(src: GaussianCloud, scores: np.ndarray, target: int, *, score: str = "hessian",
-                   removal: str = "merge", neighbours: int = NEIGHBOURS,
+                   removal: str = "merge", neighbours: int = NEIGHBOURS, prune: float = PRUNE_FRACTION,
                    progress=None) -> np.ndarray:
     """(N,) the output row of each input row (-1: dropped) that brings `src` to `target` rows:
-    `prune` keeps the `target` highest scores; `merge` drops what no view sees and merges the
-    rest pairwise (module docstring), weighted by `_merge_weights(scores, score)`."""
+    removal "prune" keeps the `target` highest scores; "merge" drops what no view sees and, for a
+    score of the picture ("hessian", "lightgaussian"), the lowest-scoring fraction `prune` of the
+    input besides, and merges the rest pairwise (module docstring), weighted by `_merge_weights`."""
     n = len(src)
     if target >= n:
         return np.arange(n)
     if removal == "prune":
         return _groups_by_pruning(scores, target)
     weight = _merge_weights(scores, score)
-    seen = np.flatnonzero(weight > UNSEEN) if score in ("hessian", "lightgaussian") else np.arange(n)
-    if len(seen) <= target:  # dropping what is not seen is enough: keep the highest scores
-        return _groups_by_pruning(scores, target)
+    seen = np.arange(n)
+    if score in ("hessian", "lightgaussian"):
+        seen = np.flatnonzero(weight > UNSEEN)
+        if len(seen) <= target:  # dropping what is not seen is enough: keep the highest scores
+            return _groups_by_pruning(scores, target)
+        drop = min(int(round(prune * n)), len(seen) - target)
+        seen = np.sort(seen[np.argsort(scores[seen], kind="stable")[drop:]])
     m = _moments(src.select(seen), weight[seen])
     sub = _merge_owner(m, target, neighbours, progress)
     groups = np.full(n, -1, np.int64)
@@ -704,7 +718,8 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
             tolerance: float | None = None, cameras: Sequence[Camera] | None = None, views: int = DEFAULT_VIEWS,
             resolution: int = DEFAULT_RESOLUTION, score: str = "hessian", removal: str = "merge",
             images=None, rounds: int = 2, iterations: int = DEFAULT_ITERATIONS, distill: int = 0, seed: int = 0,
-            neighbours: int = NEIGHBOURS, render_settings: RenderSettings | None = None,
+            neighbours: int = NEIGHBOURS, prune: float = PRUNE_FRACTION,
+            render_settings: RenderSettings | None = None,
             progress: Callable[[float, str], None] | None = None, check_memory: bool = True) -> CompactResult:
     """`cloud` with fewer Gaussians: `keep` a fraction in (0, 1], a `count`, or the fewest whose
     render from the scoring views, at the training sampling rate, stays at or above `tolerance`
@@ -712,8 +727,10 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
 
     `cameras`: the capture's cameras to score from (`capture.load_cameras`; `views` of them are
     used, spread out, scaled to `resolution` px high), else `views` views placed around the cloud.
-    `score`: one of SCORES; `removal`: "merge" (default) or "prune". `images`: the capture's
-    training images (`datasets.Views`, in the cloud's frame, at the resolution to fine-tune at):
+    `score`: one of SCORES; `removal`: "merge" (default) or "prune"; `prune`: the fraction of the
+    input that merging drops first, the lowest scores (`removal_groups`; 0: merge all that is
+    seen); `neighbours`: of each Gaussian in the merge graph. `images`: the capture's training
+    images (`datasets.Views`, in the cloud's frame, at the resolution to fine-tune at):
     `rounds` rounds of removal and `iterations` of fine-tuning each (`train.fine_tune`), the
     scores then come from `images`' cameras. `distill`: without images, fine-tune as with them,
     `distill` iterations a round, against the input's own renders (`own_renders`: DISTILL_VIEWS
@@ -726,7 +743,7 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     t_start = time.perf_counter()
     say = progress or (lambda fraction, message: None)
     src = cloud.numpy()
-    _check_input(src, score, removal)
+    _check_input(src, score, removal, prune)
     n = len(src)
     target = _check_arguments(n, keep, count, tolerance, images, distill, rounds, iterations)
     if check_memory:
@@ -735,13 +752,14 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
                              resolution=resolution, neighbours=neighbours)
     settings = scoring_settings(render_settings)
     timings: dict[str, float] = {}
+    how = {"score": score, "removal": removal, "neighbours": neighbours, "prune": prune}  # removal_groups'
     with reuse_freed_memory():
         if distill:
             say(0.0, "rendering the input for the fine-tuning")
             images, iterations = own_renders(src, cameras, resolution, settings), distill
         if images is not None:
-            result = _compact_with_images(src, target, images, score, removal, rounds, iterations, seed, neighbours,
-                                          views, resolution, settings, say, timings)
+            result = _compact_with_images(src, target, images, how, rounds, iterations, seed, views, resolution,
+                                          settings, say, timings)
         else:
             cams = _views(src, cameras, views, resolution)
             t0 = time.perf_counter()
@@ -754,13 +772,11 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
             reference = _input_images(src, cams, settings, frames)
             del frames
             if target is None:
-                target = _tolerance_count(src, scores, float(tolerance), cameras, cams, score, removal, neighbours,
-                                          settings, say)
+                target = _tolerance_count(src, scores, float(tolerance), cameras, cams, how, settings, say)
                 timings["tolerance search"] = time.perf_counter() - t0
                 t0 = time.perf_counter()
             say(0.65, f"removing {n - target:,} of {n:,} Gaussians ({removal})")
-            groups = removal_groups(src, scores, target, score=score, removal=removal, neighbours=neighbours,
-                                    progress=lambda f, msg: say(0.65 + 0.25 * f, msg))
+            groups = removal_groups(src, scores, target, **how, progress=lambda f, msg: say(0.65 + 0.25 * f, msg))
             out, rows = merge_groups(src, groups)
             groups, rows, out = _ordered(groups, rows, out)
             timings["remove"] = time.perf_counter() - t0
@@ -799,7 +815,7 @@ def own_renders(cloud: GaussianCloud, cameras=None, resolution: int = DEFAULT_RE
     return Views(cams, np.stack([img.numpy() for img in _input_images(src, cams, settings or RenderSettings())]))
 
 
-def _tolerance_count(src, scores, tolerance, cameras, cams, score, removal, neighbours, settings, say) -> int:
+def _tolerance_count(src, scores, tolerance, cameras, cams, how: dict, settings, say) -> int:
     """The fewest Gaussians (to within 1% of the input's count) whose compaction keeps the
     picture at the training sampling rate at or above `tolerance` dB against the input's: a
     bisection on the count (the scoring views rescaled by `_training_rate`)."""
@@ -808,7 +824,7 @@ def _tolerance_count(src, scores, tolerance, cameras, cams, score, removal, neig
     n = len(src)
 
     def good(target: int) -> float:
-        groups = removal_groups(src, scores, target, score=score, removal=removal, neighbours=neighbours)
+        groups = removal_groups(src, scores, target, **how)
         return _report_psnr(reference, merge_groups(src, groups)[0], check, settings)
 
     lo, hi = 0, n  # good(hi) holds (the input itself); find the smallest count that holds
@@ -826,8 +842,8 @@ def _tolerance_count(src, scores, tolerance, cameras, cams, score, removal, neig
     return hi
 
 
-def _compact_with_images(src, target, images, score, removal, rounds, iterations, seed, neighbours, views,
-                         resolution, settings, say, timings) -> CompactResult:
+def _compact_with_images(src, target, images, how: dict, rounds, iterations, seed, views, resolution, settings, say,
+                         timings) -> CompactResult:
     """PUP 3D-GS's rounds: remove part of the way (the fraction kept per round the same), fine-tune."""
     from .train import TrainConfig, fine_tune  # noqa: PLC0415 - training loads only with images
 
@@ -843,11 +859,11 @@ def _compact_with_images(src, target, images, score, removal, rounds, iterations
         count = max(target, int(round(n * (target / n) ** ((r + 1) / rounds))))
         base = 0.9 * r / rounds
         t0 = time.perf_counter()
-        say(base, f"round {r + 1}/{rounds}: scoring {len(cur):,} Gaussians ({score})")
-        scores = compaction_scores(cur, score, cams, settings=settings, seed=seed + r)
+        say(base, f"round {r + 1}/{rounds}: scoring {len(cur):,} Gaussians ({how['score']})")
+        scores = compaction_scores(cur, how["score"], cams, settings=settings, seed=seed + r)
         if first_scores is None:
             first_scores = scores
-        step = removal_groups(cur, scores, count, score=score, removal=removal, neighbours=neighbours)
+        step = removal_groups(cur, scores, count, **how)
         cur, _ = merge_groups(cur, step)
         groups = np.where(groups >= 0, step[np.maximum(groups, 0)], -1)
         timings["remove"] = timings.get("remove", 0.0) + time.perf_counter() - t0

@@ -138,11 +138,25 @@ def test_unseen_gaussians_go_first():
     assert (groups[3 + n:] < 0).all() and (groups[:3 + n] >= 0).all()
 
 
+def test_merging_drops_the_lowest_scores_first():
+    """Before merging, the lowest-scoring `prune` fraction is dropped, never more than the removal."""
+    cloud = _cloud(200, extras=False)
+    scores = np.random.default_rng(5).uniform(0.1, 10.0, 200)
+    groups = removal_groups(cloud, scores, 100, prune=0.1)
+    dropped = np.flatnonzero(groups < 0)
+    assert set(dropped) == set(np.argsort(scores)[:20])
+    assert np.array_equal(np.unique(groups[groups >= 0]), np.arange(100))  # the other 180 merged into 100
+    groups = removal_groups(cloud, scores, 190, prune=0.1)  # the removal is smaller: dropping is all of it
+    assert set(np.flatnonzero(groups < 0)) == set(np.argsort(scores)[:10]) and groups.max() == 189
+    assert (removal_groups(cloud, scores, 100, prune=0.0) >= 0).all()  # merging only
+
+
 @pytest.mark.parametrize("bad, message", [
     (dict(keep=0.0), "keep"), (dict(keep=1.5), "keep"), (dict(count=0), "count"), (dict(count=10_000), "count"),
     (dict(count=2.5), "count"), (dict(keep=0.5, count=3), "one of"), (dict(tolerance=-1.0), "tolerance"),
     (dict(tolerance=float("nan")), "tolerance"), (dict(keep=0.5, score="bogus"), "score"),
-    (dict(keep=0.5, removal="bogus"), "removal"), (dict(), "one of")])
+    (dict(keep=0.5, removal="bogus"), "removal"), (dict(keep=0.5, prune=1.0), "prune"),
+    (dict(keep=0.5, prune=-0.1), "prune"), (dict(), "one of")])
 def test_bad_arguments_are_refused_before_any_work(bad, message, monkeypatch):
     monkeypatch.setattr(compaction, "compaction_scores", lambda *a, **k: pytest.fail("work started"))
     with pytest.raises(ValueError, match=message):
@@ -220,7 +234,7 @@ def test_distilling_against_the_inputs_own_renders_keeps_the_picture_closer():
         compact(cloud, keep=0.3, distill=-1)
 
 
-def test_cli_compacts_a_file_and_refuses_bad_requests(tmp_path, capsys):
+def test_cli_compacts_a_file_and_refuses_bad_requests(tmp_path, capsys, monkeypatch):
     src = write_ply(_cloud(200), tmp_path / "in.ply")
     out = tmp_path / "out.ply"
     assert main(["compact", str(src), str(out), "--keep", "30%", "--resolution", "48"]) == 0
@@ -233,6 +247,9 @@ def test_cli_compacts_a_file_and_refuses_bad_requests(tmp_path, capsys):
         assert message in capsys.readouterr().err and not bad.exists()
     assert main(["compact", str(src), str(src), "--keep", "0.5"]) == 2
     assert "must not be IN" in capsys.readouterr().err
+    monkeypatch.setattr(compaction, "compaction_scores", lambda *a, **k: pytest.fail("work started"))
+    assert main(["compact", str(src), str(tmp_path / "out.xyz"), "--keep", "0.5"]) == 2  # refused before any work
+    assert "out.xyz" in capsys.readouterr().err and not (tmp_path / "out.xyz").exists()
 
 
 def test_cli_fine_tunes_with_the_captures_images(tmp_path, capsys):

@@ -4,8 +4,9 @@ two decimations included, and the speed of a compaction at capture scale.
 
 Per (scene, seed): the 100 px stage (the training resolution, its `gvae_dilation_3D`), scored
 with four of its training cameras (what `gvae compact --cameras transforms_train.json` does),
-compacted to each fraction by: Ours (Hessian-weighted merging, `compact`), the same merging with
-no score (`random` weights: NanoGS-style, what splat-transform does), Hessian pruning (PUP 3D-GS
+compacted to each fraction by: Ours (`compact`: the lowest-scoring tenth dropped, the rest merged),
+ours merging everything that is seen (`prune=0`), the same merging with no score (`random`
+weights: NanoGS-style, what splat-transform does), Hessian pruning (PUP 3D-GS
 without fine-tuning), LightGaussian's global significance, opacity and random pruning, and
 splat-transform 3.7.0's `--decimate` and `--decimate-adaptive` (`benchmarks.splat_transform`:
 installed from npm into the cache on first use; skipped, with the reason, where `node`/`npm` are
@@ -35,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from ..antialias import DILATION_KEY, with_training_cameras
-from ..compaction import compact
+from ..compaction import PRUNE_FRACTION, compact
 from ..datasets import load_nerf_synthetic
 from ..examples import example_cloud
 from ..experiment import PROTOCOLS, Evaluator, prepare_scene
@@ -47,10 +48,12 @@ from .splat_transform import PACKAGE
 from .splat_transform import command as splat_transform_command
 
 FRACTIONS = (0.7, 0.5, 0.3, 0.2, 0.1, 0.05)
-#: (label, score, removal) of `compact` rows; splat-transform's rows come after these.
-METHODS = (("ours", "hessian", "merge"), ("merge, no score", "random", "merge"), ("Hessian prune", "hessian", "prune"),
-           ("LightGaussian", "lightgaussian", "prune"), ("opacity", "opacity", "prune"),
-           ("random", "random", "prune"))
+#: (label, score, removal) of `compact` rows; splat-transform's rows come after these. "ours,
+#: merging only" merges all that is seen (`prune=0`: no lowest-scoring tenth dropped first).
+METHODS = (("ours", "hessian", "merge"), ("ours, merging only", "hessian", "merge"),
+           ("merge, no score", "random", "merge"), ("Hessian prune", "hessian", "prune"),
+           ("LightGaussian", "lightgaussian", "prune"), ("opacity", "opacity", "prune"), ("random", "random", "prune"))
+MERGING_ONLY = "ours, merging only"
 ST_MODES = ("decimate", "decimate-adaptive")
 #: Scoring views of every `compact` row: this many of the training cameras.
 VIEWS = 4
@@ -87,11 +90,12 @@ def _decimate(command: list[str], cloud, mode: str, count: int, work: Path):
     return read_ply(out), seconds
 
 
-def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, images: bool = True, image_methods=IMAGE_METHODS,
-                   distill: bool = True, say=print) -> list[dict]:
-    """Every method at every fraction on one (scene, seed) of the quick protocol; one row each.
-    `images`: also the rows with fine-tuning (`image_methods`, and the input fine-tuned as long);
-    `distill`: also ours fine-tuned against the input's own renders (no images) at DISTILL_FRACTIONS."""
+def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, methods=METHODS, images: bool = True,
+                   image_methods=IMAGE_METHODS, distill: bool = True, splat: bool = True, say=print) -> list[dict]:
+    """Every method (`methods`) at every fraction on one (scene, seed) of the quick protocol; one
+    row each. `images`: also the rows with fine-tuning (`image_methods`, and the input fine-tuned
+    as long); `distill`: also ours fine-tuned against the input's own renders (no images) at
+    DISTILL_FRACTIONS; `splat`: splat-transform's rows."""
     p = PROTOCOLS["quick"]
     run = prepare_scene(name, p, seed=seed, threads=1, say=say)
     k = p.train_stage
@@ -118,18 +122,18 @@ def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, images: bool = 
             f"({value - base_psnr:+.2f}) {seconds:6.2f} s")
 
     for fraction in fractions:
-        for label, score_name, removal in METHODS:
+        for label, score_name, removal in methods:
             t0 = time.perf_counter()
             r = compact(base, keep=fraction, cameras=train.cameras, views=VIEWS, score=score_name, removal=removal,
-                        seed=seed)
+                        seed=seed, prune=0.0 if label == MERGING_ONLY else PRUNE_FRACTION)
             add(label, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr)
     if distill:
         distilled_rows(base, p.iterations[k], seed, add)
-    command, note = splat_transform()
-    if command is None:
+    command, note = splat_transform() if splat else (None, None)
+    if command is None and note is not None:
         say(f"[{name} s{seed}] splat-transform skipped: {note}")
         rows.append({**tag, "method": "splat-transform", "skipped": note})
-    else:
+    elif command is not None:
         with tempfile.TemporaryDirectory() as tmp:
             for fraction in fractions:
                 for mode in ST_MODES:
@@ -171,8 +175,8 @@ def _mean_ci(values) -> str:
 
 def tables(rows: list[dict]) -> list[str]:
     """Markdown: mean change of PSNR against the input (± 95% interval over scenes x seeds) per
-    method and fraction; then per scene, the change at 50/30/10% of ours, ours distilled and
-    splat-transform's better mode."""
+    method and fraction; then per scene, the change at 50/30/10% of ours, ours merging only, ours
+    distilled and splat-transform's better mode."""
     scored = [r for r in rows if "drop" in r]
     methods = list(dict.fromkeys(r["method"] for r in scored))
     fractions = sorted({r["fraction"] for r in scored}, reverse=True)
@@ -182,7 +186,7 @@ def tables(rows: list[dict]) -> list[str]:
         cells = [_mean_ci([-r["drop"] for r in scored if r["method"] == m and r["fraction"] == f]) for f in fractions]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     lines += ["", "| scene | seed | input PSNR | " + " | ".join(
-        f"{f:.0%}: ours / distilled / best splat-transform" for f in (0.5, 0.3, 0.1)) + " |",
+        f"{f:.0%}: ours / merging only / distilled / best splat-transform" for f in (0.5, 0.3, 0.1)) + " |",
         "|---|---|---|---|---|---|"]
     pairs = sorted({(r["scene"], r["seed"]) for r in scored})
     for scene, seed in pairs:
@@ -192,7 +196,7 @@ def tables(rows: list[dict]) -> list[str]:
         for f in (0.5, 0.3, 0.1):
             change = {m: -r["drop"] for (m, fr), r in mine.items() if fr == f}
             st = [change[f"splat-transform --{m}"] for m in ST_MODES if f"splat-transform --{m}" in change]
-            values = [change.get("ours"), change.get(DISTILLED), max(st) if st else None]
+            values = [change.get("ours"), change.get(MERGING_ONLY), change.get(DISTILLED), max(st) if st else None]
             cells.append(" / ".join("-" if v is None else f"{v:+.2f}" for v in values))
         lines.append(f"| {scene} | {seed} | {base:.2f} | " + " | ".join(cells) + " |")
     return lines
@@ -207,12 +211,15 @@ def plot(rows: list[dict], out: Path) -> Path:
 
     scored = [r for r in rows if "drop" in r]
     fig, axes = plt.subplots(1, 2, figsize=(14, 4.8))
+    methods = list(dict.fromkeys(r["method"] for r in scored))
+    colours = dict(zip(methods, plt.get_cmap("tab20").colors[::2] + plt.get_cmap("tab20").colors[1::2]))
     for ax, low in zip(axes, (-16.0, -4.5)):
-        for m in dict.fromkeys(r["method"] for r in scored):
+        for m in methods:
             fr = sorted({r["fraction"] for r in scored if r["method"] == m})
             ys = [np.mean([-r["drop"] for r in scored if r["method"] == m and r["fraction"] == f]) for f in fr]
             style = "-o" if m == "ours" else "--s" if m.startswith("splat") else "^" if "fine-tune" in m else ":."
-            ax.plot(fr, ys, style, label=m, lw=2.2 if m == "ours" else 1.2, ms=8 if "fine-tune" in m else 5)
+            ax.plot(fr, ys, style, label=m, color=colours[m], lw=2.2 if m == "ours" else 1.2,
+                    ms=8 if "fine-tune" in m else 5)
         ax.set_xscale("log")
         ax.set_xlabel("fraction of Gaussians kept")
         ax.set_ylabel("PSNR change at 1x against the input (dB)")

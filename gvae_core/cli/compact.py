@@ -13,14 +13,16 @@ def register(subparsers) -> None:
     c = subparsers.add_parser(
         "compact", help="remove the Gaussians a splat's picture does not need",
         description="Score every Gaussian by how much the picture depends on it (the exact Gauss-Newton block of "
-        "position and log-scale over a few views, as PUP 3D-GS), drop what no view sees and merge the rest pairwise, "
-        "cheapest first, down to the count asked for; with the capture's images (--images), or against the input's "
-        "own renders (--distill), in rounds, each followed by fine-tuning with the project's trainer. The output "
-        "keeps the input's SH degree, extra properties and anti-aliasing sizes; untouched Gaussians keep their "
-        "values.")
-    c.add_argument("input", type=Path, metavar="IN", help="a splat file: 3DGS or compressed PLY, .splat, .spz")
+        "position and log-scale over a few views, as PUP 3D-GS), drop what no view sees and the lowest-scoring "
+        "tenth, merge the rest pairwise, cheapest first, down to the count asked for; with the capture's images "
+        "(--images), or against the input's own renders (--distill), in rounds, each followed by fine-tuning with "
+        "the project's trainer. The output keeps the input's SH degree, extra properties and anti-aliasing sizes; "
+        "untouched Gaussians keep their values.")
+    c.add_argument("input", type=Path, metavar="IN",
+                   help="a splat file: 3DGS or compressed PLY, .splat, .spz, .sog (what `gvae info` reads)")
     c.add_argument("output", type=Path, metavar="OUT",
-                   help="where the compacted cloud goes, in the format its name asks for (.ply, .spz, .splat)")
+                   help="where the compacted cloud goes, in the format its name asks for (.ply, .compressed.ply, "
+                   ".spz, .splat, .sog, meta.json)")
     target = c.add_mutually_exclusive_group(required=True)
     target.add_argument("--keep", metavar="FRACTION", help="fraction of the Gaussians to keep, in (0, 1] (0.3 or 30%%)")
     target.add_argument("--count", type=int, metavar="N", help="number of Gaussians to keep")
@@ -37,7 +39,8 @@ def register(subparsers) -> None:
     c.add_argument("--score", default="hessian", choices=("hessian", "lightgaussian", "opacity", "random"),
                    help="what ranks the Gaussians (default: hessian; the others are the baselines it is compared with)")
     c.add_argument("--removal", default="merge", choices=("merge", "prune"),
-                   help="merge Gaussians pairwise (default) or drop the lowest scores")
+                   help="merge Gaussians pairwise, after dropping the lowest-scoring tenth (default), or drop the "
+                   "lowest scores only")
     c.add_argument("--images", type=Path, default=None, metavar="DATASET",
                    help="the capture's training images (a NeRF-Synthetic folder with transforms_train.json, or a "
                    "COLMAP capture: sparse model and images/): compact in rounds, fine-tuning after each")
@@ -89,8 +92,9 @@ def _image_height(cloud, images_path: Path) -> int | None:
 def run_compact(args: argparse.Namespace) -> int:
     from ..capture import load_cameras, load_capture_images  # noqa: PLC0415 - torch-free, but only here
     from ..compaction import DEFAULT_ITERATIONS, compact  # noqa: PLC0415 - imports torch
-    from ..formats import read_splat_file, write_splat_file  # noqa: PLC0415
+    from ..formats import output_format, read_splat_file, write_splat_file  # noqa: PLC0415
 
+    output_format(args.output)  # a name it cannot write is refused before any work
     keep = parse_keep(args.keep) if args.keep is not None else None
     if args.output.resolve() == args.input.resolve():
         raise ValueError(f"{args.output}: OUT must not be IN (the input is left as it is)")
