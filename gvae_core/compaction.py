@@ -543,9 +543,7 @@ def merge_groups(cloud: GaussianCloud, groups: np.ndarray) -> tuple[GaussianClou
     rows = _representatives(groups, idx, m.mass)
     out = src.select(rows).copy()
     if len(multi):
-        local = np.full(g, -1, np.int64)
-        local[multi] = np.arange(len(multi))
-        grp = local[groups[idx]]
+        grp = np.repeat(np.arange(len(multi)), size[multi])  # (idx is sorted by group)
         starts = np.concatenate([[0], np.cumsum(size[multi])[:-1]])
         mass = np.add.reduceat(m.mass, starts)
         w = m.mass / np.maximum(mass[grp], 1e-300)

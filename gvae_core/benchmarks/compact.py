@@ -48,12 +48,14 @@ from .splat_transform import PACKAGE
 from .splat_transform import command as splat_transform_command
 
 FRACTIONS = (0.7, 0.5, 0.3, 0.2, 0.1, 0.05)
-#: (label, score, removal) of `compact` rows; splat-transform's rows come after these. "ours,
-#: merging only" merges all that is seen (`prune=0`: no lowest-scoring tenth dropped first).
-METHODS = (("ours", "hessian", "merge"), ("ours, merging only", "hessian", "merge"),
-           ("merge, no score", "random", "merge"), ("Hessian prune", "hessian", "prune"),
-           ("LightGaussian", "lightgaussian", "prune"), ("opacity", "opacity", "prune"), ("random", "random", "prune"))
 MERGING_ONLY = "ours, merging only"
+#: (label, score, removal, prune) of `compact` rows; splat-transform's rows come after these.
+#: "ours, merging only" merges all that is seen (no lowest-scoring tenth dropped first).
+METHODS = (("ours", "hessian", "merge", PRUNE_FRACTION), (MERGING_ONLY, "hessian", "merge", 0.0),
+           ("merge, no score", "random", "merge", PRUNE_FRACTION),
+           ("Hessian prune", "hessian", "prune", PRUNE_FRACTION),
+           ("LightGaussian", "lightgaussian", "prune", PRUNE_FRACTION),
+           ("opacity", "opacity", "prune", PRUNE_FRACTION), ("random", "random", "prune", PRUNE_FRACTION))
 ST_MODES = ("decimate", "decimate-adaptive")
 #: Scoring views of every `compact` row: this many of the training cameras.
 VIEWS = 4
@@ -122,23 +124,23 @@ def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, methods=METHODS
             f"({value - base_psnr:+.2f}) {seconds:6.2f} s")
 
     for fraction in fractions:
-        for label, score_name, removal in methods:
+        for label, score_name, removal, prune in methods:
             t0 = time.perf_counter()
             r = compact(base, keep=fraction, cameras=train.cameras, views=VIEWS, score=score_name, removal=removal,
-                        seed=seed, prune=0.0 if label == MERGING_ONLY else PRUNE_FRACTION)
+                        seed=seed, prune=prune)
             add(label, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr)
     if distill:
         distilled_rows(base, p.iterations[k], seed, add)
     command, note = splat_transform() if splat else (None, None)
-    if command is None and note is not None:
-        say(f"[{name} s{seed}] splat-transform skipped: {note}")
-        rows.append({**tag, "method": "splat-transform", "skipped": note})
-    elif command is not None:
+    if command is not None:
         with tempfile.TemporaryDirectory() as tmp:
             for fraction in fractions:
                 for mode in ST_MODES:
                     cloud, seconds = _decimate(command, base, mode, max(1, round(fraction * len(base))), Path(tmp))
                     add(f"splat-transform --{mode}", fraction, cloud, seconds)
+    elif splat:
+        say(f"[{name} s{seed}] splat-transform skipped: {note}")
+        rows.append({**tag, "method": "splat-transform", "skipped": note})
     if images:
         iterations = p.iterations[k]
         t0 = time.perf_counter()  # the input itself fine-tuned as long: what compaction is measured against too
