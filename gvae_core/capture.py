@@ -37,7 +37,8 @@ from .camera import Camera
 from .cloud import GaussianCloud
 from .datasets import DatasetError, Views, load_nerf_synthetic, read_transforms, resize_area
 
-__all__ = ["load_cameras", "load_capture_images", "read_colmap_cameras", "COLMAP_MODELS", "scoring_views",
+__all__ = ["load_cameras", "load_capture_cameras", "load_capture_images",
+           "read_colmap_cameras", "COLMAP_MODELS", "scoring_views",
            "default_views", "surround_radius", "DEFAULT_VIEWS", "DEFAULT_RESOLUTION"]
 
 #: COLMAP camera models: id -> (name, number of parameters).
@@ -89,6 +90,15 @@ def _find_capture(path: Path):
         raise DatasetError(f"{path}: not a COLMAP sparse model (needs cameras.bin and images.bin, or cameras.txt "
                            f"and images.txt, in {folder})")
     return "colmap", files
+
+
+def load_capture_cameras(path) -> list[Camera]:
+    """The cameras of the images `load_capture_images(path)` reads (the training split of a
+    NeRF-Synthetic folder), without reading the images."""
+    path = Path(path)
+    if path.is_dir() and (path / "transforms_train.json").is_file():
+        return load_cameras(path / "transforms_train.json")
+    return load_cameras(path)
 
 
 def load_capture_images(path, resolution: int | None = None) -> Views:

@@ -60,6 +60,7 @@ from .refinement import RefineResult, refine, refine_steps
 from .rendering import RenderSettings, render, resolve_device
 from .rendering.reference import render_reference
 from .scenes import SPLITS, cache_dir, make_scene
+from .scenes.faults import faulted_scene
 from .train import TrainConfig, scene_extent, train_progressive
 from .vae import GaussianVAE, default_model_dir
 
@@ -207,6 +208,24 @@ def prepare_scene(name: str, protocol: Protocol, *, seed: int = 0, cache=None, t
             f"({done} done) into {out}")
         train_progressive(scene_dir, config, out_dir=out, progress=False, threads=threads, device=device)
     return SceneRun(name, seed, scene_dir, out, protocol, {"scene": t1 - t0, "train": time.perf_counter() - t1})
+
+
+def prepare_faulted(name: str, fault: str, protocol: Protocol, *, seed: int = 0, cache=None, threads: int = 1,
+                    device=None, say: Callable[[str], None] = print) -> SceneRun:
+    """A (scene, seed) trained on its training images with a simulated capture fault
+    (`scenes.faults`) up to the training resolution (cached, resumable); its test views are the
+    scene's own."""
+    t0 = time.perf_counter()
+    clean = make_scene(name, profile=protocol.scene_profile, seed=protocol.scene_seed, cache=cache)
+    scene_dir = faulted_scene(clean, fault, protocol.resolutions[-1], seed=seed, cache=cache)
+    t1 = time.perf_counter()
+    data = protocol.data(protocol.scene_seed)
+    out = runs_dir(cache) / f"faults-{data.run_key(seed)}" / scene_dir.name
+    config = data.train_config(seed)
+    if _stages_done(out) < len(config.resolutions):
+        say(f"[{name} s{seed} {fault}] training {config.resolutions} px into {out}")
+        train_progressive(scene_dir, config, out_dir=out, progress=False, threads=threads, device=device)
+    return SceneRun(name, seed, scene_dir, out, data, {"scene": t1 - t0, "train": time.perf_counter() - t1})
 
 
 def _stages_done(path: Path) -> int:

@@ -27,13 +27,13 @@ import math
 
 import numpy as np
 
-from .antialias import CLASSIC_DILATION, DILATION_KEY, FILTER_3D_VARIANCE, FILTER_KEY
+from .antialias import CLASSIC_DILATION, DILATION_KEY, FILTER_3D_VARIANCE, FILTER_KEY, max_sampling_rate
 from .camera import Camera
 from .cloud import GaussianCloud
 from .conventions import NEAR_PLANE, is_torch
 
 __all__ = ["FIELDS", "LIMIT_KEY", "field_keys", "has_octaves", "stored_keys", "octave_fields", "training_rate",
-           "octaves_seen", "with_octaves", "without_octaves", "drawn_fields", "bake"]
+           "training_height", "octaves_seen", "with_octaves", "without_octaves", "drawn_fields", "bake"]
 
 #: Fields a refinement may change, and the stem of their extra properties (one per column).
 FIELDS = {"scales": "scale", "opacities": "opacity", "sh_dc": "dc", "means": "position", "quats": "rot",
@@ -122,6 +122,27 @@ def training_rate(cloud: GaussianCloud):
                 return math.sqrt(variance) / size.reshape(-1).clamp(min=1e-30)
             return math.sqrt(variance) / np.maximum(np.asarray(size, np.float64).reshape(-1), 1e-30)
     return None
+
+
+def training_height(cloud: GaussianCloud, cameras) -> tuple[float, float]:
+    """The image height at which `cameras` (a capture's, at any size) trained `cloud`, read from its
+    anti-aliasing size, and the share of the Gaussians those cameras see that agree with it within
+    10%. A Gaussian's training rate is the largest f / z of the cameras that saw it, so against
+    the same cameras at height h it is h_train / h times theirs, for every Gaussian alike: a low share
+    says the cameras are not the ones the cloud was trained with. (nan, 0) for a cloud without a size
+    or a view of nothing."""
+    rate = training_rate(cloud)
+    if rate is None or not len(cameras):
+        return float("nan"), 0.0
+    cams = list(cameras)
+    theirs = max_sampling_rate(np.asarray(cloud.means, np.float64), cams)
+    seen = (theirs > 0) & np.isfinite(rate) & (rate > 0) & (rate < 1e29)
+    if not seen.any():
+        return float("nan"), 0.0
+    ratio = rate[seen] / theirs[seen]
+    factor = float(np.median(ratio))
+    agree = float(np.mean(np.abs(ratio / factor - 1.0) <= 0.1))
+    return cams[0].height * factor, agree
 
 
 def octaves_seen(means, rate, limit, camera: Camera):

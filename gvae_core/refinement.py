@@ -44,9 +44,10 @@ from .fidelity import DEFAULT_TOLERANCES, lineage_changes, revert_lineages, trai
 from .hessian import DEFAULT_RESOLUTION, DEFAULT_VIEWS, hessian_scores, scoring_settings
 from .lineage import (APP_EXIST, GEO_EXIST, GEO_LOG_SCALE, GEO_POSITION, Lineage, appearance_features,
                       cloud_from_features, geometry_features)
-from .octaves import has_octaves, with_octaves
+from .octaves import has_octaves, octave_fields, with_octaves
 from .rendering.frames import Frame, make_frame
 from .resources import check_refine_memory, reuse_freed_memory
+from .superres import SuperResConfig, SuperResFit, capture_images, fit_octaves
 from .vae import GaussianVAE, load_default_model
 from .vae.features import FEATURE_LOG_SCALE_RANGE, FEATURE_POSITION_LIMIT
 
@@ -72,6 +73,8 @@ class RefineResult:
     reverted: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     #: What the summary should say besides the counts (e.g. where the training rate came from).
     notes: dict[str, str] = field(default_factory=dict)
+    #: The fit to the capture's images (`refine_images`), else None.
+    fit: SuperResFit | None = None
 
     @property
     def n_input(self) -> int:
@@ -80,11 +83,12 @@ class RefineResult:
     def summary(self) -> str:
         times = ", ".join(f"{k} {v * 1e3:.1f} ms" for k, v in self.timings.items())
         notes = "".join(f"; {k}: {v}" for k, v in self.notes.items())
-        if has_octaves(self.cloud) and not len(self.added):
+        if has_octaves(self.cloud):
             octaves = float(np.max(self.cloud.extra["gvae_octave_limit"], initial=0.0))
+            children = f", {len(self.added)} added (drawn only above it)" if len(self.added) else ""
             return (f"{self.n_input} Gaussians, {len(self.selected)} selected, {len(self.reverted)} of them put back "
                     f"(fidelity), the others changed for up to {octaves:g} octave(s) above their training "
-                    f"resolution{notes}; {times}")
+                    f"resolution{children}{notes}; {times}")
         per_step = np.bincount(self.step, minlength=int(self.step.max(initial=0)) + 1)[1:]
         return (f"{self.n_input} Gaussians in, {len(self.selected)} selected, {len(self.reverted)} of them put "
                 f"back (fidelity), {len(self.added)} added "
@@ -162,7 +166,8 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = None, method: 
            model: Any = None, cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None,
            stage: int | None = None, seed: int = 0, progress: Callable[[float, str], None] | None = None,
            hessian_options: dict | None = None, scores: Any = None, carry_appearance: bool = True,
-           check_memory: bool = True, fidelity: float | str | None = "auto") -> RefineResult:
+           check_memory: bool = True, fidelity: float | str | None = "auto", images: Any = None,
+           image_height: int | None = None, fit: SuperResConfig | None = None) -> RefineResult:
     """Refine `cloud` with `method` (module docstring; default: the one `model` is for, else
     DEFAULT_METHOD): "detail" changes the Gaussians the budget
     selects for up to `steps` (>= 1) octaves above their training resolution, "vae" runs `steps`
@@ -183,7 +188,11 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = None, method: 
     memory exceeds what is free. `fidelity`: the largest colour change (0..1) a lineage may make
     at the training sampling rate, seen from the scoring views; lineages above it are put back as
     they were (`gvae_core.fidelity`; "auto": the method's, DEFAULT_TOLERANCES; None: keep
-    everything the models did). Raises ValueError on non-finite input rows."""
+    everything the models did). `images` (the detail method): the capture's training images, a
+    dataset folder (`capture.load_capture_images`) or `Views` (`refine_images`), at
+    `image_height` (default: the training resolution the cloud's anti-aliasing size says); `fit`
+    how the changes are fitted to them (`superres.SuperResConfig`). Raises ValueError on non-finite
+    input rows."""
     if method is None:
         method = _method_of(model)
     if method not in METHODS:
@@ -195,7 +204,14 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = None, method: 
     common = dict(steps=steps, budget=budget, model=model, cameras=cameras, lineage=lineage, stage=stage,
                   progress=progress, hessian_options=hessian_options, scores=scores, check_memory=check_memory,
                   fidelity=fidelity)
+    if images is not None and method != "detail":
+        raise ValueError(f"refine: images are fitted by the detail method (changes per octave), not by {method!r}")
+    if images is None and (image_height is not None or fit is not None):
+        raise ValueError("refine: image_height and fit need images")
     with reuse_freed_memory():  # one scope over all the parts: memory is handed back once, at the end
+        if images is not None:
+            return refine_images(cloud, images, steps=steps, image_height=image_height, config=fit, model=model,
+                                 lineage=lineage, stage=stage, progress=progress, check_memory=check_memory)
         if method == "detail":
             return refine_detail(cloud, **common)
         (result,) = refine_steps(cloud, seed=seed, every_step=False, carry_appearance=carry_appearance, **common)
@@ -341,6 +357,61 @@ def refine_detail(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "all", 
     if fidelity is not None and len(selected):
         say(0.97, "checking the training-resolution picture")
         result = FidelityCheck.around(src, cameras, fidelity, options, normalization, frames or ())(result)
+    say(1.0, result.summary())
+    return result
+
+
+def refine_images(cloud: GaussianCloud, images: Any, *, steps: int = 1, image_height: int | None = None,
+                  config: SuperResConfig | None = None, model: Any = None, lineage: Lineage | None = None,
+                  stage: int | None = None, progress: Callable[[float, str], None] | None = None,
+                  check_memory: bool = True) -> RefineResult:
+    """`refine` from the capture's own images (DESIGN.md step 5b, `gvae_core.superres`): every
+    Gaussian's changes per octave, for octaves 1..`steps`, fitted so that the cloud drawn at 2^k
+    times the images' resolution and area-averaged back down reproduces each image; starting from
+    the detail model's prediction (`config.start`); children that fade in above the training
+    rate where the fit asks for more Gaussians (`config.children`). The images are checked
+    against the cloud first (`superres.capture_images`: the training resolution from
+    `image_height`, else from the cloud's anti-aliasing size against their cameras). The
+    training-resolution picture is the input's by construction."""
+    t_start = time.perf_counter()
+    say = progress or (lambda fraction, message: None)
+    _check_steps(steps)
+    config = config or SuperResConfig()
+    src = cloud.numpy()
+    n = len(src)
+    _check_input(src, "all", {}, steps, False, check_memory, method="detail")
+    timings: dict[str, float] = {}
+    say(0.01, "reading the capture's images")
+    t0 = time.perf_counter()
+    capture = capture_images(src, images, image_height)
+    src, views = capture.cloud, capture.views
+    timings["images"] = time.perf_counter() - t0
+    start = None
+    if config.start == "detail" and FILTER_KEY not in src.extra:  # the model is not for filter-trained clouds
+        say(0.03, "detail model")
+        t0 = time.perf_counter()
+        start = octave_fields(refine_detail(src, steps=steps, model=model, lineage=lineage, stage=stage,
+                                            fidelity=None, check_memory=False).cloud)
+        timings["detail"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    fitted = fit_octaves(src, views, steps, config, start=start, background=capture.match.background,
+                         progress=lambda f, message: say(0.05 + 0.93 * f, message))
+    timings["fit"] = time.perf_counter() - t0
+    out = with_octaves(src, fitted.changes, limit=float(steps))
+    parents = fitted.child_roots
+    if len(parents):
+        out = out.append_children(fitted.children, parents)
+    timings["total"] = time.perf_counter() - t_start
+    bg = "white" if capture.match.background[0] > 0.5 else "black"
+    notes = {"training resolution": capture.height_source,
+             "images": f"{len(views)} over a {bg} background (the cloud reproduces them at "
+                       f"{capture.match.psnr:.1f} dB)",
+             "fit": f"the training images drawn at 2x and averaged down {fitted.psnr_before:.2f} -> "
+                    f"{fitted.psnr_after:.2f} dB PSNR ({fitted.psnr_views} of them), loss "
+                    f"{np.mean(fitted.losses[-50:]) if fitted.losses else float('nan'):.4f}"}
+    result = RefineResult(cloud=out, added=np.arange(n, len(out), dtype=np.int64), parents=parents,
+                          step=np.ones(len(parents), np.int64), scores=np.zeros(n, np.float32),
+                          selected=np.arange(n, dtype=np.int64), timings=timings, notes=notes, fit=fitted)
     say(1.0, result.summary())
     return result
 

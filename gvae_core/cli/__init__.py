@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import time
 
 COMMAND_MODULES = (
     "info",
@@ -24,6 +25,20 @@ COMMAND_MODULES = (
 
 #: --device help of the commands that train or render.
 DEVICE_HELP = "torch device: cpu (default) or cuda[:N] (needs a CUDA build of torch and a GPU)"
+
+
+def progress_lines():
+    """A progress(fraction, message) callback for long jobs that prints a line when the stage (the
+    message up to its first colon) changes, or every few seconds: not every step."""
+    last = [0.0, ""]
+
+    def progress(fraction: float, message: str) -> None:
+        now = time.perf_counter()
+        if message.split(":")[0] != last[1] or now - last[0] > 5.0:
+            print(f"  [{fraction:4.0%}] {message}", flush=True)
+            last[:] = [now, message.split(":")[0]]
+
+    return progress
 
 
 def build_parser() -> argparse.ArgumentParser:

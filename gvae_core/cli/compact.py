@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS
+from . import progress_lines
 
 
 def register(subparsers) -> None:
@@ -108,14 +109,7 @@ def run_compact(args: argparse.Namespace) -> int:
         height = args.image_height or _image_height(cloud, args.images)
         images = load_capture_images(args.images, height)
     t_read = time.perf_counter() - t0
-    last = [0.0, ""]
-
-    def progress(fraction: float, message: str) -> None:  # a line every few seconds, not every step
-        now = time.perf_counter()
-        if message.split(":")[0] != last[1] or now - last[0] > 5.0:
-            print(f"  [{fraction:4.0%}] {message}", flush=True)
-            last[:] = [now, message.split(":")[0]]
-
+    progress = progress_lines()
     result = compact(cloud, keep=keep, count=args.count, tolerance=args.tolerance, cameras=cameras, views=args.views,
                      resolution=args.resolution, score=args.score, removal=args.removal, images=images,
                      rounds=args.rounds, iterations=DEFAULT_ITERATIONS if args.iterations is None else args.iterations,

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS
+from . import progress_lines
 
 
 def register(subparsers) -> None:
@@ -75,6 +76,16 @@ def register(subparsers) -> None:
                    help="largest colour change (0..1) a refined lineage may make at the training sampling rate; "
                    "those above are put back as they were (default: the method's, fidelity.DEFAULT_TOLERANCES; "
                    "off: keep everything the models did)")
+    r.add_argument("--images", type=Path, default=None, metavar="DATASET",
+                   help="detail: the capture's training images (a NeRF-Synthetic folder with transforms_train.json, "
+                   "or a COLMAP capture: sparse model and images/): every Gaussian's changes per octave are fitted "
+                   "so that the cloud drawn at 2^k times their resolution and averaged back down reproduces them "
+                   "(multi-view super-resolution; checked against the cloud first)")
+    r.add_argument("--image-height", type=int, default=None, metavar="H",
+                   help="the height the cloud was trained at, the images are fitted at (default: what the cloud's "
+                   "anti-aliasing size says against the capture's cameras, else the images as they are)")
+    r.add_argument("--fit-steps", type=int, default=None, metavar="N",
+                   help="with --images: optimiser steps per octave (default: superres.SuperResConfig's)")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--sanitize", action="store_true", help="drop non-finite Gaussians of IN.ply first")
     r.set_defaults(func=run_refine)
@@ -165,6 +176,7 @@ def run_refine(args: argparse.Namespace) -> int:
     from ..formats import output_format, read_splat_file, write_splat_file
     from ..octaves import bake, has_octaves
     from ..refinement import refine
+    from ..superres import SuperResConfig
 
     output_format(args.output)  # a name no format is written under is refused before any work
     budget = parse_budget(args.budget) if args.budget is not None else None
@@ -178,9 +190,15 @@ def run_refine(args: argparse.Namespace) -> int:
         raise ValueError("--stage needs --lineage")
     if args.bake is not None and not args.bake > 0:
         raise ValueError(f"--bake must be a positive factor, got {args.bake}")
+    fit = None
+    if args.images is None and (args.image_height is not None or args.fit_steps is not None):
+        raise ValueError("--image-height and --fit-steps need --images")
+    if args.images is not None:
+        fit = SuperResConfig(seed=args.seed, **({"steps": args.fit_steps} if args.fit_steps is not None else {}))
     result = refine(cloud, steps=args.steps, budget=budget, method=args.method, model=args.model, lineage=lineage,
                     stage=args.stage, cameras=cameras, seed=args.seed, fidelity=fidelity,
-                    hessian_options={"views": args.views, "resolution": args.resolution})
+                    hessian_options={"views": args.views, "resolution": args.resolution}, images=args.images,
+                    image_height=args.image_height, fit=fit, progress=progress_lines() if args.images else None)
     t0 = time.perf_counter()
     out = result.cloud
     factor = args.bake

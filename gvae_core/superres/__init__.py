@@ -1,0 +1,11 @@
+"""Refine from the capture's own images (DESIGN.md step 5b, multi-view super-resolution): `match`
+(the images at the training resolution, checked against the cloud), `fit` (every Gaussian's
+changes per octave fitted to them through an area-averaged higher-resolution render), `children`
+(Gaussians that fade in above the training rate where the fit asks for more), `guards` (per-image
+pose and exposure corrections)."""
+
+from .fit import DEFAULT_FIELDS, SuperResConfig, SuperResFit, fit_octaves
+from .match import CaptureImages, ImageMismatchError, capture_images, match_images
+
+__all__ = ["DEFAULT_FIELDS", "SuperResConfig", "SuperResFit", "fit_octaves", "CaptureImages", "ImageMismatchError",
+           "capture_images", "match_images"]

@@ -1,0 +1,376 @@
+"""Multi-view super-resolution: every Gaussian's changes per octave (`gvae_core.octaves`) fitted so
+that the cloud drawn at 2^k times the training resolution and area-averaged 2^k x 2^k back down
+reproduces each training image.
+
+The area average is how the images at the training resolution were made (or nearly: a camera
+integrates over its pixel), so the real image at 2^k times the resolution satisfies this loss
+exactly; the unrefined cloud, fitted as point samples at the training resolution, does not. Each
+image sees the surface at its own sub-pixel offset and distance; together they constrain detail
+finer than any one of them resolves. At the training resolution nothing is drawn changed (by
+construction), so the picture the images were fitted with stays the input's.
+
+Each step draws an image, an octave k and a patch, renders the patch at 2^k times its resolution
+with the changes (every Gaussian takes the octaves above its own training rate the view samples it
+at), averages it down and back-propagates 0.8 L1 + 0.2 (1 - SSIM) into the changes (and into the
+per-image guards, `guards`, when on). Adam at the reference 3DGS learning rates of each field.
+With `children`, the 3DGS densification rule on the fit's view-space gradients adds Gaussians that
+fade in above the training rate (`children`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..antialias import DILATION_KEY, FILTER_KEY
+from ..cloud import GaussianCloud
+from ..conventions import activate_opacities
+from ..datasets import Views
+from ..densify import g_scale
+from ..detail.fit import ORACLE_LEARNING_RATES, crop
+from ..losses import photometric_loss, psnr
+from ..octaves import FIELDS, with_octaves
+from ..rendering import RenderOutput, RenderSettings, render
+from ..train import scene_extent
+from .children import CHILD_LOGIT, densify
+from .guards import ExposureCorrection, PoseCorrection
+
+__all__ = ["SuperResConfig", "SuperResFit", "fit_octaves", "DEFAULT_FIELDS"]
+
+#: What the fit changes unless told (BENCHMARKS.md, "Refine with the capture's images").
+DEFAULT_FIELDS = ("scales", "opacities", "sh_dc", "means")
+#: A child's own parameters. Its opacity at the training rate is CHILD_LOGIT and its centre there is
+#: the one of the input Gaussian it comes from (both fixed): it sees every camera as that Gaussian
+#: does, so it is drawn changed exactly where that Gaussian is; its change per octave moves it out.
+_CHILD_FIELDS = ("scales", "quats", "sh_dc", "sh_rest")
+#: Children whose opacity one octave up ends below this are dropped (the reference's prune level).
+CHILD_MIN_OPACITY = 0.005
+
+
+@dataclass
+class SuperResConfig:
+    """steps: optimiser steps per octave; patch: edge of the square image patch a step fits, in
+    pixels at the images' resolution (0: whole images; at octave k the render is 2^k times larger,
+    so octaves above the first fit patches 2^(k-1) times smaller); fields: what changes per octave;
+    lr: times the reference 3DGS learning rate of each field; pose / exposure: the penalty weight
+    of the per-image guard (`guards`), None: off; children: the view-space gradient (NDC, the
+    reference's units) at which a Gaussian densifies, None: no children; densify_at: when, as
+    fractions of the steps; max_children: at most this many children per input Gaussian; start:
+    where the changes start, "detail" (the detail model's prediction, `gvae_core.refine` makes it)
+    or "zero"."""
+
+    steps: int = 400
+    patch: int = 96
+    fields: tuple[str, ...] = DEFAULT_FIELDS
+    lr: float = 1.0
+    lambda_dssim: float = 0.2
+    pose: float | None = None
+    exposure: float | None = None
+    children: float | None = None
+    densify_at: tuple[float, ...] = (0.25, 0.5)
+    max_children: float = 0.5
+    start: str = "detail"
+    seed: int = 0
+    antialias: str = "auto"
+
+    def __post_init__(self):
+        self.fields = tuple(self.fields)
+        self.densify_at = tuple(float(x) for x in self.densify_at)
+        unknown = [f for f in self.fields if f not in FIELDS]
+        if unknown:
+            raise ValueError(f"superres: unknown field(s) {', '.join(unknown)}; known: {', '.join(FIELDS)}")
+        if self.start not in ("detail", "zero"):
+            raise ValueError(f"superres: start must be 'detail' or 'zero', got {self.start!r}")
+        if int(self.steps) < 0 or int(self.patch) < 0:
+            raise ValueError(f"superres: steps and patch must be >= 0, got {self.steps}, {self.patch}")
+
+
+@dataclass
+class SuperResFit:
+    """The fitted changes per octave of the input rows (field -> numpy array shaped like the field),
+    the children (a numpy cloud of their parameters at their training rate, with their changes per
+    octave as `gvae_octave_*` extras, and each one's input row it came from), the loss of every
+    step, PSNR of the averaged-down renders against the training images before and after (dB, on
+    `psnr_views` of them, octave 1), the per-image guards' state, and seconds."""
+
+    changes: dict[str, np.ndarray]
+    losses: list[float]
+    psnr_before: float
+    psnr_after: float
+    psnr_views: int
+    children: GaussianCloud | None = None
+    child_roots: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    pose_pixels: np.ndarray | None = None
+    exposure_gains: np.ndarray | None = None
+    seconds: float = 0.0
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+class _Model:
+    """What the fit changes: the input rows (fixed) with their changes per octave, and the children
+    (their own parameters and changes), with the optimiser over all of them."""
+
+    def __init__(self, src: GaussianCloud, fields: list[str], start: dict | None, lrs: dict[str, float]):
+        key = FILTER_KEY if FILTER_KEY in src.extra else DILATION_KEY
+        self.key = key
+        self.base = src.replace(extra={key: src.extra[key]}).to_torch()
+        self.n = len(src)
+        self.changes = {}
+        for f in fields:
+            init = torch.zeros_like(getattr(self.base, f))
+            if start is not None and f in start:
+                init = torch.as_tensor(np.asarray(start[f], np.float32)).reshape(init.shape).clone()
+            self.changes[f] = init.requires_grad_(True)
+        self.fixed = {f: torch.as_tensor(np.asarray(v, np.float32)) for f, v in (start or {}).items()
+                      if f not in self.changes}
+        self.child = {f: getattr(self.base, f)[:0].clone().requires_grad_(True) for f in _CHILD_FIELDS}
+        self.roots = torch.zeros(0, dtype=torch.int64)
+        self.lrs = lrs
+        self.opt = torch.optim.Adam([{"params": [p], "lr": lrs[f]} for f, p in self.changes.items()]
+                                    + [{"params": [p], "lr": lrs[f]} for f, p in self.child.items()], eps=1e-15)
+
+    @property
+    def m(self) -> int:
+        return len(self.roots)
+
+    def rows(self) -> GaussianCloud:
+        """Input rows then children, as drawn at the training rate (torch; children's opacity CHILD_LOGIT)."""
+        if not self.m:
+            return self.base
+        b = self.base
+        fields = {f: torch.cat([getattr(b, f), self.child[f]]) for f in _CHILD_FIELDS}
+        fields["means"] = torch.cat([b.means, b.means[self.roots]])
+        fields["opacities"] = torch.cat([b.opacities, torch.full((self.m,), CHILD_LOGIT)])
+        return GaussianCloud(**fields, extra={self.key: torch.cat([b.extra[self.key], b.extra[self.key][self.roots]])})
+
+    def all_changes(self) -> dict[str, torch.Tensor]:
+        fixed = {f: torch.cat([v, torch.zeros((self.m,) + tuple(v.shape[1:]))]) for f, v in self.fixed.items()}
+        return {**fixed, **self.changes}
+
+    def cloud(self, limit: float) -> GaussianCloud:
+        return with_octaves(self.rows(), self.all_changes(), limit=limit)
+
+    def state_one_octave_up(self) -> dict[str, torch.Tensor]:
+        """Every row's parameters as drawn one octave above its training rate (detached)."""
+        rows = self.rows()
+        changes = self.all_changes()
+        return {f: (getattr(rows, f) + changes[f] if f in changes else getattr(rows, f)).detach()
+                for f in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")}
+
+    def grow(self, grads: torch.Tensor, threshold: float, room: int, extent: float, gen: torch.Generator) -> int:
+        """One round of densification (`children.densify`); returns the number of children added.
+        Needs the opacity among the fitted fields (a child fades in by its change), and the centres
+        and scales to split (else Gaussians are cloned)."""
+        if room <= 0 or "opacities" not in self.changes:
+            return 0
+        state = self.state_one_octave_up()
+        can_split = "means" in self.changes and "scales" in self.changes
+        d = densify(state, grads, threshold, room, extent, gen, percent_dense=0.01 if can_split else float("inf"))
+        if not len(d.rows):
+            return 0
+        rows_at_rate = self.rows()
+        roots = torch.where(d.rows < self.n, d.rows, self.roots[(d.rows - self.n).clamp(min=0)]
+                            if self.m else d.rows)
+        with torch.no_grad():
+            changes = self.all_changes()
+            if can_split:  # a split Gaussian becomes the first of its two children one octave up
+                rows = d.rows[d.split]
+                self.changes["means"][rows] = d.parent_means[d.split] - rows_at_rate.means[rows]
+                inputs, kids = rows[rows < self.n], rows[rows >= self.n]
+                scales = d.parent_scales[d.split]
+                self.changes["scales"][inputs] = scales[rows < self.n] - self.base.scales[inputs]
+                self.child["scales"][kids - self.n] = scales[rows >= self.n] - changes["scales"][kids]
+        new_changes = {f: torch.zeros((len(d.rows),) + tuple(p.shape[1:])) for f, p in self.changes.items()}
+        new_changes["opacities"] = d.children["opacities"] - CHILD_LOGIT
+        if "means" in new_changes:
+            new_changes["means"] = d.children["means"] - self.base.means[roots]
+        for f, p in self.changes.items():
+            self.changes[f] = self._extend(p, new_changes[f])
+        for f, p in self.child.items():
+            self.child[f] = self._extend(p, d.children[f])
+        self.roots = torch.cat([self.roots, roots])
+        return len(d.rows)
+
+    def _extend(self, old: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """`old` with `rows` appended, in its place in the optimiser (Adam moments zero for the new rows)."""
+        new = torch.cat([old.detach(), rows.to(old.dtype)]).requires_grad_(True)
+        for group in self.opt.param_groups:
+            if group["params"][0] is old:
+                group["params"][0] = new
+        state = self.opt.state.pop(old, None)
+        if state:
+            for k in ("exp_avg", "exp_avg_sq"):
+                s = state[k]
+                state[k] = torch.cat([s, torch.zeros((len(rows),) + tuple(s.shape[1:]), dtype=s.dtype)])
+            self.opt.state[new] = state
+        return new
+
+    def result(self, limit: float) -> tuple[dict[str, np.ndarray], GaussianCloud | None, np.ndarray]:
+        """The input rows' changes, the children worth keeping (their opacity one octave up at least
+        CHILD_MIN_OPACITY) as a numpy cloud with their changes as extras, and their input rows."""
+        changes = {f: v.detach().numpy()[:self.n].copy() for f, v in self.all_changes().items()}
+        if not self.m:
+            return changes, None, np.zeros(0, np.int64)
+        up = self.state_one_octave_up()
+        keep = (activate_opacities(up["opacities"][self.n:]) >= CHILD_MIN_OPACITY).numpy()
+        roots = self.roots.numpy()[keep]
+        kids = GaussianCloud(**{f: self.child[f].detach()[keep].numpy() for f in _CHILD_FIELDS},
+                             means=self.base.means.numpy()[roots],
+                             opacities=np.full(int(keep.sum()), CHILD_LOGIT, np.float32))
+        kid_changes = {f: v.detach()[self.n:][keep].numpy() for f, v in self.all_changes().items()}
+        size = self.base.extra[self.key].numpy()[roots]
+        kids = with_octaves(kids.replace(extra={self.key: size}), kid_changes, limit)
+        return changes, kids.replace(extra={k: v for k, v in kids.extra.items() if k != self.key}), roots
+
+
+def _down(image: torch.Tensor, factor: int) -> torch.Tensor:
+    """(H*f, W*f, C) -> (H, W, C), the mean of each f x f block."""
+    if factor == 1:
+        return image
+    return F.avg_pool2d(image.permute(2, 0, 1)[None], factor)[0].permute(1, 2, 0)
+
+
+def _draw(cloud: GaussianCloud, camera, factor: int, background: torch.Tensor, settings: RenderSettings,
+          pose: PoseCorrection | None, exposure: ExposureCorrection | None,
+          view: int) -> tuple[torch.Tensor, RenderOutput]:
+    """The cloud drawn through `camera` (at `factor` times the image's resolution, cropped) and
+    averaged back down, with image `view`'s guards; and the render."""
+    if pose is not None:
+        cloud = pose.apply(cloud, view)
+    out = render(cloud, camera, background=background, settings=settings)
+    image = out.image
+    if exposure is not None:
+        image = exposure.apply(image, out.alpha, background, view)
+    return _down(image, factor), out
+
+
+def training_psnr(cloud: GaussianCloud, views: Views, targets: torch.Tensor, background, factor: int,
+                  settings: RenderSettings, rows) -> float:
+    """Mean PSNR of the cloud drawn at `factor` times the images' resolution and averaged down,
+    against the images `rows`."""
+    bg = torch.as_tensor(background, dtype=torch.float32)
+    with torch.no_grad():
+        values = []
+        for v in rows:
+            cam = views.cameras[v]
+            big = cam.scaled(cam.height * factor)
+            values.append(psnr(_draw(cloud, big, factor, bg, settings, None, None, v)[0], targets[v]))
+    return float(np.mean(values))
+
+
+def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: SuperResConfig | None = None, *,
+                start: dict | None = None, background=(1.0, 1.0, 1.0), images_scale: int = 1,
+                progress: Callable[[float, str], None] | None = None, check_views: int = 8) -> SuperResFit:
+    """Fit `cloud`'s changes per octave (numpy cloud that knows its training rate: an anti-aliasing
+    size) for octaves 1..`octaves` to `views` (the capture's images at the resolution the cloud
+    was trained at, over `background`). `start`: changes to start from (field -> array; default
+    zero). `images_scale`: the images are this power of 2 times the training resolution (2: real
+    2x images, the oracle of one octave; renders are averaged down to them). `progress(fraction,
+    message)` now and then; an exception it raises stops the fit."""
+    config = config or SuperResConfig()
+    t_start = time.perf_counter()
+    octaves = int(octaves)
+    if octaves < 1:
+        raise ValueError(f"superres: octaves must be >= 1, got {octaves}")
+    if images_scale < 1 or images_scale & (images_scale - 1) or images_scale > 2 ** octaves:
+        raise ValueError(f"superres: images_scale must be a power of 2 up to 2^octaves, got {images_scale}")
+    limit = float(octaves)
+    src = cloud.numpy()
+    fields = [f for f in config.fields if getattr(src, f).size]
+    extent = scene_extent(views.cameras)[1]
+    lrs = {f: ORACLE_LEARNING_RATES[f] * config.lr * (extent if f == "means" else 1.0) for f in FIELDS}
+    model = _Model(src, fields, start, lrs)
+    pose = exposure = None
+    if config.pose is not None:
+        pose = PoseCorrection(views.cameras, _median_depths(src, views), config.pose)
+        model.opt.add_param_group({"params": [pose.params], "lr": 0.01})
+    if config.exposure is not None:
+        exposure = ExposureCorrection(len(views), config.exposure)
+        model.opt.add_param_group({"params": [exposure.params], "lr": 0.005})
+    settings = RenderSettings(antialias=config.antialias)
+    bg = torch.as_tensor(background, dtype=torch.float32)
+    targets = torch.from_numpy(views.composite(background))
+    rng = np.random.default_rng(config.seed)
+    gen = torch.Generator().manual_seed(int(config.seed))
+    check_rows = np.linspace(0, len(views) - 1, min(check_views, len(views))).round().astype(int)
+
+    t0 = time.perf_counter()
+    first = max(2 // images_scale, 1)  # octave 1 (or the images' own resolution)
+    before = training_psnr(model.cloud(limit), views, targets, background, first, settings, check_rows)
+    timings = {"check": time.perf_counter() - t0}
+    losses: list[float] = []
+    total = config.steps * octaves
+    densify_steps = {int(round(f * total)) for f in config.densify_at} if config.children is not None else set()
+    grad_sum = grad_count = None
+    order: list[int] = []
+    height, width = views.cameras[0].height, views.cameras[0].width
+    t0 = time.perf_counter()
+    octave_list = [k for k in range(1, octaves + 1) if 2 ** k >= images_scale]
+    for step in range(total):
+        octave = octave_list[step % len(octave_list)]
+        scale = 2 ** octave // images_scale  # render size over image size
+        if not order:
+            order = list(rng.permutation(len(views)))
+        v = int(order.pop())
+        cam = views.cameras[v]
+        big = cam.scaled(cam.height * scale)
+        full_size = (big.width, big.height)
+        target = targets[v]
+        size = config.patch * images_scale // 2 ** (octave - 1) if config.patch else 0
+        if size and size < min(height, width):
+            x0, y0 = int(rng.integers(width - size + 1)), int(rng.integers(height - size + 1))
+            big = crop(big, x0 * scale, y0 * scale, size * scale, size * scale)
+            target = target[y0:y0 + size, x0:x0 + size]
+        drawn, out = _draw(model.cloud(limit), big, scale, bg, settings, pose, exposure, v)
+        if densify_steps:
+            out.means2d.retain_grad()
+        loss = photometric_loss(drawn, target, config.lambda_dssim)
+        total_loss = loss
+        if pose is not None:
+            total_loss = total_loss + pose.penalty()
+        if exposure is not None:
+            total_loss = total_loss + exposure.penalty()
+        total_loss.backward()
+        if densify_steps and out.means2d.grad is not None:
+            g = (out.means2d.grad.detach()[:, :2] * g_scale(*full_size)).norm(dim=-1)
+            seen = out.visible.float()
+            if grad_sum is None or len(grad_sum) != len(g):
+                grad_sum, grad_count = torch.zeros_like(g), torch.zeros_like(g)
+            grad_sum += g * seen
+            grad_count += seen
+        model.opt.step()
+        model.opt.zero_grad(set_to_none=True)
+        losses.append(float(loss.detach()))
+        if step + 1 in densify_steps and grad_sum is not None:
+            room = int(config.max_children * model.n) - model.m
+            model.grow(grad_sum / grad_count.clamp(min=1.0), config.children, room, extent, gen)
+            grad_sum = grad_count = None
+        if progress is not None and (step % 10 == 9 or step == total - 1):
+            progress((step + 1) / max(total, 1), f"fitting to the images: step {step + 1}/{total}, "
+                     f"loss {np.mean(losses[-20:]):.4f}")
+    timings["fit"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    after = training_psnr(model.cloud(limit), views, targets, background, first, settings, check_rows)
+    timings["check"] += time.perf_counter() - t0
+    changes, children, roots = model.result(limit)
+    return SuperResFit(changes=changes, losses=losses, psnr_before=before, psnr_after=after,
+                       psnr_views=len(check_rows), children=children, child_roots=roots,
+                       pose_pixels=None if pose is None else pose.pixels(),
+                       exposure_gains=None if exposure is None else exposure.gains(),
+                       seconds=time.perf_counter() - t_start, timings=timings)
+
+
+def _median_depths(src: GaussianCloud, views: Views) -> np.ndarray:
+    """Each image's median camera depth of the Gaussians in front of it (the scale at which a
+    translation of its camera moves the picture)."""
+    out = []
+    for cam in views.cameras:
+        z = (src.means.astype(np.float64) - cam.center) @ cam.rotation[2]
+        z = z[z > 0.01]
+        out.append(float(np.median(z)) if len(z) else 1.0)
+    return np.asarray(out)

@@ -1,0 +1,198 @@
+"""Refine from the capture's images (`gvae_core.superres`, `refine(images=...)`): the fit raises the
+higher-resolution picture toward the truth while the training-resolution picture stays the input's,
+children draw nothing at the training rate, the per-image guards do what they say, images that do
+not belong to the cloud are refused before any work, and degenerate Gaussians stay finite."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from gvae_core import Camera
+from gvae_core.antialias import DILATION_KEY, with_dilation_3d
+from gvae_core.cli import main
+from gvae_core.datasets import Views, load_nerf_synthetic
+from gvae_core.examples import example_cloud
+from gvae_core.losses import psnr
+from gvae_core.octaves import training_height, with_octaves
+from gvae_core.ply import read_ply, write_ply
+from gvae_core.refinement import refine
+from gvae_core.rendering import render
+from gvae_core.scenes.faults import FAULTS, faulted_scene
+from gvae_core.superres import ImageMismatchError, SuperResConfig, capture_images, fit_octaves
+from gvae_core.superres.children import CHILD_LOGIT
+from gvae_core.superres.guards import ExposureCorrection, PoseCorrection, _skew
+
+H = 24  # training height of the synthetic capture
+
+
+def _cameras(n, height=H):
+    return [Camera.look_at((3 * math.cos(a), 3 * math.sin(a), 1.2 + 0.3 * math.sin(3 * a)), (0, 0, 0),
+                           width=height, height=height, fov_x=1.0) for a in np.linspace(0, 2 * math.pi, n,
+                                                                                         endpoint=False)]
+
+
+def _capture(n_views=6, n=400, seed=0):
+    """A sharp 'scene' (the truth), its images at 2H area-averaged to H (the training images) and a
+    'trained' cloud: the truth blurred a little, carrying the anti-aliasing size of the cameras at H."""
+    truth = example_cloud(n, seed=seed).with_sh_degree(1)
+    cams = _cameras(n_views)
+    big = [c.scaled(2 * H) for c in cams]
+    sharp = with_dilation_3d(truth, big)
+    images = []
+    for c in big:
+        img = render(sharp, c, background=(1.0, 1.0, 1.0)).image
+        images.append(torch.nn.functional.avg_pool2d(img.permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0).numpy())
+    views = Views(cams, np.clip(np.stack(images), 0, 1))
+    trained = with_dilation_3d(truth.replace(scales=truth.scales + np.float32(0.25)), cams)
+    return truth, trained, views
+
+
+def _psnr_at(cloud, cams, truth_images):
+    return float(np.mean([psnr(render(cloud, c, background=(1.0, 1.0, 1.0)).image.numpy(), t)
+                          for c, t in zip(cams, truth_images)]))
+
+
+def test_the_fit_sharpens_the_higher_resolution_picture_and_keeps_the_training_one():
+    truth, trained, views = _capture()
+    fit = fit_octaves(trained, views, 1, SuperResConfig(steps=60, patch=0, start="zero", lr=3.0))
+    refined = with_octaves(trained, fit.changes, 1.0)
+    assert fit.psnr_after > fit.psnr_before + 0.5  # the averaged-down 2x render reproduces the images better
+    big = [c.scaled(2 * H) for c in views.cameras]
+    sharp = with_dilation_3d(truth, big)
+    truth_2x = [render(sharp, c, background=(1.0, 1.0, 1.0)).image.numpy() for c in big]
+    assert _psnr_at(refined, big, truth_2x) > _psnr_at(trained, big, truth_2x) + 0.5
+    for cam in views.cameras:  # at the training resolution nothing is drawn changed
+        assert torch.equal(render(refined, cam).image, render(trained, cam).image)
+    assert all(np.isfinite(v).all() for v in fit.changes.values())
+
+
+def test_children_draw_nothing_at_the_training_rate_and_appear_above_it():
+    _, trained, views = _capture(n=200)
+    fit = fit_octaves(trained, views, 1, SuperResConfig(steps=30, patch=0, start="zero", children=0.0,
+                                                        densify_at=(0.3,), max_children=0.25))
+    assert 0 < len(fit.child_roots) <= 50 and fit.children is not None
+    assert np.all(fit.children.opacities == CHILD_LOGIT)
+    refined = with_octaves(trained, fit.changes, 1.0).append_children(fit.children, fit.child_roots)
+    assert len(refined) == len(trained) + len(fit.child_roots)
+    assert np.array_equal(refined.extra[DILATION_KEY][len(trained):], trained.extra[DILATION_KEY][fit.child_roots])
+    for cam in views.cameras:
+        assert torch.equal(render(refined, cam).image, render(refined.select(np.arange(len(trained))), cam).image)
+    big = views.cameras[0].scaled(2 * H)
+    assert not torch.equal(render(refined, big).image, render(refined.select(np.arange(len(trained))), big).image)
+
+
+def test_pose_correction_moves_the_cloud_as_the_corrected_camera_would_see_it():
+    cloud = example_cloud(300, seed=1).with_sh_degree(0)
+    cam = Camera.look_at([3.0, 0.5, 1.0], width=48, height=48)
+    pose = PoseCorrection([cam, cam], np.array([3.0, 3.0]), 1.0)
+    with torch.no_grad():
+        pose.params[0] = torch.tensor([0.3, -0.2, 0.1, 0.2, 0.1, -0.3], dtype=torch.float64)
+    p = pose.centred()[0].detach()  # (the mean over the images is held at zero)
+    omega, tau = p[:3] / pose.focal[0], p[3:] / pose.focal[0] * 3.0
+    rot = torch.linalg.matrix_exp(_skew(omega)).numpy()
+    w2c = cam.world_to_cam.copy()
+    w2c[:3, :3], w2c[:3, 3] = rot @ w2c[:3, :3], rot @ w2c[:3, 3] + tau.numpy()
+    moved = Camera(w2c, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
+    with torch.no_grad():
+        a = render(pose.apply(cloud.to_torch(), 0), cam).image
+    b = render(cloud, moved).image
+    assert float((a - b).abs().max()) < 1e-4
+    assert pose.pixels()[0] == pytest.approx(float(p.norm()))
+
+
+def test_exposure_changes_what_the_cloud_draws_not_the_background():
+    exposure = ExposureCorrection(2, 1.0)
+    image, alpha = torch.rand(8, 8, 3), torch.zeros(8, 8)
+    alpha[2:5] = 1.0
+    bg = torch.tensor([1.0, 1.0, 1.0])
+    image = image * alpha[..., None] + (1 - alpha[..., None]) * bg
+    assert torch.allclose(exposure.apply(image, alpha, bg, 0), image)
+    with torch.no_grad():
+        exposure.params[0, :3] = math.log(1.2)
+    out = exposure.apply(image, alpha, bg, 0)
+    assert torch.allclose(out[0], bg.expand(8, 3))  # transparent: the background as it was
+    assert torch.allclose(out[3], image[3] * math.sqrt(1.2), atol=1e-6)  # mean over the images is held at zero
+
+
+def test_images_that_are_not_the_clouds_are_refused_before_any_fit():
+    truth, trained, views = _capture(n_views=4)
+    other = Views(views.cameras, np.clip(views.images[::-1] * 0 + np.random.default_rng(0).random(views.images.shape),
+                                         0, 1).astype(np.float32))
+    with pytest.raises(ImageMismatchError, match="not the images the cloud was trained on"):
+        capture_images(trained, other)
+    with pytest.raises(ValueError, match="trained at about 24 px"):
+        capture_images(trained, views, height=48)
+    captured = capture_images(trained, views)
+    assert captured.views.cameras[0].height == H and captured.match.background == (1.0, 1.0, 1.0)
+    assert "24 px" in captured.height_source
+    assert training_height(trained, [c.scaled(3 * H) for c in views.cameras])[0] == pytest.approx(H)
+
+
+def _write_capture(views, folder):
+    from PIL import Image  # noqa: PLC0415
+
+    folder.mkdir()
+    frames = []
+    for i, (cam, img) in enumerate(zip(views.cameras, views.images)):
+        Image.fromarray((img * 255).round().astype(np.uint8)).save(folder / f"r_{i}.png")
+        frames.append({"file_path": f"r_{i}", "transform_matrix": cam.to_blender_c2w().tolist()})
+    (folder / "transforms_train.json").write_text(json.dumps({"camera_angle_x": views.cameras[0].fov_x,
+                                                              "frames": frames}))
+    return folder
+
+
+def test_refine_with_images_and_the_cli(tmp_path, capsys):
+    _, trained, views = _capture(n_views=4, n=200)
+    folder = _write_capture(views, tmp_path / "capture")
+    r = refine(trained, images=folder, fit=SuperResConfig(steps=6, patch=16))
+    assert r.fit is not None and len(r.cloud) == len(trained) + len(r.added)
+    assert "training resolution: 24 px" in r.summary() and "dB PSNR" in r.summary()
+    src = write_ply(trained, tmp_path / "in.ply")
+    out = tmp_path / "out.ply"
+    assert main(["refine", str(src), str(out), "--images", str(folder), "--fit-steps", "4"]) == 0
+    text = capsys.readouterr().out
+    assert "training resolution: 24 px" in text and len(read_ply(out)) >= len(trained)
+    for args, message in ((["--images", str(folder), "--image-height", "48"], "trained at about 24 px"),
+                          (["--images", str(tmp_path / "missing")], "missing"),
+                          (["--image-height", "24"], "need --images")):
+        bad = tmp_path / "never.ply"
+        assert main(["refine", str(src), str(bad), *args]) == 2
+        assert message in capsys.readouterr().err and not bad.exists()
+    with pytest.raises(ValueError, match="not by 'vae'"):
+        refine(trained, images=folder, method="vae")
+
+
+def test_degenerate_gaussians_fit_to_finite_changes():
+    _, trained, views = _capture(n_views=3, n=120)
+    c = trained.copy()
+    c.scales[:5] = -30.0
+    c.scales[5:10] = 8.0
+    c.quats[10:15] = 0.0
+    c.opacities[15:20] = 40.0
+    c.opacities[20:25] = -40.0
+    c.means[25:30] = views.cameras[0].center  # at a camera
+    fit = fit_octaves(c, views, 1, SuperResConfig(steps=5, patch=0, start="zero", children=0.0, densify_at=(0.5,)))
+    assert all(np.isfinite(v).all() for v in fit.changes.values())
+    assert fit.children is None or not len(fit.children.nonfinite_rows())
+
+
+def test_faulted_captures_change_what_they_say(tmp_path):
+    _, _, views = _capture(n_views=4)
+    scene = _write_capture(Views([c.scaled(2 * H) for c in views.cameras],
+                                 np.repeat(np.repeat(views.images, 2, 1), 2, 2)), tmp_path / "scene")
+    (scene / "transforms_test.json").write_text((scene / "transforms_train.json").read_text())
+    clean = load_nerf_synthetic(faulted_scene(scene, "none", H, cache=tmp_path / "cache"), "train")
+    assert np.abs(clean.images - views.images).max() < 1.5 / 255  # the area average, as 8-bit
+    moved = load_nerf_synthetic(faulted_scene(scene, "pose 0.5 px", H, cache=tmp_path / "cache"), "train")
+    centre = np.zeros((1, 3))
+    for a, b in zip(clean.cameras, moved.cameras):  # the scene's centre moves by half a pixel
+        assert np.linalg.norm(a.project(centre)[0] - b.project(centre)[0]) == pytest.approx(0.5, rel=0.05)
+    exposed = load_nerf_synthetic(faulted_scene(scene, "exposure 10%", H, cache=tmp_path / "cache"), "train")
+    ratio = exposed.images.mean((1, 2, 3)) / clean.images.mean((1, 2, 3))
+    assert np.all(np.abs(ratio - 1) <= 0.11) and np.ptp(ratio) > 0.01
+    cubic = load_nerf_synthetic(faulted_scene(scene, "bicubic", H, cache=tmp_path / "cache"), "train")
+    assert np.abs(cubic.images - clean.images).max() > 2 / 255
+    assert set(FAULTS) >= {"none", "pose 0.1 px", "pose 0.25 px", "pose 0.5 px", "exposure 10%", "bicubic", "lanczos"}
