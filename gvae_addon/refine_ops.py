@@ -175,14 +175,20 @@ class RefineJob(CoreJob):
     label, participle = "Refine", "refined"
 
     def __init__(self, obj, *, steps: int = 1, budget=None, model=None, seed: int = 0,
-                 fidelity: float | None = DEFAULT_FIDELITY["detail"], refine=None):
+                 fidelity: float | None = DEFAULT_FIDELITY["detail"], images: str | None = None,
+                 image_height: int | None = None, fit_steps: int | None = None, refine=None):
         super().__init__(obj, refine)
         self.steps, self.budget, self.model, self.seed, self.fidelity = steps, budget, model, seed, fidelity
+        self.images, self.image_height, self.fit_steps = images, image_height, fit_steps
 
     def _load(self):
         return runtime.core_refine()
 
     def _run(self, refine, cloud, progress):
+        if self.images:  # the capture's own images: the fit replaces the budget and the fidelity check
+            fit = {"seed": self.seed, **({"steps": self.fit_steps} if self.fit_steps else {})}
+            return refine(cloud, steps=self.steps, model=self.model, seed=self.seed, images=self.images,
+                          image_height=self.image_height, fit=fit, progress=progress)
         return refine(cloud, steps=self.steps, budget=self.budget, model=self.model, seed=self.seed,
                       fidelity=self.fidelity, progress=progress)
 
@@ -197,9 +203,13 @@ class RefineJob(CoreJob):
 
     def _info(self) -> dict:
         r = self.result
+        fit = getattr(r, "fit", None)
         return {"after": len(r.cloud), "added": len(r.added), "timings": dict(r.timings),
                 "selected": len(getattr(r, "selected", ())), "put_back": len(getattr(r, "reverted", ())),
-                "not_refined": getattr(r, "notes", {}).get("not refined")}
+                "not_refined": getattr(r, "notes", {}).get("not refined"),
+                "fit": None if fit is None else {"before": fit.psnr_before, "after": fit.psnr_after,
+                                                 "images": fit.images},
+                "training_resolution": getattr(r, "notes", {}).get("training resolution")}
 
 
 class CompactJob(CoreJob):
@@ -350,6 +360,14 @@ class JobOperator:
         self._end(context)
 
 
+#: The Refine settings for the capture's images (the operator's and the panel's).
+IMAGES_DESCRIPTION = ("The capture's folder (a NeRF-Synthetic folder with transforms_train.json, or a COLMAP capture: "
+                      "sparse model and images/): fit the detail to its training images (multi-view "
+                      "super-resolution; checked against the splat first). Empty: the detail model alone")
+IMAGE_HEIGHT_DESCRIPTION = ("Height in pixels of the images the splat was trained on (0: what its anti-aliasing "
+                            "size says against the capture's cameras)")
+
+
 class GVAE_OT_refine(JobOperator, Operator):
     """Add detail to the active splat object with GaussianVAE (needs PyTorch). Runs in the
     background: progress in the status bar, Esc cancels"""
@@ -373,6 +391,11 @@ class GVAE_OT_refine(JobOperator, Operator):
     fidelity: FloatProperty(name="Tolerance", default=DEFAULT_FIDELITY["detail"], min=0.0, max=1.0, precision=4,
                             description="Largest colour change (0..1) a refined Gaussian may make at the "
                             "training resolution")
+    images: StringProperty(name="Images", default="", subtype="DIR_PATH", description=IMAGES_DESCRIPTION)
+    image_height: IntProperty(name="Image Height", default=0, min=0, description=IMAGE_HEIGHT_DESCRIPTION)
+    fit_steps: IntProperty(name="Fit Steps", default=0, min=0,
+                           description="With Images: optimiser steps per octave (0: the default; more is slower "
+                           "and usually sharper)")
 
     def _job(self, context) -> RefineJob:
         budget = parse_budget(self.budget) if self.budget.strip() else None
@@ -381,14 +404,23 @@ class GVAE_OT_refine(JobOperator, Operator):
             model = bpy.path.abspath(self.model)
             if os.path.isfile(model):  # a file picked inside the model folder
                 model = os.path.dirname(model)
+        images = bpy.path.abspath(self.images) if self.images.strip() else None
         return RefineJob(context.active_object, steps=self.steps, budget=budget, model=model, seed=self.seed,
-                         fidelity=self.fidelity if self.fidelity_check else None)
+                         fidelity=self.fidelity if self.fidelity_check else None, images=images,
+                         image_height=self.image_height or None, fit_steps=self.fit_steps or None)
 
     def _report_text(self, info: dict) -> str:
         back = (f"; {info['put_back']} of {info['selected']} refined Gaussians put back by the fidelity check"
                 if info.get("put_back") else "")
         if info.get("not_refined"):
             return f"Refine: left as it is: {info['not_refined']}"
+        fit = info.get("fit")
+        if fit:
+            added = f"; {info['added']} Gaussians added above the training resolution" if info["added"] else ""
+            return (f"Refine: fitted to {fit['images']} training images ({info['training_resolution']}) in "
+                    f"{info['seconds']:.1f} s: drawn at 2x and averaged down they are reproduced at "
+                    f"{fit['before']:.2f} -> {fit['after']:.2f} dB ({fit['after'] - fit['before']:+.2f} dB){added}"
+                    + _timing_text(info))
         if info["added"] == 0 and info["selected"]:  # the detail model: changes per octave, no Gaussian added
             return (f"Refine: {info['selected'] - info['put_back']} of {info['before']} Gaussians given detail above "
                     f"their training resolution in {info['seconds']:.2f} s" + back + _timing_text(info))

@@ -29,6 +29,9 @@ class GVAE_Settings(PropertyGroup):
     fidelity_check: BoolProperty(name="Fidelity Check", default=True,
                                  description="Put back what the models did wherever it changes the picture at the "
                                  "training resolution (off: keep everything, which measurably lowers quality)")
+    images: StringProperty(name="Images", subtype="DIR_PATH", default="", description=refine_ops.IMAGES_DESCRIPTION)
+    image_height: IntProperty(name="Image Height", default=0, min=0,
+                              description=refine_ops.IMAGE_HEIGHT_DESCRIPTION)
     compact_keep: FloatProperty(name="Keep", default=0.5, min=0.001, max=1.0, subtype="FACTOR",
                                 description="Fraction of the Gaussians Compact keeps")
     compact_removal: EnumProperty(name="Removal", default="MERGE", items=refine_ops.REMOVAL_ITEMS)
@@ -149,15 +152,23 @@ class GVAE_PT_refine(_JobPanel):
 
     def _settings(self, col, settings, obj) -> None:
         col.prop(settings, "steps")
-        col.prop(settings, "budget_auto")
+        col.prop(settings, "images")
+        with_images = bool(settings.images.strip())
+        if with_images:
+            col.prop(settings, "image_height")
         sub = col.column()
-        sub.enabled = not settings.budget_auto
-        sub.prop(settings, "budget_fraction")
+        sub.enabled = not with_images  # the fit changes every Gaussian and keeps the training picture itself
+        sub.prop(settings, "budget_auto")
+        frac = sub.column()
+        frac.enabled = not settings.budget_auto
+        frac.prop(settings, "budget_fraction")
         col.prop(settings, "model_source")
         if settings.model_source == "FILE":
             col.prop(settings, "model_path")
         col.prop(settings, "seed")
-        col.prop(settings, "fidelity_check")
+        check = col.column()
+        check.enabled = not with_images
+        check.prop(settings, "fidelity_check")
 
     def _fill(self, op, settings) -> None:
         op.steps = settings.steps
@@ -165,6 +176,8 @@ class GVAE_PT_refine(_JobPanel):
         op.model = settings.model_path if settings.model_source == "FILE" else ""
         op.seed = settings.seed
         op.fidelity_check = settings.fidelity_check
+        op.images = settings.images
+        op.image_height = settings.image_height
 
 
 class GVAE_PT_compact(_JobPanel):

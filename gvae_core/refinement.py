@@ -167,7 +167,7 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = None, method: 
            stage: int | None = None, seed: int = 0, progress: Callable[[float, str], None] | None = None,
            hessian_options: dict | None = None, scores: Any = None, carry_appearance: bool = True,
            check_memory: bool = True, fidelity: float | str | None = "auto", images: Any = None,
-           image_height: int | None = None, fit: SuperResConfig | None = None) -> RefineResult:
+           image_height: int | None = None, fit: SuperResConfig | dict | None = None) -> RefineResult:
     """Refine `cloud` with `method` (module docstring; default: the one `model` is for, else
     DEFAULT_METHOD): "detail" changes the Gaussians the budget
     selects for up to `steps` (>= 1) octaves above their training resolution, "vae" runs `steps`
@@ -191,8 +191,8 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = None, method: 
     everything the models did). `images` (the detail method): the capture's training images, a
     dataset folder (`capture.load_capture_images`) or `Views` (`refine_images`), at
     `image_height` (default: the training resolution the cloud's anti-aliasing size says); `fit`
-    how the changes are fitted to them (`superres.SuperResConfig`). Raises ValueError on non-finite
-    input rows."""
+    how the changes are fitted to them (a `superres.SuperResConfig` or a dict of its fields).
+    Raises ValueError on non-finite input rows."""
     if method is None:
         method = _method_of(model)
     if method not in METHODS:
@@ -362,7 +362,7 @@ def refine_detail(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "all", 
 
 
 def refine_images(cloud: GaussianCloud, images: Any, *, steps: int = 1, image_height: int | None = None,
-                  config: SuperResConfig | None = None, model: Any = None, lineage: Lineage | None = None,
+                  config: SuperResConfig | dict | None = None, model: Any = None, lineage: Lineage | None = None,
                   stage: int | None = None, progress: Callable[[float, str], None] | None = None,
                   check_memory: bool = True) -> RefineResult:
     """`refine` from the capture's own images (DESIGN.md step 5b, `gvae_core.superres`): every
@@ -376,7 +376,7 @@ def refine_images(cloud: GaussianCloud, images: Any, *, steps: int = 1, image_he
     t_start = time.perf_counter()
     say = progress or (lambda fraction, message: None)
     _check_steps(steps)
-    config = config or SuperResConfig()
+    config = SuperResConfig(**config) if isinstance(config, dict) else config or SuperResConfig()
     src = cloud.numpy()
     n = len(src)
     _check_input(src, "all", {}, steps, False, check_memory, method="detail")

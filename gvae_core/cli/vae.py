@@ -176,7 +176,6 @@ def run_refine(args: argparse.Namespace) -> int:
     from ..formats import output_format, read_splat_file, write_splat_file
     from ..octaves import bake, has_octaves
     from ..refinement import refine
-    from ..superres import SuperResConfig
 
     output_format(args.output)  # a name no format is written under is refused before any work
     budget = parse_budget(args.budget) if args.budget is not None else None
@@ -194,7 +193,7 @@ def run_refine(args: argparse.Namespace) -> int:
     if args.images is None and (args.image_height is not None or args.fit_steps is not None):
         raise ValueError("--image-height and --fit-steps need --images")
     if args.images is not None:
-        fit = SuperResConfig(seed=args.seed, **({"steps": args.fit_steps} if args.fit_steps is not None else {}))
+        fit = {"seed": args.seed, **({"steps": args.fit_steps} if args.fit_steps is not None else {})}
     result = refine(cloud, steps=args.steps, budget=budget, method=args.method, model=args.model, lineage=lineage,
                     stage=args.stage, cameras=cameras, seed=args.seed, fidelity=fidelity,
                     hessian_options={"views": args.views, "resolution": args.resolution}, images=args.images,

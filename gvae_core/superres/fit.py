@@ -96,13 +96,14 @@ class SuperResFit:
     the children (a numpy cloud of their parameters at their training rate, with their changes per
     octave as `gvae_octave_*` extras, and each one's input row it came from), the loss of every
     step, PSNR of the averaged-down renders against the training images before and after (dB, on
-    `psnr_views` of them, octave 1), the per-image guards' state, and seconds."""
+    `psnr_views` of the `images` fitted, octave 1), the per-image guards' state, and seconds."""
 
     changes: dict[str, np.ndarray]
     losses: list[float]
     psnr_before: float
     psnr_after: float
     psnr_views: int
+    images: int = 0
     children: GaussianCloud | None = None
     child_roots: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     pose_pixels: np.ndarray | None = None
@@ -359,7 +360,7 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     timings["check"] += time.perf_counter() - t0
     changes, children, roots = model.result(limit)
     return SuperResFit(changes=changes, losses=losses, psnr_before=before, psnr_after=after,
-                       psnr_views=len(check_rows), children=children, child_roots=roots,
+                       psnr_views=len(check_rows), images=len(views), children=children, child_roots=roots,
                        pose_pixels=None if pose is None else pose.pixels(),
                        exposure_gains=None if exposure is None else exposure.gains(),
                        seconds=time.perf_counter() - t_start, timings=timings)

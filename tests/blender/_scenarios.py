@@ -724,6 +724,32 @@ def scenario_refine_job(bpy, args: dict) -> dict:
     return res
 
 
+def scenario_refine_images(bpy, args: dict) -> dict:
+    """Refine with the capture's images, as a user runs it from the panel (the operator's `execute`,
+    batch): images of another scene are refused and the object stays as it was; the capture's own
+    are fitted (a few steps), the report (printed in batch) says what the fit measured, one undo step
+    takes it back."""
+    from bl_ext.user_default.gaussian_vae.gvae_addon import refine_ops, runtime
+
+    bpy.ops.import_scene.gaussian_splat(filepath=args["ply"])
+    name = bpy.context.active_object.name
+    res = {"available": runtime.refine_status()[0]}
+    if not res["available"]:
+        return res
+    before = len(bpy.data.objects[name].data.vertices)
+    res["wrong"] = failure(bpy, lambda: bpy.ops.gvae.refine(images=args["wrong"], fit_steps=2))
+    res["wrong_same"] = len(bpy.data.objects[name].data.vertices) == before
+    print("--- refine with the capture's images", flush=True)
+    res["undo"] = undo_round(bpy, name, lambda: bpy.ops.gvae.refine("EXEC_DEFAULT", True, images=args["images"],
+                                                                    fit_steps=4))
+    attrs = attributes(bpy.data.objects[name])
+    res["octave_attrs"] = sorted(k for k in attrs if k.startswith("gvae_octave_"))
+    res["settings"] = [p for p in ("images", "image_height") if hasattr(bpy.context.scene.gvae, p)]
+    res["job_fields"] = all(hasattr(refine_ops.RefineJob(bpy.data.objects[name]), k)
+                            for k in ("images", "image_height", "fit_steps"))
+    return res
+
+
 def undo_round(bpy, name: str, run) -> list[int]:
     """The object's vertex count before `run()` (an operator called as a button calls it: with the
     undo push that scripts leave out by default), after it, after undo and after redo."""

@@ -86,3 +86,29 @@ def test_compact_job_batch_button_and_undo(extension_zip, tmp_path):
     assert res["invoke"] == ["FINISHED"] and res["invoke_vertices"] == 5
     before, after, undone, redone = res["undo"]
     assert (before, after, undone, redone) == (5, 2, 5, 2)
+
+
+def test_refine_with_the_captures_images(extension_zip, tmp_path):
+    """The panel's Images folder reaches the core's fit through the same job: another scene's images
+    are refused with the object unchanged; the capture's are fitted, reported with what the fit
+    measured on them, and undone in one step."""
+    pytest.importorskip("torch", reason="the real refine needs PyTorch (an optional runtime in Blender)")
+    requires_blender_torch()
+    from tests.test_superres import _capture, _write_capture  # noqa: PLC0415 - the synthetic capture
+
+    _, trained, views = _capture(n_views=4, n=150)
+    src = tmp_path / "in.ply"
+    write_ply(trained, src)
+    folder = _write_capture(views, tmp_path / "capture")
+    _, _, others = _capture(n_views=4, n=150, seed=5)
+    wrong = _write_capture(type(others)(others.cameras, 1.0 - others.images), tmp_path / "other")
+    res = run_scenario("refine_images", tmp_path, extension_zip, ply=str(src), images=str(folder), wrong=str(wrong))
+    assert res["available"]
+    assert "not the images the cloud was trained on" in res["wrong"]["error"], res["wrong"]
+    assert res["wrong"]["unchanged"] and res["wrong_same"]
+    report = res["_output"].split("--- refine with the capture's images")[1]
+    assert "Refine: fitted to 4 training images (24 px" in report and " dB (" in report, report
+    before, after, undone, redone = res["undo"]
+    assert after >= before and undone == before and redone == after
+    assert {"gvae_octave_limit", "gvae_octave_opacity", "gvae_octave_scale_0"} <= set(res["octave_attrs"])
+    assert res["settings"] == ["images", "image_height"] and res["job_fields"]
