@@ -54,14 +54,15 @@ from .hessian import hessian_scores
 from .lineage import Lineage
 from .metrics.geometry import MeshDistance, chamfer, read_mesh_ply
 from .metrics.image import image_scores
-from .octaves import with_octaves
+from .octaves import octave_fields, with_octaves
 from .ply import read_ply
 from .refinement import RefineResult, refine, refine_steps
 from .rendering import RenderSettings, render, resolve_device
 from .rendering.reference import render_reference
 from .scenes import SPLITS, cache_dir, make_scene
 from .scenes.faults import faulted_scene
-from .train import TrainConfig, scene_extent, train_progressive
+from .superres import EXPOSURE_WEIGHT, POSE_WEIGHT, SuperResConfig, fit_octaves
+from .train import TrainConfig, fine_tune, scene_extent, train_progressive
 from .vae import GaussianVAE, default_model_dir
 
 #: Methods in result rows.
@@ -71,6 +72,12 @@ OURS, OURS_H = "ours", "ours_h"
 DEFAULT = "refine"
 #: At the default's cost: linear lineage extrapolation; the bound: the oracle.
 EXTRAPOLATION, ORACLE = "extrapolation", "oracle"
+#: Refine from the capture's images (`refine(images=...)`, `gvae_core.superres`); without its
+#: children; the same number of plain training steps at 1x (`train.fine_tune`); the same fit to the
+#: real 2x images (the oracle of the fit's quantities).
+IMAGES, IMAGES_NO_CHILDREN, FINETUNE, ORACLE_IMAGES = "images", "images_no_children", "finetune", "oracle_images"
+#: The 4x rows: from the first training stage, two octaves up (method -> its row name).
+FOUR_X = {m: f"{m}_4x" for m in ("3dgs", "refine", "images", "finetune", "3dgs_real")}
 SPLIT, RANDOM, DUPLICATE = "split", "random", "duplicate"
 CONTROLS = (SPLIT, RANDOM, DUPLICATE)
 SCALES = ("1x", "1.5x", "2x")
@@ -113,6 +120,14 @@ class Protocol:
     #: Whether the runs go on with the real higher-resolution images (the REAL upper bound); without,
     #: they stop at the training resolution (what a model learns from; evaluation still uses `higher`).
     train_higher: bool = True
+    #: Refine from the pair's training images: the fit's settings (`superres.SuperResConfig` fields,
+    #: beside its defaults), whether to run it (and its 4x rows from the first stage); the simulated
+    #: capture faults (`scenes.faults`) and the 3DGS seeds their rows are made for.
+    image_fit: dict = field(default_factory=dict)
+    image_rows: bool = True
+    image_4x: bool = True
+    faults: tuple[str, ...] = ()
+    fault_seeds: tuple[int, ...] = (0,)
 
     def train_config(self, seed: int = 0) -> TrainConfig:
         higher = self.higher if self.train_higher else ()
@@ -244,7 +259,7 @@ class Evaluator:
     accuracy), PSNR/SSIM against its test views at each scale with the protocol's anti-aliasing
     mode and with the classic render, NIQE of the 2x renders; renders on `device`."""
 
-    def __init__(self, run: SceneRun, background=(1.0, 1.0, 1.0), device=None):
+    def __init__(self, run: SceneRun, background=(1.0, 1.0, 1.0), device=None, heights: dict[str, int] | None = None):
         p = run.protocol
         self.background = background
         self.device = device
@@ -252,7 +267,9 @@ class Evaluator:
         self.mesh = MeshDistance(*read_mesh_ply(run.scene_dir / "mesh.ply"))
         self.surface = np.load(run.scene_dir / "gt_points.npy")
         self.views = {}
-        for label, h in zip(SCALES, (p.resolutions[-1],) + tuple(p.higher)):
+        heights = heights or dict(zip(SCALES, (p.resolutions[-1],) + tuple(p.higher)))
+        self.scales = tuple(heights)
+        for label, h in heights.items():
             v = load_nerf_synthetic(run.scene_dir, "test", resolution=h)
             if p.test_views is not None and p.test_views < len(v):
                 pick = np.linspace(0, len(v) - 1, p.test_views).round().astype(int)
@@ -260,13 +277,13 @@ class Evaluator:
                             [v.names[i] for i in pick])
             self.views[label] = v
 
-    def __call__(self, cloud, *, scales=SCALES) -> dict[str, float]:
+    def __call__(self, cloud, *, scales=None) -> dict[str, float]:
         c = chamfer(cloud.means, self.surface, self.mesh, weights=cloud.activated_opacities())
         row = {"chamfer": c.chamfer, "accuracy": c.accuracy, "weighted_accuracy": c.weighted_accuracy,
                "completeness": c.completeness, "n_gaussians": len(cloud)}
-        for label in scales:
+        for label in scales or self.scales:
             for suffix, mode in self.modes.items():
-                niqe = not suffix and label == SCALES[-1]
+                niqe = not suffix and label == self.scales[-1]
                 s = image_scores(cloud, self.views[label], self.background, no_reference=niqe, antialias=mode,
                                  device=self.device)
                 row[f"psnr_{label}{suffix}"] = s.psnr
@@ -332,15 +349,17 @@ def run_scene(run: SceneRun, model, knob: float = 1.0, extrapolation: float = 0.
     rows: list[dict] = []
     tag = {"scene": run.name, "seed": run.seed, "split": scene_split(run.name)}
 
-    def add(method: str, step: int, cloud, **info) -> None:
+    def add(method: str, step: int, cloud, evaluator: Evaluator | None = None, **info) -> None:
         t0 = time.perf_counter()
-        row = {**tag, "method": method, "step": step, **info, **evaluate(cloud)}
+        row = {**tag, "method": method, "step": step, **info, **(evaluator or evaluate)(cloud)}
         row["eval_s"] = time.perf_counter() - t0
         rows.append(row)
         say(f"[{run.name} s{run.seed}] {method:9s} {'+' + str(step) if step else '':3s} {_brief(row)}")
 
     log = run.log()
     add(BASELINE, 0, base, resolution=log[k]["resolution"], train_s=sum(e["seconds"] for e in log[:k + 1]))
+    if p.image_rows:
+        image_rows(run, base, lineage, detail, evaluate, add, say)
     for i, label in enumerate(SCALES[1:] if p.train_higher else (), 1):
         add(REAL, 0, run.stage_cloud(k + i), scale=label, resolution=log[k + i]["resolution"],
             train_s=sum(e["seconds"] for e in log[:k + i + 1]))
@@ -382,9 +401,107 @@ def run_scene(run: SceneRun, model, knob: float = 1.0, extrapolation: float = 0.
     return rows
 
 
+def image_config(protocol: Protocol, seed: int = 0, **changes) -> SuperResConfig:
+    """The fit the protocol refines from images with (its `image_fit` over the defaults)."""
+    return SuperResConfig(**{"seed": seed, **protocol.image_fit, **changes})
+
+
+def _fit_to_images(base, views, config: SuperResConfig, start, octaves: int = 1, images_scale: int = 1):
+    """`superres.fit_octaves` made into a cloud (its changes and children), and the fit."""
+    fit = fit_octaves(base, views, octaves, config, start=start, images_scale=images_scale)
+    cloud = with_octaves(base, fit.changes, float(octaves))
+    return (cloud.append_children(fit.children, fit.child_roots) if len(fit.child_roots) else cloud), fit
+
+
+def image_rows(run: SceneRun, base, lineage, detail, evaluate: Evaluator, add, say=print) -> None:
+    """Refine from the pair's training images at +1 (2x): `refine(images=...)`, the same fit without
+    children (what they buy), the same number of plain training steps at 1x, and the same fit to
+    the real 2x images (the oracle of its quantities); and, with `image_4x`, from the first stage two
+    octaves up (4x, scored at 1x, 2x and 4x that stage's resolution) beside the detail model, the
+    same steps of 1x training and the run's stage trained on the real 4x images."""
+    p = run.protocol
+    k = p.train_stage
+    log = run.log()
+    res = log[k]["resolution"]
+    config = image_config(p, run.seed)
+    views = load_nerf_synthetic(run.scene_dir, "train", resolution=res)
+    t0 = time.perf_counter()
+    r = refine(base, images=views, lineage=lineage, model=detail, fit=config)
+    add(IMAGES, 1, r.cloud, refine_s=time.perf_counter() - t0, added=len(r.added),
+        fit_psnr=[r.fit.psnr_before, r.fit.psnr_after])
+    if config.children is not None:
+        t0 = time.perf_counter()
+        r0 = refine(base, images=views, lineage=lineage, model=detail, fit=dataclasses.replace(config, children=None))
+        add(IMAGES_NO_CHILDREN, 1, r0.cloud, refine_s=time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    add(FINETUNE, 1, fine_tune(base, views, config.steps, seed=run.seed), train_s=time.perf_counter() - t0,
+        iterations=config.steps)
+    start = (octave_fields(refine(base, lineage=lineage, model=detail, fidelity=None).cloud)
+             if config.start == "detail" else None)
+    t0 = time.perf_counter()
+    real = load_nerf_synthetic(run.scene_dir, "train", resolution=2 * res)
+    bound, _ = _fit_to_images(base, real, config, start, images_scale=2)
+    add(ORACLE_IMAGES, 1, bound, fit_s=time.perf_counter() - t0)
+    if not p.image_4x:
+        return
+    res0 = log[0]["resolution"]
+    four = Evaluator(run, heights={"1x": res0, "2x": 2 * res0, "4x": 4 * res0})
+    base0, lineage0 = run.stage_cloud(0), run.lineage(1)
+    add(FOUR_X[BASELINE], 0, base0, four, resolution=res0)
+    t0 = time.perf_counter()
+    d = refine(base0, lineage=lineage0, model=detail, method="detail", steps=2)
+    add(FOUR_X[DEFAULT], 2, d.cloud, four, refine_s=time.perf_counter() - t0)
+    views0 = load_nerf_synthetic(run.scene_dir, "train", resolution=res0)
+    t0 = time.perf_counter()
+    r = refine(base0, images=views0, lineage=lineage0, model=detail, fit=config, steps=2)
+    add(FOUR_X[IMAGES], 2, r.cloud, four, refine_s=time.perf_counter() - t0, added=len(r.added))
+    t0 = time.perf_counter()
+    add(FOUR_X[FINETUNE], 2, fine_tune(base0, views0, 2 * config.steps, seed=run.seed), four,
+        train_s=time.perf_counter() - t0, iterations=2 * config.steps)
+    real4 = [i for i, e in enumerate(log) if e["resolution"] == 4 * res0]
+    if real4:
+        add(FOUR_X[REAL], 0, run.stage_cloud(real4[0]), four, resolution=4 * res0)
+
+
+def fault_rows(name: str, seed: int, protocol: Protocol, detail=None, *, cache=None, device=None,
+               say: Callable[[str], None] = print) -> list[dict]:
+    """For each of the protocol's simulated capture faults: the (scene, seed) trained on its faulted
+    training images, unrefined and refined from those images with each guard off and on (pose
+    correction, exposure), scored at 1x and 2x against the scene's own test views."""
+    rows = []
+    for fault in protocol.faults:
+        run = prepare_faulted(name, fault, protocol, seed=seed, cache=cache, say=say)
+        k = run.protocol.train_stage
+        res = run.log()[k]["resolution"]
+        evaluate = Evaluator(run, device=device, heights={"1x": res, "2x": 2 * res})
+        base, lineage = run.stage_cloud(k), run.lineage(k + 1)
+        tag = {"scene": name, "seed": seed, "split": scene_split(name), "fault": fault}
+        unrefined = {**tag, "method": BASELINE, "guard": "", **evaluate(base)}
+        rows.append(unrefined)
+        views = load_nerf_synthetic(run.scene_dir, "train", resolution=res)
+        for guard, changes in GUARDS.items():
+            t0 = time.perf_counter()
+            r = refine(base, images=views, lineage=lineage, model=detail,
+                       fit=image_config(protocol, seed, **changes))
+            row = {**tag, "method": IMAGES, "guard": guard, "refine_s": time.perf_counter() - t0, **evaluate(r.cloud)}
+            if r.fit.pose_pixels is not None:
+                row["pose_pixels"] = float(np.median(r.fit.pose_pixels))
+            if r.fit.exposure_gains is not None:
+                row["exposure_spread"] = float(np.std(np.log(r.fit.exposure_gains)))
+            rows.append(row)
+            say(f"[{name} s{seed} {fault}] images, guard {guard}: PSNR 2x {row['psnr_2x']:.2f} (unrefined "
+                f"{unrefined['psnr_2x']:.2f})")
+    return rows
+
+
+#: The guards the fault rows compare: none, each alone (their `SuperResConfig` settings).
+GUARDS = {"none": {"pose": None, "exposure": None}, "pose": {"pose": POSE_WEIGHT, "exposure": None},
+          "exposure": {"pose": None, "exposure": EXPOSURE_WEIGHT}}
+
+
 def _brief(row: dict) -> str:
     parts = [f"n={row['n_gaussians']}", f"CD={row['chamfer']:.5f}", f"wAcc={row['weighted_accuracy']:.5f}"]
-    parts += [f"PSNR{s}={row[f'psnr_{s}']:.2f}/{row[f'psnr_{s}_classic']:.2f}" for s in SCALES]
+    parts += [f"PSNR{s}={row[f'psnr_{s}']:.2f}/{row[f'psnr_{s}_classic']:.2f}" for s in SCALES if f"psnr_{s}" in row]
     return " ".join(parts)
 
 
@@ -455,6 +572,11 @@ def run_experiment(protocol: Protocol | str, *, model=None, detail=None, scenes=
            "knob": knob, "extrapolation": extrapolation,
            "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(started)), "runs": {},
            "rows": [], "jobs": jobs, "device": device, "split": _common_split(name for name, _ in pairs)}
+    fault_pairs = [(name, seed) for name, seed in pairs if seed in p.fault_seeds] if p.faults else []
+    if fault_pairs:
+        say(f"simulated capture faults ({', '.join(p.faults)}) on {len(fault_pairs)} pair(s)")
+    doc["fault_rows"] = sum(_map(fault_job, [(name, seed, p, detail_dir, cache, device) for name, seed in fault_pairs],
+                                 jobs, say), [])
     for (name, seed), rows in zip(pairs, results):
         run = runs[(name, seed)]
         doc["rows"] += rows
@@ -479,6 +601,12 @@ def evaluate_job(run: SceneRun, model_dir, knob: float, extrapolation: float, de
     detail = load_detail(detail_dir) if detail_dir is not None else None
     return run_scene(run, GaussianVAE.load(model_dir), knob, extrapolation, detail=detail, device=device,
                      say=say or _print)
+
+
+def fault_job(name: str, seed: int, protocol: Protocol, detail_dir=None, cache=None, device=None,
+              say=None) -> list[dict]:
+    detail = load_detail(detail_dir) if detail_dir is not None else None
+    return fault_rows(name, seed, protocol, detail, cache=cache, device=device, say=say or _print)
 
 
 def prepare_scenes(names, protocol: Protocol, *, seed: int = 0, cache=None, jobs: int | None = None,

@@ -15,10 +15,11 @@ from gvae_core.camera import orbit
 from gvae_core.controls import extrapolation_control
 from gvae_core.detail import DetailModel
 from gvae_core.experiment import (BASELINE, CONTROLS, DEFAULT, DUPLICATE, EXTRAPOLATION, KNOB, ORACLE, OURS, OURS_H,
-                                  RANDOM, REAL, SCALES, SPLIT, Protocol, SceneRun, run_scene, tune_knob)
+                                  RANDOM, REAL, SCALES, SPLIT, Protocol, SceneRun, run_scene, tune_knob, IMAGES,
+                                  IMAGES_NO_CHILDREN, FINETUNE, ORACLE_IMAGES, FOUR_X)
 from gvae_core.rendering import render
-from gvae_core.report import (Results, default_losses, default_table, headline_table, losses, mean_ci, methods_table,
-                              write_report)
+from gvae_core.report import (Results, default_losses, default_table, fault_table, four_x_table, headline_table,
+                              images_goals, images_table, losses, mean_ci, methods_table, write_report)
 from gvae_core.scenes.build import write_mesh_ply
 from gvae_core.train import train_progressive
 from gvae_core.vae import GaussianVAE
@@ -71,7 +72,9 @@ def experiment(tmp_path_factory):
     protocol = Protocol("test", scene_profile="none", resolutions=(16, 24), iterations=(40, 30), higher=(36, 48),
                         higher_iterations=(20, 20), scenes=("ball",), seeds=(0,), steps=2,
                         train_overrides=dict(init_count=300, max_gaussians=3000, sh_degree=1), test_views=2,
-                        hessian_views=2, knob_factors=(0.5, 1.0), oracle_steps=30, oracle_patch=0)
+                        hessian_views=2, knob_factors=(0.5, 1.0), oracle_steps=30, oracle_patch=0,
+                        image_fit=dict(steps=12, patch=0, children=0.0, densify_at=(0.5,), max_children=0.1),
+                        image_4x=False)
     run_dir = tmp / "run"
     train_progressive(scene, protocol.train_config(0), out_dir=run_dir, progress=False)
     run = SceneRun("ball", 0, scene, run_dir, protocol, {"scene": 0.0, "train": 0.0})
@@ -110,6 +113,17 @@ def test_every_method_and_step_is_scored(experiment):
     # an untrained detail model changes nothing; the oracle, fitted to the real views, gains
     assert _pick(rows, DEFAULT, 1)["psnr_2x"] == pytest.approx(base["psnr_2x"], abs=1e-6)
     assert _pick(rows, ORACLE, 1)["psnr_2x"] > base["psnr_2x"]
+    # refine with the images: children added, the training picture kept; the same fit to the real 2x
+    # images; the same steps of plain training change the 1x picture
+    images, bare = _pick(rows, IMAGES, 1), _pick(rows, IMAGES_NO_CHILDREN, 1)
+    assert images["n_gaussians"] == base["n_gaussians"] + images["added"] and images["added"] > 0
+    assert bare["n_gaussians"] == base["n_gaussians"]
+    for r in (images, bare, _pick(rows, ORACLE_IMAGES, 1)):
+        assert r["psnr_1x"] == pytest.approx(base["psnr_1x"], abs=0.02) and r["psnr_2x"] != base["psnr_2x"]
+    assert images["fit_psnr"][1] > images["fit_psnr"][0]
+    tuned = _pick(rows, FINETUNE, 1)
+    assert tuned["iterations"] == 12 and tuned["n_gaussians"] == base["n_gaussians"]
+    assert tuned["psnr_1x"] != base["psnr_1x"]
 
 
 def test_controls_match_ours_h_count(experiment):
@@ -147,6 +161,15 @@ def _known_doc() -> dict:
                      {**base, "method": ORACLE, "step": 1, "psnr_2x": 31.0}]
             rows += [{**base, "method": REAL, "step": 0, "scale": s, "psnr_2x": 33.0, "n_gaussians": 200}
                      for s in ("1.5x", "2x")]
+            # refine with the images: +1.2 on a, +0.2 on b (20 added, +0.1 of it theirs); 1x training +0.4
+            gain = 1.2 if scene == "a" else 0.2
+            rows += [{**base, "method": IMAGES, "step": 1, "psnr_2x": 30.0 + gain, "n_gaussians": 120, "added": 20},
+                     {**base, "method": IMAGES_NO_CHILDREN, "step": 1, "psnr_2x": 29.9 + gain},
+                     {**base, "method": FINETUNE, "step": 1, "psnr_2x": 30.4, "psnr_1x": 30.5},
+                     {**base, "method": ORACLE_IMAGES, "step": 1, "psnr_2x": 31.5}]
+            four = dict(base, psnr_4x=25.0)
+            rows += [{**four, "method": FOUR_X[BASELINE], "step": 0}, {**four, "method": FOUR_X[IMAGES], "step": 2,
+                                                                      "psnr_4x": 26.5}]
             for k in (1, 2):
                 ours_psnr = 30.0 if (scene, seed) == ("b", 1) else 31.0
                 rows.append({**base, "method": OURS_H, "step": k, "chamfer": 1.5, "weighted_accuracy": 0.8,
@@ -161,6 +184,10 @@ def _known_doc() -> dict:
             "knob": {"factor": 1.1, "psnr_2x": {"1": 29.0, "1.1": 29.4}, "scenes": ["t"]},
             "extrapolation": {"factor": 0.25, "psnr_2x": {"0": 29.0, "0.25": 29.2}, "scenes": ["t"]}, "split": "test",
             "started": "now", "seconds": 60.0, "rows": rows,
+            "fault_rows": [{"scene": sc, "seed": 0, "fault": f, "method": m, "guard": g,
+                            "psnr_2x": 28.0 + (0.0 if m == BASELINE else 0.5 + (g == "pose") * 0.3 * (f != "none"))}
+                           for sc in ("a", "b") for f in ("none", "pose 0.5 px")
+                           for m, g in ((BASELINE, ""), (IMAGES, "none"), (IMAGES, "pose"))],
             "runs": {f"{s}/s{d}": {"scene": s, "seed": d, "log": [{"resolution": 10, "peak_rss_mb": 100.0,
                                                                   "n_gaussians": 50, "seconds": 1.0,
                                                                   "test_psnr": 25.0}]}
@@ -197,6 +224,25 @@ def test_report_compares_the_default_with_what_costs_the_same():
     assert table["PSNR 2x dB"][5].startswith("+0.05 ± ") and table["PSNR 2x dB"][6] == "2/4 |"
     assert default_losses(res) == [f"- a, seed {d}: PSNR 2x -0.10 dB against global scale knob per octave; -0.20 dB "
                                    f"against linear lineage extrapolation" for d in (0, 1)]
+
+
+def test_report_tables_of_refine_with_the_images():
+    doc = _known_doc()
+    res = Results(doc)
+    table = {line.split(" | ")[0][2:]: line.split(" | ") for line in images_table(res)[2:7]}
+    assert table["PSNR 2x dB"][1].startswith("+0.70 ± ") and table["PSNR 2x dB"][5].startswith("+0.40 ± 0.00")
+    assert table["PSNR 2x dB"][6].startswith("+1.50 ± 0.00") and table["PSNR 2x dB"][7].startswith("+3.00")
+    assert table["Gaussians added"][1] == "20"
+    per_pair = [line for line in images_table(res) if line.startswith("| b | 1 |")]
+    assert per_pair == ["| b | 1 | +0.20 | +0.10 | +0.60 | +0.40 | +1.50 | 20 | +5.00 |"]
+    goals = images_goals(res)
+    assert "+0.70 ± " in goals[0] and "goal +1.0: not met" in goals[0] and "b s0 (+0.20), b s1 (+0.20)" in goals[0]
+    assert "+0.30 ± " in goals[1] and "not met" in goals[1] and "worst pair -0.20" in goals[1]
+    assert "within 0.01: met" in goals[2]
+    assert four_x_table(res)[2].startswith("| PSNR 4x dB | +1.50 ± 0.00 |")
+    faults = fault_table(doc)
+    assert faults[2] == "| none | 2 | 28.00 | +0.50 ± 0.00 | +0.50 ± 0.00 | +0.50 |"
+    assert faults[3] == "| pose 0.5 px | 2 | 28.00 | +0.50 ± 0.00 | +0.80 ± 0.00 | +0.50 |"
 
 
 def test_report_is_written_with_its_results(tmp_path):

@@ -5,7 +5,8 @@ changes per octave fitted to them through an area-averaged higher-resolution ren
 pose and exposure corrections)."""
 
 from .fit import DEFAULT_FIELDS, SuperResConfig, SuperResFit, fit_octaves
+from .guards import EXPOSURE_WEIGHT, POSE_WEIGHT
 from .match import CaptureImages, ImageMismatchError, capture_images, match_images
 
 __all__ = ["DEFAULT_FIELDS", "SuperResConfig", "SuperResFit", "fit_octaves", "CaptureImages", "ImageMismatchError",
-           "capture_images", "match_images"]
+           "capture_images", "match_images", "POSE_WEIGHT", "EXPOSURE_WEIGHT"]

@@ -14,7 +14,12 @@ from ..camera import Camera
 from ..cloud import GaussianCloud
 from ..quaternions import multiply
 
-__all__ = ["PoseCorrection", "ExposureCorrection"]
+__all__ = ["PoseCorrection", "ExposureCorrection", "POSE_WEIGHT", "EXPOSURE_WEIGHT"]
+
+#: The guards' penalty weights when on (`SuperResConfig.pose`, `.exposure`; BENCHMARKS.md, "Refine
+#: with the capture's images": chosen on the validation scenes with simulated faults).
+POSE_WEIGHT = 0.01
+EXPOSURE_WEIGHT = 0.1
 
 
 def _skew(w: torch.Tensor) -> torch.Tensor:
