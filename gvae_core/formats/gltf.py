@@ -1,0 +1,748 @@
+"""glTF 2.0 splats: Khronos's `KHR_gaussian_splatting` in a `.glb`, or a `.gltf` with its buffers.
+
+A splat is a mesh primitive of mode POINTS (0) whose `extensions` hold `KHR_gaussian_splatting`
+({"kernel": "ellipse", "colorSpace": "srgb_rec709_display", ...}), one point per Gaussian:
+
+    POSITION                                   VEC3   the centre (float; KHR_mesh_quantization's integers read too)
+    KHR_gaussian_splatting:ROTATION            VEC4   unit quaternion x, y, z, w (float, normalised byte/short)
+    KHR_gaussian_splatting:SCALE               VEC3   linear scale, exp(log-scale) (float, (normalised) ubyte/ushort)
+    KHR_gaussian_splatting:OPACITY             SCALAR linear opacity, sigmoid(logit) (float, normalised ubyte/ushort)
+    KHR_gaussian_splatting:SH_DEGREE_0_COEF_0  VEC3   f_dc (r, g, b)
+    KHR_gaussian_splatting:SH_DEGREE_l_COEF_n  VEC3   f_rest of degree l = 1..3, n = 0..2l (m = n - l), each degree
+                                                      complete and the lower ones present; n = 0 is `sh_rest[:, l²-1]`
+
+Any accessor is read as glTF defines it: every component type, `normalized` (signed: max(c / (2^(b-1) - 1), -1),
+unsigned: c / (2^b - 1)), byteStride, sparse accessors, accessors without a buffer view (zeros).
+Buffers: the GLB's BIN chunk, files beside the .gltf (relative URIs) or base64 data URIs.
+
+Frames. glTF is right-handed with +Y up and +Z forward (x left); a 3DGS PLY is x right, y down,
+z forward. The two differ by 180 degrees about z, applied on the way in and out exactly
+(`transform.flip_axes`: signs of x and y, of the quaternion's x and y, and of the SH coefficients
+odd in (x, y)), so a PLY written as .glb and read back has its own frame again, bit for bit.
+The splats of a node are in its local space: the node's global matrix (matrix or TRS, through the
+scene's hierarchy) is applied to centres, covariances and SH (`transform.affine`). Every splat
+primitive of the default scene is read (one after the other, SH raised to the largest degree).
+
+SPZ companion (`KHR_gaussian_splatting_compression_spz_2` inside the primitive's
+KHR_gaussian_splatting object, {"bufferView": i}): the buffer view holds an .spz file (read by
+`spz.decode_spz`), which the extension unpacks into glTF's left-up-front frame from SPZ's
+right-up-back one: x and z change sign, then glTF's frame as above (in all: y and z flip).
+
+Files written by splat-transform before 2.7.0 (its `asset.generator` says "splat-transform X.Y.Z")
+hold log-scales in SCALE, and before 2.0 also the PLY's frame unchanged (checked in 1.10.1, 2.3.1,
+2.7.1, 3.7.0); they are read as written, with a warning. Any other file with a negative SCALE is
+read as log-scales too (the drafts before the ratified text stored them so; a warning says so).
+
+Reading keeps the raw parameters: log-scale = ln(SCALE) and logit = ln(p / (1 - p)) in float64,
+rounded to float32; an OPACITY of exactly 0 or 1 is a logit of -inf / +inf and a SCALE of 0 a flat
+axis, read as what they mean (`ply.drop_nonfinite`); an OPACITY outside [0, 1] is refused (or its
+rows dropped with `sanitize`). COLOR_0 (a fallback colour) is not read. What else the file holds
+(other meshes, materials, images, cameras, animations, ...) is left alone and named in a warning,
+as are attributes of the splat primitive that are not read. A file without splats is refused with
+a message that says to use a glTF importer.
+
+Writing (`write_gltf`): one node, one mesh, one primitive, every attribute float32 in its own
+tightly packed buffer view (as splat-transform writes them), in glTF's frame; SCALE = exp and
+OPACITY = sigmoid computed in float64, rounded to float32; quaternions normalised (float64; zero:
+the identity); COLOR_0 as normalised ubyte RGBA, the diffuse colour SH_C0 f_dc + 0.5 clamped to
+[0, 1] and decoded from sRGB to linear as the extension says, alpha the opacity.
+`colorSpace` "srgb_rec709_display" (3DGS colours are fitted to sRGB-encoded images). So PLY -> glTF
+-> PLY gives positions, SH and (normalised) rotations back exactly; log-scales within float32
+rounding of exp and ln (|error| <= 2^-24 + half an ulp of the value); opacities within float32
+rounding of the sigmoid and of the logit read back (2^-25 + a quarter of the logit's ulp); logits
+above 17.3 come back as fully opaque (+inf, read as 50) and below -103 as fully transparent. Extra properties are not stored (a warning says so). A
+.glb holds at most 4 GiB (about 17M Gaussians of SH degree 3); a .gltf writes NAME.bin beside it.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import json
+import math
+import re
+import struct
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import quote, unquote
+
+import numpy as np
+
+from .. import quaternions
+from ..atomic import atomic_write
+from ..cloud import GaussianCloud
+from ..conventions import SH_C0, SH_REST_COUNTS, srgb_to_linear
+from ..ply import PlyError, drop_nonfinite
+from ..transform import affine, flip_axes, sh_rotation
+from ._codec import writable
+from .spz import decode_spz
+
+__all__ = ["read_gltf", "write_gltf", "is_gltf_name", "looks_like_gltf", "EXTENSION", "SPZ_EXTENSION",
+           "PLY_TO_GLTF"]
+
+EXTENSION = "KHR_gaussian_splatting"
+SPZ_EXTENSION = "KHR_gaussian_splatting_compression_spz_2"
+#: Signs of x, y, z between a 3DGS PLY's frame and glTF's (180 degrees about z; its own inverse).
+PLY_TO_GLTF = (-1.0, -1.0, 1.0)
+#: SPZ's right-up-back frame to glTF's left-up-front one, as the SPZ companion extension unpacks it.
+SPZ_TO_GLTF = (-1.0, 1.0, -1.0)
+GLB_MAGIC = b"glTF"
+_JSON_CHUNK, _BIN_CHUNK = 0x4E4F534A, 0x004E4942
+_GLB_HEADER = struct.Struct("<4sII")
+_CHUNK_HEADER = struct.Struct("<II")
+_MAX_JSON_BYTES = 1 << 28
+_GLB_LIMIT = 2 ** 32 - 1
+#: component type -> (numpy dtype, the divisor of a normalised integer)
+_COMPONENTS = {5120: ("i1", 127.0), 5121: ("u1", 255.0), 5122: ("<i2", 32767.0), 5123: ("<u2", 65535.0),
+               5125: ("<u4", 4294967295.0), 5126: ("<f4", None)}
+_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+_FLOAT, _UBYTE, _ARRAY_BUFFER = 5126, 5121, 34962
+_POINTS = 0
+_MODES = {0: "POINTS", 1: "LINES", 2: "LINE_LOOP", 3: "LINE_STRIP", 4: "TRIANGLES", 5: "TRIANGLE_STRIP",
+          6: "TRIANGLE_FAN"}
+ROTATION, SCALE, OPACITY = (f"{EXTENSION}:{name}" for name in ("ROTATION", "SCALE", "OPACITY"))
+#: Extensions of the primitive or its data that this reader decodes (others are refused where splats use them).
+_KNOWN_PRIMITIVE_EXTENSIONS = {EXTENSION}
+#: splat-transform wrote log-scales before this version, and the PLY's frame before 2.0.
+_LINEAR_SCALE_SINCE, _GLTF_FRAME_SINCE = (2, 7, 0), (2, 0, 0)
+_GENERATOR = re.compile(r"^\s*splat-transform v?(\d+)\.(\d+)\.(\d+)")
+
+
+def sh_attribute(degree: int, n: int) -> str:
+    """The attribute name of SH coefficient n (0..2 degree) of `degree`."""
+    return f"{EXTENSION}:SH_DEGREE_{degree}_COEF_{n}"
+
+
+def is_gltf_name(path) -> bool:
+    name = Path(path).name.lower()
+    return name.endswith(".glb") or name.endswith(".gltf")
+
+
+def looks_like_gltf(path, head: bytes) -> bool:
+    """Whether a file starting with `head` is glTF: a GLB ("glTF" magic), or a JSON object that names
+    glTF's `asset` and no SOG field (`means`), or any JSON object named .gltf."""
+    if head.startswith(GLB_MAGIC):
+        return True
+    text = head.lstrip(b" \t\r\n\xef\xbb\xbf")
+    if text[:1] != b"{":
+        return False
+    if Path(path).name.lower().endswith(".gltf"):
+        return True
+    return b'"asset"' in head and b'"means"' not in head and (b'"accessors"' in head or b'"version"' in head)
+
+
+# ------------------------------------------------------------------------------------ read
+
+@dataclass
+class _Document:
+    """A parsed glTF file: its JSON and checked access to buffers, views and accessors."""
+
+    gltf: dict
+    where: str
+    folder: Path
+    glb_bin: np.ndarray | None
+    buffers: dict[int, np.ndarray] = field(default_factory=dict)
+
+    def fail(self, message: str):
+        raise PlyError(f"{self.where}: {message}")
+
+    def items(self, key: str) -> list:
+        value = self.gltf.get(key, [])
+        if not isinstance(value, list):
+            self.fail(f"'{key}' must be a list")
+        return value
+
+    def item(self, key: str, index, what: str) -> dict:
+        items = self.items(key)
+        if not _is_int(index) or not 0 <= index < len(items) or not isinstance(items[index], dict):
+            self.fail(f"{what} refers to {key}[{json.dumps(index)[:20]}], which the file does not have "
+                      f"({len(items)} {key})")
+        return items[index]
+
+    def number(self, obj: dict, key: str, what: str, default=None, minimum: int = 0) -> int:
+        value = obj.get(key, default)
+        if not _is_int(value) or value < minimum:
+            self.fail(f"{what}.{key} must be an integer >= {minimum}, not {json.dumps(value)[:30]}")
+        return value
+
+    def buffer(self, index: int) -> np.ndarray:
+        if index in self.buffers:
+            return self.buffers[index]
+        buf = self.item("buffers", index, "a buffer view")
+        length = self.number(buf, "byteLength", f"buffers[{index}]", minimum=0)
+        uri = buf.get("uri")
+        if uri is None:
+            if index != 0 or self.glb_bin is None:
+                self.fail(f"buffers[{index}] has no uri and the file has no GLB binary chunk")
+            data = self.glb_bin
+        elif not isinstance(uri, str):
+            self.fail(f"buffers[{index}].uri must be a string")
+        elif uri.startswith("data:"):
+            data = self._data_uri(uri, index)
+        else:
+            data = self._file(uri, index)
+        if len(data) < length:
+            self.fail(f"buffers[{index}] declares {length} bytes; {len(data)} are there (truncated?)")
+        self.buffers[index] = data[:length]
+        return self.buffers[index]
+
+    def _data_uri(self, uri: str, index: int) -> np.ndarray:
+        head, _, payload = uri.partition(",")
+        if not head.endswith(";base64"):
+            self.fail(f"buffers[{index}] is a data URI that is not base64")
+        try:
+            return np.frombuffer(base64.b64decode(payload, validate=True), np.uint8)
+        except (binascii.Error, ValueError) as exc:
+            self.fail(f"buffers[{index}] holds bad base64 data: {exc}")
+
+    def _file(self, uri: str, index: int) -> np.ndarray:
+        if re.match(r"^[A-Za-z][A-Za-z0-9+.-]*:", uri) or uri.startswith(("/", "\\")):
+            self.fail(f"buffers[{index}].uri {uri[:80]!r} is not a relative file name (only files beside "
+                      "the .gltf and data URIs are read)")
+        path = self.folder / unquote(uri)
+        try:
+            return np.fromfile(path, np.uint8)
+        except OSError as exc:
+            self.fail(f"cannot read buffers[{index}] from {path}: {exc.strerror or exc}")
+
+    def view(self, index, what: str) -> tuple[np.ndarray, int | None]:
+        """The bytes of bufferViews[index] and its byteStride (None: tightly packed)."""
+        bv = self.item("bufferViews", index, what)
+        where = f"bufferViews[{index}]"
+        if bv.get("extensions"):
+            self.fail(f"{where} is compressed with {', '.join(bv['extensions'])}, which this reader does not "
+                      "decode")
+        data = self.buffer(self.number(bv, "buffer", where))
+        offset = self.number(bv, "byteOffset", where, default=0)
+        length = self.number(bv, "byteLength", where, minimum=1)
+        if offset + length > len(data):
+            self.fail(f"{where} (bytes {offset}..{offset + length}) runs past the end of its "
+                      f"{len(data)}-byte buffer")
+        stride = bv.get("byteStride")
+        if stride is not None and (not _is_int(stride) or not 4 <= stride <= 252):
+            self.fail(f"{where}.byteStride must be 4..252, not {json.dumps(stride)[:20]}")
+        return data[offset:offset + length], stride
+
+    def accessor(self, index, what: str, widths: tuple[int, ...]) -> np.ndarray:
+        """(count, width) float32 values of accessors[index] as glTF defines them (normalised integers
+        divided, sparse values applied; zeros without a buffer view)."""
+        acc = self.item("accessors", index, what)
+        where = f"accessors[{index}] ({what})"
+        ctype, kind = _hashable(acc.get("componentType")), _hashable(acc.get("type"))
+        if ctype not in _COMPONENTS or kind not in _WIDTHS or _WIDTHS[kind] not in widths:
+            self.fail(f"{where} is {kind} of component type {ctype}; expected "
+                      f"{'/'.join(k for k, w in _WIDTHS.items() if w in widths)} of a glTF component type")
+        dtype, divisor = _COMPONENTS[ctype]
+        width = _WIDTHS[kind]
+        count = self.number(acc, "count", where)
+        normalized = acc.get("normalized", False) is True
+        if normalized and ctype == _FLOAT:
+            self.fail(f"{where} is a normalised float")
+        values = self._dense(acc, where, dtype, width, count)
+        if acc.get("sparse") is not None:
+            values = self._sparse(acc["sparse"], where, dtype, width, count, values)
+        if ctype == _FLOAT:
+            return values
+        out = values.astype(np.float32)
+        if normalized:
+            out /= np.float32(divisor)
+            if dtype.lstrip("<")[0] == "i":
+                np.maximum(out, np.float32(-1.0), out=out)
+        return out
+
+    def _strided(self, view_index, offset: int, dtype: str, width: int, count: int, stride: int | None,
+                 where: str) -> np.ndarray:
+        data, view_stride = self.view(view_index, where)
+        item = np.dtype(dtype).itemsize
+        stride = stride or view_stride or item * width
+        end = offset + stride * (count - 1) + item * width if count else offset
+        if end > len(data):
+            self.fail(f"{where} needs bytes {offset}..{end} of a {len(data)}-byte buffer view (truncated?)")
+        if stride < item * width:
+            self.fail(f"{where}: byteStride {stride} is smaller than an element ({item * width} bytes)")
+        return np.ndarray((count, width), dtype, buffer=data, offset=offset, strides=(stride, item))
+
+    def _dense(self, acc: dict, where: str, dtype: str, width: int, count: int) -> np.ndarray:
+        if acc.get("bufferView") is None:
+            return np.zeros((count, width), dtype)
+        offset = self.number(acc, "byteOffset", where, default=0)
+        return self._strided(acc["bufferView"], offset, dtype, width, count, None, where)
+
+    def _sparse(self, sparse, where: str, dtype: str, width: int, count: int, values: np.ndarray) -> np.ndarray:
+        if not isinstance(sparse, dict) or not isinstance(sparse.get("indices"), dict) \
+                or not isinstance(sparse.get("values"), dict):
+            self.fail(f"{where}.sparse must hold count, indices and values")
+        n = self.number(sparse, "count", f"{where}.sparse", minimum=1)
+        ind, val = sparse["indices"], sparse["values"]
+        itype = {5121: "u1", 5123: "<u2", 5125: "<u4"}.get(_hashable(ind.get("componentType")))
+        if itype is None:
+            self.fail(f"{where}.sparse.indices.componentType must be an unsigned integer type")
+        idx = self._strided(ind.get("bufferView"), self.number(ind, "byteOffset", where, default=0), itype, 1, n,
+                            np.dtype(itype).itemsize, f"{where}.sparse.indices")[:, 0].astype(np.int64)
+        if n and (idx.max() >= count or np.any(np.diff(idx) <= 0)):
+            self.fail(f"{where}.sparse.indices must be strictly increasing and below the count {count}")
+        new = self._strided(val.get("bufferView"), self.number(val, "byteOffset", where, default=0), dtype, width,
+                            n, np.dtype(dtype).itemsize * width, f"{where}.sparse.values")
+        out = np.array(values)
+        out[idx] = new
+        return out
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _hashable(v):
+    """`v` when it can be a dictionary key (JSON numbers and strings), else None."""
+    return v if isinstance(v, (int, float, str)) else None
+
+
+def _list(v) -> list:
+    return v if isinstance(v, list) else []
+
+
+def _dict(v) -> dict:
+    return v if isinstance(v, dict) else {}
+
+
+def _load(path: Path, where: str) -> _Document:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(_GLB_HEADER.size)
+    except OSError as exc:
+        raise PlyError(f"{where}: cannot read: {exc.strerror or exc}") from None
+    if head[:4] == GLB_MAGIC:
+        data = np.fromfile(path, np.uint8)
+        json_bytes, glb_bin = _glb_chunks(data, where)
+    else:
+        size = path.stat().st_size
+        if size > _MAX_JSON_BYTES:
+            raise PlyError(f"{where}: a {size}-byte .gltf; this reader takes JSON up to {_MAX_JSON_BYTES} bytes")
+        json_bytes, glb_bin = path.read_bytes(), None
+    try:
+        gltf = json.loads(bytes(json_bytes).decode("utf-8-sig"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise PlyError(f"{where}: the glTF JSON is not valid: {exc}") from None
+    if not isinstance(gltf, dict) or not isinstance(gltf.get("asset"), dict):
+        raise PlyError(f"{where}: not a glTF file: the JSON has no 'asset' object")
+    version = str(gltf["asset"].get("version", ""))
+    if not version.startswith("2."):
+        raise PlyError(f"{where}: glTF version {version[:10]!r}; this reader knows glTF 2.x")
+    return _Document(gltf, where, path.parent, glb_bin)
+
+
+def _glb_chunks(data: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """The JSON chunk and the BIN chunk (or None) of a GLB file's bytes."""
+    if len(data) < _GLB_HEADER.size + _CHUNK_HEADER.size:
+        raise PlyError(f"{where}: truncated: a GLB file of {len(data)} bytes has no room for its JSON chunk")
+    _, version, length = _GLB_HEADER.unpack_from(data)
+    if version != 2:
+        raise PlyError(f"{where}: GLB container version {version}; this reader knows version 2")
+    if length > len(data):
+        raise PlyError(f"{where}: truncated: the GLB header declares {length} bytes, the file has {len(data)}")
+    pos, chunks = _GLB_HEADER.size, []
+    while pos + _CHUNK_HEADER.size <= length:
+        size, kind = _CHUNK_HEADER.unpack_from(data, pos)
+        pos += _CHUNK_HEADER.size
+        if pos + size > length:
+            raise PlyError(f"{where}: truncated: a GLB chunk of {size} bytes at byte {pos} runs past the end "
+                           f"({length} bytes)")
+        chunks.append((kind, data[pos:pos + size]))
+        pos += size
+    if not chunks or chunks[0][0] != _JSON_CHUNK:
+        raise PlyError(f"{where}: a GLB file whose first chunk is not JSON")
+    bins = [c for kind, c in chunks[1:] if kind == _BIN_CHUNK]
+    return chunks[0][1], (bins[0] if bins else None)
+
+
+def read_gltf(path, *, sanitize: bool = False) -> GaussianCloud:
+    """Read the Gaussian splats of a .glb or .gltf file (KHR_gaussian_splatting, or its SPZ companion)
+    into a numpy GaussianCloud in the 3DGS PLY's frame. Bad or truncated files, and files without
+    splats, raise PlyError naming the file; what else the file holds is named in a warning."""
+    path = Path(path)
+    where = str(path)
+    doc = _load(path, where)
+    placed, notes = _splat_primitives(doc)
+    legacy = _legacy(doc.gltf)
+    clouds = []
+    for mesh_i, prim_i, matrix in placed:
+        what = f"meshes[{mesh_i}].primitives[{prim_i}]"
+        prim = doc.gltf["meshes"][mesh_i]["primitives"][prim_i]
+        cloud, to_gltf, prim_notes = _primitive(doc, prim, what, legacy, sanitize)
+        notes += prim_notes
+        if not np.isfinite(matrix).all():
+            doc.fail(f"{what} is placed by a node transform that is not finite")
+        if abs(np.linalg.det(matrix[:3, :3])) < 1e-30:
+            notes.append(f"{what} is placed by a node transform of scale zero (nothing to draw): left out")
+            continue
+        clouds.append(_to_ply_frame(cloud, matrix, to_gltf, legacy))
+    for note in dict.fromkeys(notes):
+        warnings.warn(f"{where}: {note}", stacklevel=2)
+    cloud = GaussianCloud.concat(clouds) if clouds else GaussianCloud.empty()
+    finite = np.ones(len(cloud), bool)
+    for a in cloud.arrays().values():
+        with np.errstate(invalid="ignore", over="ignore"):
+            total = a.sum()
+        if not np.isfinite(total):
+            finite &= np.isfinite(a.reshape(len(cloud), -1)).all(1)
+    return drop_nonfinite(cloud, finite, where, sanitize, stacklevel=3)
+
+
+def _legacy(gltf: dict) -> tuple[int, int, int] | None:
+    """splat-transform's version when it wrote the file before 2.7.0 (log-scales), else None."""
+    match = _GENERATOR.match(str(gltf["asset"].get("generator", "")))
+    if match:
+        version = tuple(int(v) for v in match.groups())
+        if version < _LINEAR_SCALE_SINCE:
+            return version
+    return None
+
+
+def _node_matrix(doc: _Document, node: dict, where: str) -> np.ndarray:
+    if "matrix" in node:
+        m = node["matrix"]
+        if not isinstance(m, list) or len(m) != 16 or not all(isinstance(v, (int, float)) for v in m):
+            doc.fail(f"{where}.matrix must be 16 numbers")
+        return np.array(m, np.float64).reshape(4, 4).T  # column-major
+    t, r, s = node.get("translation", [0, 0, 0]), node.get("rotation", [0, 0, 0, 1]), node.get("scale", [1, 1, 1])
+    for key, value, size in (("translation", t, 3), ("rotation", r, 4), ("scale", s, 3)):
+        if not isinstance(value, list) or len(value) != size or not all(isinstance(v, (int, float)) for v in value):
+            doc.fail(f"{where}.{key} must be {size} numbers")
+    out = np.eye(4)
+    q = quaternions.normalize(np.array([r[3], r[0], r[1], r[2]], np.float64))
+    out[:3, :3] = quaternions.to_rotmat(q) * np.array(s, np.float64)[None, :]
+    out[:3, 3] = t
+    return out
+
+
+def _is_splat(prim) -> bool:
+    return isinstance(prim, dict) and isinstance(prim.get("extensions"), dict) and EXTENSION in prim["extensions"]
+
+
+def _splat_primitives(doc: _Document) -> tuple[list[tuple[int, int, np.ndarray]], list[str]]:
+    """(mesh, primitive, global matrix) of every splat primitive the default scene places, and notes
+    naming what else the file holds."""
+    gltf, meshes, nodes = doc.gltf, doc.items("meshes"), doc.items("nodes")
+    scenes = doc.items("scenes")
+    if scenes:
+        scene_i = gltf.get("scene", 0)
+        roots = doc.item("scenes", scene_i, "'scene'").get("nodes", [])
+    else:
+        children = {c for n in nodes if isinstance(n, dict) for c in _list(n.get("children")) if _is_int(c)}
+        roots = [i for i in range(len(nodes)) if i not in children]
+    placed, seen_meshes = [], set()
+    stack = [(r, np.eye(4), ()) for r in reversed(roots if isinstance(roots, list) else [])]
+    while stack:
+        index, parent, path = stack.pop()
+        node = doc.item("nodes", index, "a scene")
+        if index in path:
+            doc.fail(f"nodes[{index}] is its own ancestor (a cycle in the node hierarchy)")
+        matrix = parent @ _node_matrix(doc, node, f"nodes[{index}]")
+        mesh_i = node.get("mesh")
+        if mesh_i is not None:
+            mesh = doc.item("meshes", mesh_i, f"nodes[{index}]")
+            seen_meshes.add(mesh_i)
+            splats = [i for i, p in enumerate(_list(mesh.get("primitives"))) if _is_splat(p)]
+            if splats and isinstance(node.get("extensions"), dict) and "EXT_mesh_gpu_instancing" in node["extensions"]:
+                doc.fail(f"nodes[{index}] instances its splats with EXT_mesh_gpu_instancing, which this reader "
+                         "does not expand")
+            placed += [(mesh_i, i, matrix) for i in splats]
+        for child in reversed(_list(node.get("children"))):
+            stack.append((child, matrix, path + (index,)))
+    notes = []
+    if not placed:  # splats that no node of the scene places: read them where their mesh has them
+        placed = [(m, i, np.eye(4)) for m, mesh in enumerate(meshes)
+                  for i, p in enumerate(_list(_dict(mesh).get("primitives"))) if _is_splat(p)]
+        if placed:
+            notes.append(f"{len(placed)} splat primitive(s) that no node of the scene places, read in their "
+                         "mesh's own frame")
+    if not placed:
+        held = _contents(doc, set())
+        raise PlyError(f"{doc.where}: a glTF file without Gaussian splats (no mesh primitive with the "
+                       f"{EXTENSION} extension){'; it holds ' + held if held else ''}; import it with a glTF "
+                       "importer (in Blender: File > Import > glTF 2.0)")
+    other = _contents(doc, {(m, i) for m, i, _ in placed})
+    if other:
+        notes.append("holds more than splats, left unread: " + other)
+    return placed, notes
+
+
+def _contents(doc: _Document, splats: set) -> str:
+    """What the file holds beyond the primitives in `splats`, in words ('' for nothing)."""
+    modes: dict[str, int] = {}
+    for m, mesh in enumerate(doc.items("meshes")):
+        for i, prim in enumerate(_list(_dict(mesh).get("primitives"))):
+            if (m, i) in splats:
+                continue
+            kind = "splat" if _is_splat(prim) else _MODES.get(_hashable(_dict(prim).get("mode", 4)), "unknown mode")
+            modes[kind] = modes.get(kind, 0) + 1
+    parts = []
+    if modes:
+        parts.append(f"{sum(modes.values())} mesh primitive(s) ("
+                     + ", ".join(f"{k} {v}" for k, v in sorted(modes.items())) + ")")
+    for key in ("materials", "textures", "images", "cameras", "skins", "animations"):
+        n = len(_list(doc.gltf.get(key)))
+        if n:
+            parts.append(f"{n} {key[:-1] if n == 1 else key}")
+    lights = _dict(_dict(doc.gltf.get("extensions")).get("KHR_lights_punctual")).get("lights")
+    if _list(lights):
+        parts.append(f"{len(lights)} light(s)")
+    scenes = _list(doc.gltf.get("scenes"))
+    if len(scenes) > 1:
+        parts.append(f"{len(scenes) - 1} other scene(s)")
+    return ", ".join(parts)
+
+
+def _primitive(doc: _Document, prim: dict, what: str, legacy, sanitize: bool):
+    """(cloud in the frame of its data, signs to glTF's frame, notes) of one splat primitive."""
+    if prim.get("mode", 4) != _POINTS:
+        doc.fail(f"{what} has the {EXTENSION} extension but mode {prim.get('mode', 4)}, not POINTS (0)")
+    unknown = [k for k in prim["extensions"] if k not in _KNOWN_PRIMITIVE_EXTENSIONS]
+    if unknown:
+        doc.fail(f"{what} is encoded with {', '.join(unknown)}, which this reader does not decode")
+    ext = prim["extensions"][EXTENSION]
+    if not isinstance(ext, dict):
+        doc.fail(f"{what}: the {EXTENSION} object is not a JSON object")
+    notes = _extension_notes(ext, what)
+    attrs = prim.get("attributes")
+    if not isinstance(attrs, dict):
+        doc.fail(f"{what} has no attributes object")
+    inner = ext.get("extensions") or {}
+    if not isinstance(inner, dict):
+        doc.fail(f"{what}: {EXTENSION}.extensions is not a JSON object")
+    unknown = [k for k in inner if k != SPZ_EXTENSION]
+    if unknown:
+        doc.fail(f"{what} is encoded with {', '.join(unknown)}, which this reader does not decode")
+    if SPZ_EXTENSION in inner:
+        return _spz_primitive(doc, inner[SPZ_EXTENSION], attrs, what, sanitize), SPZ_TO_GLTF, notes
+    cloud, more = _attribute_primitive(doc, attrs, what, legacy, sanitize)
+    return cloud, (1.0, 1.0, 1.0), notes + more
+
+
+def _extension_notes(ext: dict, what: str) -> list[str]:
+    notes = []
+    kernel, space = ext.get("kernel"), ext.get("colorSpace")
+    if kernel != "ellipse":
+        notes.append(f"{what}: kernel {json.dumps(kernel)[:40]}, read as the 'ellipse' kernel (the only one "
+                     "defined)")
+    if space != "srgb_rec709_display":
+        notes.append(f"{what}: colorSpace {json.dumps(space)[:40]}, read as it is; the project draws colours "
+                     "as sRGB-encoded ('srgb_rec709_display')")
+    if ext.get("projection", "perspective") != "perspective":
+        notes.append(f"{what}: projection {json.dumps(ext.get('projection'))[:40]}, drawn as 'perspective'")
+    return notes
+
+
+def _spz_primitive(doc: _Document, spz, attrs: dict, what: str, sanitize: bool) -> GaussianCloud:
+    if not isinstance(spz, dict):
+        doc.fail(f"{what}: {SPZ_EXTENSION} is not a JSON object")
+    data, _ = doc.view(spz.get("bufferView"), f"{what} {SPZ_EXTENSION}")
+    cloud = decode_spz(bytes(data), f"{doc.where} ({what}, {SPZ_EXTENSION})", sanitize=sanitize)
+    position = attrs.get("POSITION")
+    if position is not None:
+        count = doc.item("accessors", position, f"{what} POSITION").get("count")
+        if count != len(cloud):
+            doc.fail(f"{what}: POSITION's accessor counts {count} points; its SPZ data holds {len(cloud)}")
+    return cloud
+
+
+def _attribute_primitive(doc: _Document, attrs: dict, what: str, legacy, sanitize: bool):
+    required = ("POSITION", ROTATION, SCALE, OPACITY, sh_attribute(0, 0))
+    missing = [a for a in required if a not in attrs]
+    if missing:
+        doc.fail(f"{what} lacks the attribute(s) {', '.join(missing)}")
+    degree = 0
+    for band in (1, 2, 3):
+        names = [sh_attribute(band, n) for n in range(2 * band + 1)]
+        have = [n for n in names if n in attrs]
+        if have and (len(have) < len(names) or degree != band - 1):
+            doc.fail(f"{what}: SH degree {band} is incomplete or lower degrees are missing: it lacks "
+                     + ", ".join([sh_attribute(b, n) for b in range(1, band) for n in range(2 * b + 1)
+                                  if sh_attribute(b, n) not in attrs] + [n for n in names if n not in attrs]))
+        if have:
+            degree = band
+    known = set(required) | {sh_attribute(b, n) for b in (1, 2, 3) for n in range(2 * b + 1)} | {"COLOR_0"}
+    notes = [f"{what}: attribute(s) not read: {', '.join(sorted(k for k in attrs if k not in known))}"] \
+        if any(k not in known for k in attrs) else []
+    means = doc.accessor(attrs["POSITION"], f"{what} POSITION", (3,))
+    n = len(means)
+    xyzw = doc.accessor(attrs[ROTATION], f"{what} ROTATION", (4,))
+    linear = doc.accessor(attrs[SCALE], f"{what} SCALE", (3,))
+    alpha = doc.accessor(attrs[OPACITY], f"{what} OPACITY", (1,))[:, 0]
+    dc = doc.accessor(attrs[sh_attribute(0, 0)], f"{what} SH_DEGREE_0_COEF_0", (3,))
+    k = SH_REST_COUNTS[degree]
+    rest = np.empty((n, k, 3), np.float32)
+    for band in range(1, degree + 1):
+        for m in range(2 * band + 1):
+            name = sh_attribute(band, m)
+            values = doc.accessor(attrs[name], f"{what} {name[len(EXTENSION) + 1:]}", (3,))
+            if len(values) != n:
+                doc.fail(f"{what}: {name} has {len(values)} values for {n} points")
+            rest[:, band * band - 1 + m] = values
+    for name, a in (("ROTATION", xyzw), ("SCALE", linear), ("OPACITY", alpha), ("SH_DEGREE_0_COEF_0", dc)):
+        if len(a) != n:
+            doc.fail(f"{what}: {name} has {len(a)} values for {n} points")
+    quats = np.empty((n, 4), np.float32)
+    quats[:, 0], quats[:, 1:] = xyzw[:, 3], xyzw[:, :3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if legacy is not None:
+            notes.append(f"written by splat-transform {'.'.join(map(str, legacy))} (before 2.7.0): SCALE read as "
+                         "log-scales, as it wrote them"
+                         + (", and positions in the PLY's frame (before 2.0)" if legacy < _GLTF_FRAME_SINCE else ""))
+            scales = np.array(linear, np.float32)
+        elif (linear < 0).any():
+            notes.append(f"{what}: negative SCALE values: read as log-scales, as drafts of the extension stored "
+                         "them (the ratified one stores linear scales)")
+            scales = np.array(linear, np.float32)
+        else:
+            scales = np.log(linear.astype(np.float64)).astype(np.float32)
+        p = alpha.astype(np.float64)
+        outside = ~((p >= 0) & (p <= 1))
+        if outside.any():
+            rows = np.flatnonzero(outside)
+            if not sanitize:
+                head = ", ".join(str(i) for i in rows[:5]) + (", ..." if len(rows) > 5 else "")
+                doc.fail(f"{what}: {len(rows)} OPACITY value(s) outside [0, 1] (or NaN), rows [{head}]; read with "
+                         "sanitize=True to drop them")
+            p[outside] = np.nan
+        opacities = np.log(p / (1.0 - p)).astype(np.float32)
+    return GaussianCloud(means=np.array(means, np.float32), scales=scales, quats=quats, opacities=opacities,
+                         sh_dc=np.array(dc, np.float32), sh_rest=rest), notes
+
+
+def _to_ply_frame(cloud: GaussianCloud, matrix: np.ndarray, to_gltf, legacy) -> GaussianCloud:
+    """The cloud of a primitive (in the frame of its data) moved by its node's global matrix into
+    the scene, then from glTF's frame into the PLY's (not for splat-transform's files before 2.0)."""
+    to_ply = (1.0, 1.0, 1.0) if legacy is not None and legacy < _GLTF_FRAME_SINCE else PLY_TO_GLTF
+    if np.array_equal(matrix, np.eye(4)):
+        signs = np.array(to_gltf) * np.array(to_ply)
+        return cloud if np.all(signs == 1) else flip_axes(cloud, signs)
+    full = np.diag([*to_ply, 1.0]) @ matrix @ np.diag([*to_gltf, 1.0])
+    return affine(cloud, full)
+
+
+# ----------------------------------------------------------------------------------- write
+
+def write_gltf(cloud: GaussianCloud, path) -> Path:
+    """Write `cloud` (in a 3DGS PLY's frame) as KHR_gaussian_splatting glTF: a .glb, or with a name
+    ending in .gltf that JSON file and NAME.bin beside it. Atomic (the .bin first). Non-finite rows
+    and an empty cloud are refused (PlyError); extra properties are not stored (a warning says so)."""
+    path = Path(path)
+    where = str(path)
+    c = writable(cloud, "glTF", where)
+    if len(c) == 0:
+        raise PlyError(f"{where}: no Gaussians to write (glTF accessors hold at least one element)")
+    blocks = _encode(c, where)
+    gltf, offsets, total = _document(blocks, len(c))
+    body = _bin_writer(blocks, offsets, total)
+    if path.name.lower().endswith(".gltf"):
+        bin_path = path.with_name(path.name[:-len(".gltf")] + ".bin")
+        gltf["buffers"][0]["uri"] = quote(bin_path.name)
+        atomic_write(bin_path, body)
+        return atomic_write(path, lambda f: f.write(json.dumps(gltf, separators=(",", ":")).encode("utf-8")))
+    text = json.dumps(gltf, separators=(",", ":")).encode("utf-8")
+    text += b" " * (-len(text) % 4)
+    length = _GLB_HEADER.size + 2 * _CHUNK_HEADER.size + len(text) + total
+    if length > _GLB_LIMIT:
+        raise PlyError(f"{where}: {len(c)} Gaussians need {length} bytes; a .glb holds at most 4 GiB: write a "
+                       ".gltf (with its .bin) instead")
+
+    def write_glb(f) -> None:
+        f.write(_GLB_HEADER.pack(GLB_MAGIC, 2, length))
+        f.write(_CHUNK_HEADER.pack(len(text), _JSON_CHUNK) + text)
+        f.write(_CHUNK_HEADER.pack(total, _BIN_CHUNK))
+        body(f)
+
+    return atomic_write(path, write_glb)
+
+
+@dataclass(frozen=True)
+class _Block:
+    """One attribute's data: a C-contiguous little-endian array of (count, width) elements."""
+
+    name: str
+    data: np.ndarray
+    ctype: int
+    kind: str
+    normalized: bool = False
+    bounds: bool = False
+
+
+def _encode(c: GaussianCloud, where: str) -> list[_Block]:
+    """The attribute arrays of a finite numpy cloud, in glTF's frame."""
+    f32 = np.float32
+    signs = np.array(PLY_TO_GLTF, f32)
+    means = c.means * signs
+    q = quaternions.normalize(np.asarray(c.quats, np.float64))
+    xyzw = np.empty((len(c), 4), f32)
+    xyzw[:, :3] = q[:, 1:] * signs
+    xyzw[:, 3] = q[:, 0]
+    with np.errstate(over="ignore"):
+        linear = np.exp(c.scales.astype(np.float64)).astype(f32)
+        alpha = (1.0 / (1.0 + np.exp(-c.opacities.astype(np.float64)))).astype(f32)
+    huge = np.isinf(linear)
+    if huge.any():
+        warnings.warn(f"{where}: {int(huge.sum())} log-scale(s) above {math.log(np.finfo(f32).max):.2f} written as "
+                      "the largest float32", stacklevel=4)
+        linear[huge] = np.finfo(f32).max
+    color = np.empty((len(c), 4), np.uint8)
+    rgb = srgb_to_linear(np.clip(c.sh_dc.astype(np.float64) * SH_C0 + 0.5, 0.0, 1.0))
+    color[:, :3] = np.rint(rgb * 255.0)
+    color[:, 3] = np.rint(alpha * f32(255.0))
+    blocks = [_Block("POSITION", means, _FLOAT, "VEC3", bounds=True), _Block("COLOR_0", color, _UBYTE, "VEC4", True),
+              _Block(ROTATION, xyzw, _FLOAT, "VEC4"), _Block(SCALE, linear, _FLOAT, "VEC3"),
+              _Block(OPACITY, alpha, _FLOAT, "SCALAR"), _Block(sh_attribute(0, 0), c.sh_dc, _FLOAT, "VEC3")]
+    sign = _sh_signs(c.sh_rest.shape[1])
+    for band in range(1, c.sh_degree + 1):
+        for m in range(2 * band + 1):
+            k = band * band - 1 + m
+            blocks.append(_Block(sh_attribute(band, m), c.sh_rest[:, k] * sign[k], _FLOAT, "VEC3"))
+    return blocks
+
+
+def _sh_signs(k: int) -> np.ndarray:
+    """The sign of each SH rest coefficient under the PLY <-> glTF frame change."""
+    if k == 0:
+        return np.zeros(0, np.float32)
+    t = sh_rotation(np.diag(PLY_TO_GLTF), {v: d for d, v in SH_REST_COUNTS.items()}[k])
+    return np.diag(t).astype(np.float32)
+
+
+def _document(blocks: list[_Block], n: int) -> tuple[dict, list[int], int]:
+    """The glTF JSON for `blocks` in one buffer, each block's byte offset, the buffer's length."""
+    views, accessors, attributes, offsets, pos = [], [], {}, [], 0
+    for i, b in enumerate(blocks):
+        offsets.append(pos)
+        size = b.data.nbytes
+        views.append({"buffer": 0, "byteOffset": pos, "byteLength": size, "target": _ARRAY_BUFFER})
+        acc = {"bufferView": i, "componentType": b.ctype, "count": n, "type": b.kind}
+        if b.normalized:
+            acc["normalized"] = True
+        if b.bounds:
+            acc["min"] = [float(v) for v in b.data.min(0)]
+            acc["max"] = [float(v) for v in b.data.max(0)]
+        accessors.append(acc)
+        attributes[b.name] = i
+        pos += size + (-size % 4)
+    gltf = {"asset": {"version": "2.0", "generator": "gvae_core (GaussianVAE for Blender)"},
+            "extensionsUsed": [EXTENSION], "scene": 0, "scenes": [{"nodes": [0]}],
+            "nodes": [{"mesh": 0, "name": "splats"}],
+            "meshes": [{"name": "splats", "primitives": [{
+                "attributes": attributes, "mode": _POINTS,
+                "extensions": {EXTENSION: {"kernel": "ellipse", "colorSpace": "srgb_rec709_display",
+                                           "projection": "perspective", "sortingMethod": "cameraDistance"}}}]}],
+            "buffers": [{"byteLength": pos}], "bufferViews": views, "accessors": accessors}
+    return gltf, offsets, pos
+
+
+def _bin_writer(blocks: list[_Block], offsets: list[int], total: int):
+    def write(f) -> None:
+        pos = 0
+        for b, offset in zip(blocks, offsets):
+            f.write(b"\0" * (offset - pos))
+            data = np.ascontiguousarray(b.data)
+            f.write(memoryview(data).cast("B"))
+            pos = offset + data.nbytes
+        f.write(b"\0" * (total - pos))
+    return write
