@@ -26,7 +26,7 @@ from tests.test_formats import assert_no_leftovers, make_cloud, quiet, sigmoid
 from gvae_core import GaussianCloud, PlyError, read_splat_file, write_ply
 from gvae_core.cli import main
 from gvae_core.conventions import SH_C0, srgb_to_linear
-from gvae_core.formats import detect_format, read_gltf, write_gltf, write_spz
+from gvae_core.formats import detect_format, write_gltf, write_spz
 from gvae_core.formats.gltf import EXTENSION, SPZ_EXTENSION, sh_attribute
 from gvae_core.ply import InfinitiesReadWarning
 from gvae_core.quaternions import normalize, to_rotmat

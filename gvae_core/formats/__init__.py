@@ -3,8 +3,9 @@
 One module per format, each reading into and writing from a `GaussianCloud` and documenting its
 bytes and its quantisation: `splat` (the web viewers' .splat), `spz` (Niantic's .spz),
 `compressed_ply` (SuperSplat's compressed PLY), `sog` (PlayCanvas's SOG: WebP images, with
-`_quantize` for its codebooks and SH palette), `gltf` (Khronos's KHR_gaussian_splatting in .glb/.gltf); `detect` finds a file's format from its content and
-reads or writes any of them. `_codec` holds what they share. Errors are `PlyError`.
+`_quantize` for its codebooks and SH palette), `gltf` (Khronos's KHR_gaussian_splatting in .glb and
+.gltf); `detect` finds a file's format from its content and reads or writes any of them. `_codec`
+holds what they share. Errors are `PlyError`.
 """
 
 from .compressed_ply import read_compressed_ply, write_compressed_ply

@@ -77,11 +77,12 @@ def detect_format(path) -> str:
 
 def read_splat_file(path, *, sanitize: bool = False, webp: WebpCodec | None = None) -> GaussianCloud:
     """Read a 3DGS PLY, a compressed PLY, an .spz, a .splat, a SOG scene (.sog, meta.json or its
-    folder) or the splats of a glTF file (.glb, .gltf) into a numpy GaussianCloud, the format found from the content (`detect_format`), with
-    the SH degree the file has (0 for .splat). Bad or truncated files raise PlyError naming the file
-    and the problem; infinite opacities and -inf log-scales are read as what they mean, other
-    non-finite values raise PlyError too unless `sanitize` drops those rows (`ply.drop_nonfinite`).
-    `webp` decodes a SOG scene's images (default: Pillow's)."""
+    folder) or the splats of a glTF file (.glb, .gltf) into a numpy GaussianCloud, the format found
+    from the content (`detect_format`), with the SH degree the file has (0 for .splat). Bad or
+    truncated files raise PlyError naming the file and the problem; infinite opacities and -inf
+    log-scales are read as what they mean, other non-finite values raise PlyError too unless
+    `sanitize` drops those rows (`ply.drop_nonfinite`). `webp` decodes a SOG scene's images
+    (default: Pillow's)."""
     fmt = detect_format(path)
     if fmt == "sog":
         return read_sog(path, sanitize=sanitize, webp=webp)

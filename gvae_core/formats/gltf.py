@@ -50,8 +50,9 @@ the identity); COLOR_0 as normalised ubyte RGBA, the diffuse colour SH_C0 f_dc +
 -> PLY gives positions, SH and (normalised) rotations back exactly; log-scales within float32
 rounding of exp and ln (|error| <= 2^-24 + half an ulp of the value); opacities within float32
 rounding of the sigmoid and of the logit read back (2^-25 + a quarter of the logit's ulp); logits
-above 17.3 come back as fully opaque (+inf, read as 50) and below -103 as fully transparent. Extra properties are not stored (a warning says so). A
-.glb holds at most 4 GiB (about 17M Gaussians of SH degree 3); a .gltf writes NAME.bin beside it.
+above 17.3 come back as fully opaque (+inf, read as 50) and below -103 as fully transparent.
+Extra properties are not stored (a warning says so). A .glb holds at most 4 GiB (about 17M
+Gaussians of SH degree 3); a .gltf writes NAME.bin beside it.
 """
 
 from __future__ import annotations
