@@ -61,6 +61,7 @@ import base64
 import binascii
 import json
 import math
+import os
 import re
 import struct
 import warnings
@@ -107,6 +108,10 @@ ROTATION, SCALE, OPACITY = (f"{EXTENSION}:{name}" for name in ("ROTATION", "SCAL
 _KNOWN_PRIMITIVE_EXTENSIONS = {EXTENSION}
 #: splat-transform wrote log-scales before this version, and the PLY's frame before 2.0.
 _LINEAR_SCALE_SINCE, _GLTF_FRAME_SINCE = (2, 7, 0), (2, 0, 0)
+#: Rows the writer makes and writes at a time (about 4 MB of attributes at SH degree 3).
+_WRITE_ROWS = 16384
+#: Rows per block of the SH transposes (a block of SH degree 3 is 180 kB; measured best of 512..16384).
+_BLOCK_ROWS = 1024
 _GENERATOR = re.compile(r"^\s*splat-transform v?(\d+)\.(\d+)\.(\d+)")
 
 
@@ -369,18 +374,20 @@ def read_gltf(path, *, sanitize: bool = False) -> GaussianCloud:
     clouds = []
     for mesh_i, prim_i, matrix in placed:
         what = f"meshes[{mesh_i}].primitives[{prim_i}]"
-        prim = doc.gltf["meshes"][mesh_i]["primitives"][prim_i]
-        cloud, to_gltf, prim_notes = _primitive(doc, prim, what, legacy, sanitize)
-        notes += prim_notes
         if not np.isfinite(matrix).all():
             doc.fail(f"{what} is placed by a node transform that is not finite")
         if abs(np.linalg.det(matrix[:3, :3])) < 1e-30:
             notes.append(f"{what} is placed by a node transform of scale zero (nothing to draw): left out")
             continue
-        clouds.append(_to_ply_frame(cloud, matrix, to_gltf, legacy))
+        cloud, prim_notes = _primitive(doc, doc.gltf["meshes"][mesh_i]["primitives"][prim_i], what, legacy,
+                                       sanitize, matrix)
+        notes += prim_notes
+        clouds.append(cloud)
     for note in dict.fromkeys(notes):
         warnings.warn(f"{where}: {note}", stacklevel=2)
-    cloud = GaussianCloud.concat(clouds) if clouds else GaussianCloud.empty()
+    cloud = GaussianCloud.concat(clouds) if len(clouds) != 1 else clouds[0]
+    if not clouds:
+        cloud = GaussianCloud.empty()
     finite = np.ones(len(cloud), bool)
     for a in cloud.arrays().values():
         with np.errstate(invalid="ignore", over="ignore"):
@@ -495,8 +502,11 @@ def _contents(doc: _Document, splats: set) -> str:
     return ", ".join(parts)
 
 
-def _primitive(doc: _Document, prim: dict, what: str, legacy, sanitize: bool):
-    """(cloud in the frame of its data, signs to glTF's frame, notes) of one splat primitive."""
+def _primitive(doc: _Document, prim: dict, what: str, legacy, sanitize: bool, matrix: np.ndarray):
+    """(cloud in the PLY's frame, notes) of one splat primitive placed by the global `matrix`: the
+    data turned into glTF's frame (SPZ: its own frame first), moved by the matrix, turned into the
+    PLY's frame (not for splat-transform's files before 2.0); exact sign flips when the matrix is
+    the identity, done while the data is unpacked."""
     if prim.get("mode", 4) != _POINTS:
         doc.fail(f"{what} has the {EXTENSION} extension but mode {prim.get('mode', 4)}, not POINTS (0)")
     unknown = [k for k in prim["extensions"] if k not in _KNOWN_PRIMITIVE_EXTENSIONS]
@@ -515,10 +525,20 @@ def _primitive(doc: _Document, prim: dict, what: str, legacy, sanitize: bool):
     unknown = [k for k in inner if k != SPZ_EXTENSION]
     if unknown:
         doc.fail(f"{what} is encoded with {', '.join(unknown)}, which this reader does not decode")
+    to_gltf = np.array(SPZ_TO_GLTF if SPZ_EXTENSION in inner else (1.0, 1.0, 1.0))
+    to_ply = np.array((1.0, 1.0, 1.0) if legacy is not None and legacy < _GLTF_FRAME_SINCE else PLY_TO_GLTF)
+    identity = np.array_equal(matrix, np.eye(4))
+    signs = to_gltf * to_ply if identity else np.ones(3)
     if SPZ_EXTENSION in inner:
-        return _spz_primitive(doc, inner[SPZ_EXTENSION], attrs, what, sanitize), SPZ_TO_GLTF, notes
-    cloud, more = _attribute_primitive(doc, attrs, what, legacy, sanitize)
-    return cloud, (1.0, 1.0, 1.0), notes + more
+        cloud = _spz_primitive(doc, inner[SPZ_EXTENSION], attrs, what, sanitize)
+        if not np.all(signs == 1):
+            cloud = flip_axes(cloud, signs)
+    else:
+        cloud, more = _attribute_primitive(doc, attrs, what, legacy, sanitize, signs)
+        notes += more
+    if not identity:
+        cloud = affine(cloud, np.diag([*to_ply, 1.0]) @ matrix @ np.diag([*to_gltf, 1.0]))
+    return cloud, notes
 
 
 def _extension_notes(ext: dict, what: str) -> list[str]:
@@ -548,7 +568,9 @@ def _spz_primitive(doc: _Document, spz, attrs: dict, what: str, sanitize: bool) 
     return cloud
 
 
-def _attribute_primitive(doc: _Document, attrs: dict, what: str, legacy, sanitize: bool):
+def _attribute_primitive(doc: _Document, attrs: dict, what: str, legacy, sanitize: bool, signs: np.ndarray):
+    """(cloud, notes) of a primitive of float or integer attributes, turned by the axis flip `signs`
+    (`transform.flip_axes`, exact) as it is unpacked."""
     required = ("POSITION", ROTATION, SCALE, OPACITY, sh_attribute(0, 0))
     missing = [a for a in required if a not in attrs]
     if missing:
@@ -573,19 +595,20 @@ def _attribute_primitive(doc: _Document, attrs: dict, what: str, legacy, sanitiz
     alpha = doc.accessor(attrs[OPACITY], f"{what} OPACITY", (1,))[:, 0]
     dc = doc.accessor(attrs[sh_attribute(0, 0)], f"{what} SH_DEGREE_0_COEF_0", (3,))
     k = SH_REST_COUNTS[degree]
-    rest = np.empty((n, k, 3), np.float32)
+    coefficients = []
     for band in range(1, degree + 1):
         for m in range(2 * band + 1):
             name = sh_attribute(band, m)
-            values = doc.accessor(attrs[name], f"{what} {name[len(EXTENSION) + 1:]}", (3,))
-            if len(values) != n:
-                doc.fail(f"{what}: {name} has {len(values)} values for {n} points")
-            rest[:, band * band - 1 + m] = values
-    for name, a in (("ROTATION", xyzw), ("SCALE", linear), ("OPACITY", alpha), ("SH_DEGREE_0_COEF_0", dc)):
+            coefficients.append(doc.accessor(attrs[name], f"{what} {name[len(EXTENSION) + 1:]}", (3,)))
+    for name, a in (("ROTATION", xyzw), ("SCALE", linear), ("OPACITY", alpha), ("SH_DEGREE_0_COEF_0", dc),
+                    *((f"SH coefficient {j}", c) for j, c in enumerate(coefficients))):
         if len(a) != n:
             doc.fail(f"{what}: {name} has {len(a)} values for {n} points")
+    s32 = signs.astype(np.float32)
     quats = np.empty((n, 4), np.float32)
-    quats[:, 0], quats[:, 1:] = xyzw[:, 3], xyzw[:, :3]
+    quats[:, 0] = xyzw[:, 3]
+    np.multiply(xyzw[:, :3], s32, out=quats[:, 1:])
+    rest = _gaussian_major(_stacked(coefficients, n), _sh_signs(k, signs))
     with np.errstate(divide="ignore", invalid="ignore"):
         if legacy is not None:
             notes.append(f"written by splat-transform {'.'.join(map(str, legacy))} (before 2.7.0): SCALE read as "
@@ -608,19 +631,8 @@ def _attribute_primitive(doc: _Document, attrs: dict, what: str, legacy, sanitiz
                          "sanitize=True to drop them")
             p[outside] = np.nan
         opacities = np.log(p / (1.0 - p)).astype(np.float32)
-    return GaussianCloud(means=np.array(means, np.float32), scales=scales, quats=quats, opacities=opacities,
+    return GaussianCloud(means=means * s32, scales=scales, quats=quats, opacities=opacities,
                          sh_dc=np.array(dc, np.float32), sh_rest=rest), notes
-
-
-def _to_ply_frame(cloud: GaussianCloud, matrix: np.ndarray, to_gltf, legacy) -> GaussianCloud:
-    """The cloud of a primitive (in the frame of its data) moved by its node's global matrix into
-    the scene, then from glTF's frame into the PLY's (not for splat-transform's files before 2.0)."""
-    to_ply = (1.0, 1.0, 1.0) if legacy is not None and legacy < _GLTF_FRAME_SINCE else PLY_TO_GLTF
-    if np.array_equal(matrix, np.eye(4)):
-        signs = np.array(to_gltf) * np.array(to_ply)
-        return cloud if np.all(signs == 1) else flip_axes(cloud, signs)
-    full = np.diag([*to_ply, 1.0]) @ matrix @ np.diag([*to_gltf, 1.0])
-    return affine(cloud, full)
 
 
 # ----------------------------------------------------------------------------------- write
@@ -628,104 +640,163 @@ def _to_ply_frame(cloud: GaussianCloud, matrix: np.ndarray, to_gltf, legacy) -> 
 def write_gltf(cloud: GaussianCloud, path) -> Path:
     """Write `cloud` (in a 3DGS PLY's frame) as KHR_gaussian_splatting glTF: a .glb, or with a name
     ending in .gltf that JSON file and NAME.bin beside it. Atomic (the .bin first). Non-finite rows
-    and an empty cloud are refused (PlyError); extra properties are not stored (a warning says so)."""
+    and an empty cloud are refused (PlyError); extra properties are not stored (a warning says so).
+    The attributes are made and written in blocks of rows (no copy of the whole cloud is made)."""
     path = Path(path)
     where = str(path)
     c = writable(cloud, "glTF", where)
     if len(c) == 0:
         raise PlyError(f"{where}: no Gaussians to write (glTF accessors hold at least one element)")
-    blocks = _encode(c, where)
-    gltf, offsets, total = _document(blocks, len(c))
-    body = _bin_writer(blocks, offsets, total)
+    layout = _layout(c.sh_degree)
+    gltf, total = _document(layout, c)
+    huge, sh_signs = [], _sh_signs(c.sh_rest.shape[1], PLY_TO_GLTF)
+
+    def write_bin(f, start: int = 0) -> None:
+        f.flush()  # then each block goes to its place in the file straight (os.pwrite)
+        for row in range(0, len(c), _WRITE_ROWS):
+            offset = start
+            for (_, _, kind, _), data in zip(layout, _encode(c, row, row + _WRITE_ROWS, sh_signs, huge)):
+                _pwrite(f.fileno(), np.ascontiguousarray(data), offset + row * data.itemsize * _WIDTHS[kind])
+                offset += len(c) * data.itemsize * _WIDTHS[kind]
+        if sum(huge):
+            warnings.warn(f"{where}: {sum(huge)} log-scale(s) above {math.log(np.finfo(np.float32).max):.2f} "
+                          "written as the largest float32", stacklevel=4)
+
     if path.name.lower().endswith(".gltf"):
         bin_path = path.with_name(path.name[:-len(".gltf")] + ".bin")
         gltf["buffers"][0]["uri"] = quote(bin_path.name)
-        atomic_write(bin_path, body)
+        atomic_write(bin_path, write_bin)
         return atomic_write(path, lambda f: f.write(json.dumps(gltf, separators=(",", ":")).encode("utf-8")))
     text = json.dumps(gltf, separators=(",", ":")).encode("utf-8")
     text += b" " * (-len(text) % 4)
-    length = _GLB_HEADER.size + 2 * _CHUNK_HEADER.size + len(text) + total
-    if length > _GLB_LIMIT:
-        raise PlyError(f"{where}: {len(c)} Gaussians need {length} bytes; a .glb holds at most 4 GiB: write a "
-                       ".gltf (with its .bin) instead")
+    head = _GLB_HEADER.size + 2 * _CHUNK_HEADER.size + len(text)
+    if head + total > _GLB_LIMIT:
+        raise PlyError(f"{where}: {len(c)} Gaussians need {head + total} bytes; a .glb holds at most 4 GiB: write "
+                       "a .gltf (with its .bin) instead")
 
     def write_glb(f) -> None:
-        f.write(_GLB_HEADER.pack(GLB_MAGIC, 2, length))
+        f.write(_GLB_HEADER.pack(GLB_MAGIC, 2, head + total))
         f.write(_CHUNK_HEADER.pack(len(text), _JSON_CHUNK) + text)
         f.write(_CHUNK_HEADER.pack(total, _BIN_CHUNK))
-        body(f)
+        write_bin(f, head)
 
     return atomic_write(path, write_glb)
 
 
-@dataclass(frozen=True)
-class _Block:
-    """One attribute's data: a C-contiguous little-endian array of (count, width) elements."""
-
-    name: str
-    data: np.ndarray
-    ctype: int
-    kind: str
-    normalized: bool = False
-    bounds: bool = False
+def _pwrite(fd: int, data: np.ndarray, offset: int) -> None:
+    view = memoryview(data).cast("B")
+    while len(view):
+        done = os.pwrite(fd, view, offset)
+        view, offset = view[done:], offset + done
 
 
-def _encode(c: GaussianCloud, where: str) -> list[_Block]:
-    """The attribute arrays of a finite numpy cloud, in glTF's frame."""
+def _layout(degree: int) -> list[tuple[str, int, str, bool]]:
+    """(attribute, component type, accessor type, normalised) of what the writer writes, in file order."""
+    out = [("POSITION", _FLOAT, "VEC3", False), ("COLOR_0", _UBYTE, "VEC4", True), (ROTATION, _FLOAT, "VEC4", False),
+           (SCALE, _FLOAT, "VEC3", False), (OPACITY, _FLOAT, "SCALAR", False),
+           (sh_attribute(0, 0), _FLOAT, "VEC3", False)]
+    return out + [(sh_attribute(b, m), _FLOAT, "VEC3", False) for b in range(1, degree + 1) for m in range(2 * b + 1)]
+
+
+def _encode(c: GaussianCloud, start: int, stop: int, sh_signs: np.ndarray, huge: list[int]) -> list[np.ndarray]:
+    """The attribute arrays (`_layout`'s order) of rows start:stop of a finite numpy cloud, in glTF's
+    frame (`sh_signs`: of each SH rest coefficient); the number of log-scales too large for float32
+    is appended to `huge`."""
     f32 = np.float32
     signs = np.array(PLY_TO_GLTF, f32)
-    means = c.means * signs
-    q = quaternions.normalize(np.asarray(c.quats, np.float64))
-    xyzw = np.empty((len(c), 4), f32)
-    xyzw[:, :3] = q[:, 1:] * signs
-    xyzw[:, 3] = q[:, 0]
+    means = c.means[start:stop] * signs
+    q = c.quats[start:stop]
+    norm = np.sqrt(np.einsum("ij,ij->i", q, q, dtype=np.float64))
+    good = norm > 1e-12  # (a zero quaternion: the identity)
+    inverse = np.divide(1.0, norm, out=np.zeros_like(norm), where=good)[:, None]
+    xyzw = np.empty((len(q), 4), f32)
+    np.multiply(q[:, 1:], inverse * signs, out=xyzw[:, :3], casting="same_kind")
+    np.multiply(q[:, 0], inverse[:, 0], out=xyzw[:, 3], casting="same_kind")
+    xyzw[~good, 3] = 1.0
     with np.errstate(over="ignore"):
-        linear = np.exp(c.scales.astype(np.float64)).astype(f32)
-        alpha = (1.0 / (1.0 + np.exp(-c.opacities.astype(np.float64)))).astype(f32)
-    huge = np.isinf(linear)
-    if huge.any():
-        warnings.warn(f"{where}: {int(huge.sum())} log-scale(s) above {math.log(np.finfo(f32).max):.2f} written as "
-                      "the largest float32", stacklevel=4)
-        linear[huge] = np.finfo(f32).max
-    color = np.empty((len(c), 4), np.uint8)
-    rgb = srgb_to_linear(np.clip(c.sh_dc.astype(np.float64) * SH_C0 + 0.5, 0.0, 1.0))
-    color[:, :3] = np.rint(rgb * 255.0)
+        linear = np.exp(c.scales[start:stop].astype(np.float64)).astype(f32)
+        alpha = (1.0 / (1.0 + np.exp(-c.opacities[start:stop].astype(np.float64)))).astype(f32)
+    inf = np.isinf(linear)
+    huge.append(int(inf.sum()))
+    linear[inf] = np.finfo(f32).max
+    dc = c.sh_dc[start:stop]
+    color = np.empty((len(dc), 4), np.uint8)
+    diffuse = np.clip(dc * f32(SH_C0) + f32(0.5), f32(0.0), f32(1.0))
+    color[:, :3] = np.rint(srgb_to_linear(diffuse, np.float32) * f32(255.0))
     color[:, 3] = np.rint(alpha * f32(255.0))
-    blocks = [_Block("POSITION", means, _FLOAT, "VEC3", bounds=True), _Block("COLOR_0", color, _UBYTE, "VEC4", True),
-              _Block(ROTATION, xyzw, _FLOAT, "VEC4"), _Block(SCALE, linear, _FLOAT, "VEC3"),
-              _Block(OPACITY, alpha, _FLOAT, "SCALAR"), _Block(sh_attribute(0, 0), c.sh_dc, _FLOAT, "VEC3")]
-    sign = _sh_signs(c.sh_rest.shape[1])
-    for band in range(1, c.sh_degree + 1):
-        for m in range(2 * band + 1):
-            k = band * band - 1 + m
-            blocks.append(_Block(sh_attribute(band, m), c.sh_rest[:, k] * sign[k], _FLOAT, "VEC3"))
-    return blocks
+    return [means, color, xyzw, linear, alpha, dc, *_coefficient_major(c.sh_rest[start:stop], sh_signs)]
 
 
-def _sh_signs(k: int) -> np.ndarray:
-    """The sign of each SH rest coefficient under the PLY <-> glTF frame change."""
+def _sh_signs(k: int, signs) -> np.ndarray:
+    """The sign of each of k SH rest coefficients under the axis flip `signs` (float32)."""
     if k == 0:
         return np.zeros(0, np.float32)
-    t = sh_rotation(np.diag(PLY_TO_GLTF), {v: d for d, v in SH_REST_COUNTS.items()}[k])
-    return np.diag(t).astype(np.float32)
+    return np.diag(sh_rotation(np.diag(signs), {v: d for d, v in SH_REST_COUNTS.items()}[k])).astype(np.float32)
 
 
-def _document(blocks: list[_Block], n: int) -> tuple[dict, list[int], int]:
-    """The glTF JSON for `blocks` in one buffer, each block's byte offset, the buffer's length."""
-    views, accessors, attributes, offsets, pos = [], [], {}, [], 0
-    for i, b in enumerate(blocks):
-        offsets.append(pos)
-        size = b.data.nbytes
+def _stacked(coefficients: list[np.ndarray], n: int) -> np.ndarray:
+    """The (k, n, 3) float32 array of k coefficient arrays (n, 3): a view when they lie one after
+    the other at one spacing in one buffer (as this writer and splat-transform lay them out, tightly
+    packed), else a copy."""
+    k = len(coefficients)
+    if k == 0:
+        return np.zeros((0, n, 3), np.float32)
+    first = coefficients[0]
+    tight = all(c.dtype == np.float32 and c.strides == (12, 4) and c.base is not None for c in coefficients)
+    if tight and n:
+        starts = [c.__array_interface__["data"][0] for c in coefficients]
+        step = starts[1] - starts[0] if k > 1 else 12 * n
+        if step >= 12 * n and all(b - a == step for a, b in zip(starts, starts[1:])):
+            # every coefficient's bytes were checked to lie in its buffer view: the view reads only those
+            return np.lib.stride_tricks.as_strided(first, (k, n, 3), (step, 12, 4), writeable=False)
+    return np.stack(coefficients)
+
+
+def _gaussian_major(coefficients: np.ndarray, sign: np.ndarray) -> np.ndarray:
+    """(n, k, 3) sh_rest of (k, n, 3) coefficients, each multiplied by its sign, transposed in blocks
+    of rows that stay in cache, one colour channel at a time (numpy's inner loop then runs along k)."""
+    k, n = coefficients.shape[:2]
+    out = np.empty((n, k, 3), np.float32)
+    for start in range(0, n, _BLOCK_ROWS):
+        stop = start + _BLOCK_ROWS
+        for ch in range(3):
+            np.multiply(coefficients[:, start:stop, ch].T, sign, out=out[start:stop, :, ch])
+    return out
+
+
+def _coefficient_major(sh_rest: np.ndarray, sign: np.ndarray) -> np.ndarray:
+    """The inverse of `_gaussian_major`: (k, n, 3) of (n, k, 3), each coefficient times its sign
+    (copied in blocks, then the negative ones flipped in place: 20% faster than multiplying)."""
+    n, k = sh_rest.shape[:2]
+    out = np.empty((k, n, 3), np.float32)
+    for start in range(0, n, _BLOCK_ROWS):
+        stop = start + _BLOCK_ROWS
+        for ch in range(3):
+            out[:, start:stop, ch] = sh_rest[start:stop, :, ch].T
+    for j in np.flatnonzero(sign < 0):
+        np.negative(out[j], out=out[j])
+    return out
+
+
+def _document(layout: list, c: GaussianCloud) -> tuple[dict, int]:
+    """The glTF JSON of the attributes of `layout` for cloud `c`, one tightly packed buffer view
+    each in one buffer, and the buffer's length."""
+    views, accessors, attributes, pos, n = [], [], {}, 0, len(c)
+    for i, (name, ctype, kind, normalized) in enumerate(layout):
+        size = n * _WIDTHS[kind] * np.dtype(_COMPONENTS[ctype][0]).itemsize  # a multiple of 4: no padding
         views.append({"buffer": 0, "byteOffset": pos, "byteLength": size, "target": _ARRAY_BUFFER})
-        acc = {"bufferView": i, "componentType": b.ctype, "count": n, "type": b.kind}
-        if b.normalized:
+        acc = {"bufferView": i, "componentType": ctype, "count": n, "type": kind}
+        if normalized:
             acc["normalized"] = True
-        if b.bounds:
-            acc["min"] = [float(v) for v in b.data.min(0)]
-            acc["max"] = [float(v) for v in b.data.max(0)]
+        if name == "POSITION":  # the bounds of the positions as the file holds them (glTF's frame)
+            lo = [c.means[:, i].min() for i in range(3)]  # (column by column: 40x faster than min(0))
+            hi = [c.means[:, i].max() for i in range(3)]
+            flip = np.array(PLY_TO_GLTF) < 0
+            acc["min"] = [float(-h if f else v) for v, h, f in zip(lo, hi, flip)]
+            acc["max"] = [float(-v if f else h) for v, h, f in zip(lo, hi, flip)]
         accessors.append(acc)
-        attributes[b.name] = i
-        pos += size + (-size % 4)
+        attributes[name] = i
+        pos += size
     gltf = {"asset": {"version": "2.0", "generator": "gvae_core (GaussianVAE for Blender)"},
             "extensionsUsed": [EXTENSION], "scene": 0, "scenes": [{"nodes": [0]}],
             "nodes": [{"mesh": 0, "name": "splats"}],
@@ -734,16 +805,4 @@ def _document(blocks: list[_Block], n: int) -> tuple[dict, list[int], int]:
                 "extensions": {EXTENSION: {"kernel": "ellipse", "colorSpace": "srgb_rec709_display",
                                            "projection": "perspective", "sortingMethod": "cameraDistance"}}}]}],
             "buffers": [{"byteLength": pos}], "bufferViews": views, "accessors": accessors}
-    return gltf, offsets, pos
-
-
-def _bin_writer(blocks: list[_Block], offsets: list[int], total: int):
-    def write(f) -> None:
-        pos = 0
-        for b, offset in zip(blocks, offsets):
-            f.write(b"\0" * (offset - pos))
-            data = np.ascontiguousarray(b.data)
-            f.write(memoryview(data).cast("B"))
-            pos = offset + data.nbytes
-        f.write(b"\0" * (total - pos))
-    return write
+    return gltf, pos
