@@ -13,6 +13,7 @@ import base64
 import json
 import math
 import struct
+import types
 import warnings
 
 import numpy as np
@@ -27,7 +28,7 @@ from gvae_core import GaussianCloud, PlyError, read_splat_file, write_ply
 from gvae_core.cli import main
 from gvae_core.conventions import SH_C0, srgb_to_linear
 from gvae_core.formats import detect_format, write_gltf, write_spz
-from gvae_core.formats.gltf import EXTENSION, SPZ_EXTENSION, sh_attribute
+from gvae_core.formats.gltf import EXTENSION, SPZ_EXTENSION, has_splats, sh_attribute
 from gvae_core.ply import InfinitiesReadWarning
 from gvae_core.quaternions import normalize, to_rotmat
 from gvae_core.rendering.sh import sh_to_rgb
@@ -287,6 +288,7 @@ def test_what_else_the_file_holds_is_named_and_left_alone(tmp_path, capsys):
     b.doc["cameras"] = [{"type": "perspective", "perspective": {"yfov": 1, "znear": 0.1}}]
     b.doc["meshes"][0]["primitives"][0]["attributes"]["_TEMPERATURE"] = tri + 0  # (any accessor: not read)
     path = b.glb(tmp_path / "mixed.glb")
+    assert has_splats(path)
     with pytest.warns(UserWarning) as record:
         back = read_splat_file(path)
     said = " | ".join(str(w.message) for w in record)
@@ -300,6 +302,7 @@ def test_what_else_the_file_holds_is_named_and_left_alone(tmp_path, capsys):
     with pytest.raises(PlyError, match="a glTF file without Gaussian splats .* it holds 2 mesh primitive.s. "
                        r"\(POINTS 1, TRIANGLES 1\), 1 material, 1 camera; import it with a glTF importer"):
         read_splat_file(b.glb(tmp_path / "plain.glb"))
+    assert not has_splats(tmp_path / "plain.glb") and not has_splats(b.gltf(tmp_path / "plain.gltf"))
 
 
 def test_bad_files_raise_ply_error_naming_the_file(tmp_path):
@@ -497,3 +500,23 @@ def test_degenerate_gaussians_survive_every_path(tmp_path):
     for c in (back, moved):
         assert all(np.isfinite(a).all() for a in c.arrays().values())
     assert back.opacities[3] == 50 and back.opacities[4] < -30
+
+
+def test_cli_refine_and_compact_take_and_give_gltf(tmp_path, capsys, monkeypatch):
+    """`gvae refine` (the refinement stubbed: test_refine covers it) and `gvae compact` read a .glb and
+    write .glb / .gltf through read_splat_file / write_splat_file."""
+    cloud = make_cloud(n=120, degree=1, seed=6)
+    src = write_gltf(cloud, tmp_path / "in.glb")
+    seen = []
+
+    def fake_refine(c, **kwargs):
+        seen.append(c)
+        return types.SimpleNamespace(cloud=c, summary=lambda: "refined (stub)")
+
+    monkeypatch.setattr("gvae_core.refinement.refine", fake_refine)
+    assert main(["refine", str(src), str(tmp_path / "out.gltf"), "--budget", "all"]) == 0
+    capsys.readouterr()
+    np.testing.assert_array_equal(seen[0].means, read_splat_file(src).means)
+    np.testing.assert_array_equal(read_splat_file(tmp_path / "out.gltf").means, cloud.means)
+    assert main(["compact", str(src), str(tmp_path / "small.glb"), "--keep", "50%", "--resolution", "24"]) == 0
+    assert "120 -> 60" in capsys.readouterr().out and len(read_splat_file(tmp_path / "small.glb")) == 60

@@ -80,7 +80,7 @@ from ..transform import affine, flip_axes, sh_rotation
 from ._codec import writable
 from .spz import decode_spz
 
-__all__ = ["read_gltf", "write_gltf", "is_gltf_name", "looks_like_gltf", "EXTENSION", "SPZ_EXTENSION",
+__all__ = ["read_gltf", "write_gltf", "has_splats", "is_gltf_name", "looks_like_gltf", "EXTENSION", "SPZ_EXTENSION",
            "PLY_TO_GLTF"]
 
 EXTENSION = "KHR_gaussian_splatting"
@@ -312,13 +312,23 @@ def _dict(v) -> dict:
     return v if isinstance(v, dict) else {}
 
 
-def _load(path: Path, where: str) -> _Document:
+def has_splats(path) -> bool:
+    """Whether a glTF file (.glb or .gltf) has a mesh primitive with KHR_gaussian_splatting; reads
+    only its JSON (a GLB's first chunk). PlyError for a file that is not readable glTF."""
+    path = Path(path)
+    doc = _load(path, str(path), json_only=True)
+    return any(_is_splat(p) for mesh in doc.items("meshes") for p in _list(_dict(mesh).get("primitives")))
+
+
+def _load(path: Path, where: str, *, json_only: bool = False) -> _Document:
     try:
         with open(path, "rb") as f:
             head = f.read(_GLB_HEADER.size)
     except OSError as exc:
         raise PlyError(f"{where}: cannot read: {exc.strerror or exc}") from None
-    if head[:4] == GLB_MAGIC:
+    if head[:4] == GLB_MAGIC and json_only:
+        json_bytes, glb_bin = _glb_json(path, where), None
+    elif head[:4] == GLB_MAGIC:
         data = np.fromfile(path, np.uint8)
         json_bytes, glb_bin = _glb_chunks(data, where)
     else:
@@ -336,6 +346,24 @@ def _load(path: Path, where: str) -> _Document:
     if not version.startswith("2."):
         raise PlyError(f"{where}: glTF version {version[:10]!r}; this reader knows glTF 2.x")
     return _Document(gltf, where, path.parent, glb_bin)
+
+
+def _glb_json(path: Path, where: str) -> bytes:
+    """The JSON chunk of a GLB file, read alone."""
+    with open(path, "rb") as f:
+        head = f.read(_GLB_HEADER.size + _CHUNK_HEADER.size)
+        if len(head) < _GLB_HEADER.size + _CHUNK_HEADER.size:
+            raise PlyError(f"{where}: truncated: a GLB file of {len(head)} bytes has no room for its JSON chunk")
+        _, version, _ = _GLB_HEADER.unpack_from(head)
+        size, kind = _CHUNK_HEADER.unpack_from(head, _GLB_HEADER.size)
+        if version != 2 or kind != _JSON_CHUNK:
+            raise PlyError(f"{where}: not a GLB version 2 file whose first chunk is JSON")
+        if size > _MAX_JSON_BYTES:
+            raise PlyError(f"{where}: a {size}-byte JSON chunk; this reader takes JSON up to {_MAX_JSON_BYTES} bytes")
+        data = f.read(size)
+    if len(data) < size:
+        raise PlyError(f"{where}: truncated inside the GLB JSON chunk")
+    return data
 
 
 def _glb_chunks(data: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray | None]:
