@@ -141,17 +141,35 @@ def looks_like_gltf(path, head: bytes) -> bool:
 # ------------------------------------------------------------------------------------ read
 
 @dataclass
+class _Source:
+    """Where a buffer's bytes are: `length` bytes from byte `start` of the file `path`, or in `data`
+    (a data URI's). Read on demand, into fresh arrays, so that a reader never holds the whole file."""
+
+    length: int
+    path: Path | None = None
+    start: int = 0
+    data: np.ndarray | None = None
+
+
+@dataclass
 class _Document:
-    """A parsed glTF file: its JSON and checked access to buffers, views and accessors."""
+    """A parsed glTF file: its JSON and checked access to buffers, views and accessors (closed by
+    `close`: the files it read from)."""
 
     gltf: dict
     where: str
     folder: Path
-    glb_bin: np.ndarray | None
-    buffers: dict[int, np.ndarray] = field(default_factory=dict)
+    glb_bin: _Source | None
+    buffers: dict[int, _Source] = field(default_factory=dict)
+    files: dict[Path, object] = field(default_factory=dict)
 
     def fail(self, message: str):
         raise PlyError(f"{self.where}: {message}")
+
+    def close(self) -> None:
+        for f in self.files.values():
+            f.close()
+        self.files.clear()
 
     def items(self, key: str) -> list:
         value = self.gltf.get(key, [])
@@ -172,7 +190,22 @@ class _Document:
             self.fail(f"{what}.{key} must be an integer >= {minimum}, not {json.dumps(value)[:30]}")
         return value
 
-    def buffer(self, index: int) -> np.ndarray:
+    def read(self, source: _Source, offset: int, nbytes: int, out: np.ndarray | None = None) -> np.ndarray:
+        """`nbytes` bytes from `offset` of a buffer (checked to lie in it), into `out` (uint8) or a new
+        array."""
+        out = np.empty(nbytes, np.uint8) if out is None else out
+        if source.data is not None:
+            out[:] = source.data[offset:offset + nbytes]
+            return out
+        f = self.files.get(source.path)
+        if f is None:
+            f = self.files[source.path] = open(source.path, "rb")  # noqa: SIM115 - closed by close()
+        f.seek(source.start + offset)
+        if f.readinto(out) != nbytes:
+            self.fail(f"truncated while reading {source.path.name} (did the file change?)")
+        return out
+
+    def buffer(self, index) -> _Source:
         if index in self.buffers:
             return self.buffers[index]
         buf = self.item("buffers", index, "a buffer view")
@@ -181,101 +214,118 @@ class _Document:
         if uri is None:
             if index != 0 or self.glb_bin is None:
                 self.fail(f"buffers[{index}] has no uri and the file has no GLB binary chunk")
-            data = self.glb_bin
+            source = self.glb_bin
         elif not isinstance(uri, str):
             self.fail(f"buffers[{index}].uri must be a string")
         elif uri.startswith("data:"):
-            data = self._data_uri(uri, index)
+            source = self._data_uri(uri, index)
         else:
-            data = self._file(uri, index)
-        if len(data) < length:
-            self.fail(f"buffers[{index}] declares {length} bytes; {len(data)} are there (truncated?)")
-        self.buffers[index] = data[:length]
+            source = self._file(uri, index)
+        if source.length < length:
+            self.fail(f"buffers[{index}] declares {length} bytes; {source.length} are there (truncated?)")
+        self.buffers[index] = _Source(length, source.path, source.start, source.data)
         return self.buffers[index]
 
-    def _data_uri(self, uri: str, index: int) -> np.ndarray:
+    def _data_uri(self, uri: str, index: int) -> _Source:
         head, _, payload = uri.partition(",")
         if not head.endswith(";base64"):
             self.fail(f"buffers[{index}] is a data URI that is not base64")
         try:
-            return np.frombuffer(base64.b64decode(payload, validate=True), np.uint8)
+            data = np.frombuffer(base64.b64decode(payload, validate=True), np.uint8)
         except (binascii.Error, ValueError) as exc:
             self.fail(f"buffers[{index}] holds bad base64 data: {exc}")
+        return _Source(len(data), data=data)
 
-    def _file(self, uri: str, index: int) -> np.ndarray:
+    def _file(self, uri: str, index: int) -> _Source:
         if re.match(r"^[A-Za-z][A-Za-z0-9+.-]*:", uri) or uri.startswith(("/", "\\")):
             self.fail(f"buffers[{index}].uri {uri[:80]!r} is not a relative file name (only files beside "
                       "the .gltf and data URIs are read)")
         path = self.folder / unquote(uri)
         try:
-            return np.fromfile(path, np.uint8)
+            return _Source(path.stat().st_size, path=path)
         except OSError as exc:
             self.fail(f"cannot read buffers[{index}] from {path}: {exc.strerror or exc}")
 
-    def view(self, index, what: str) -> tuple[np.ndarray, int | None]:
-        """The bytes of bufferViews[index] and its byteStride (None: tightly packed)."""
+    def view(self, index, what: str) -> tuple[_Source, int, int, int | None]:
+        """bufferViews[index]: its buffer, byte offset in it, length and byteStride (None: tight)."""
         bv = self.item("bufferViews", index, what)
         where = f"bufferViews[{index}]"
         if bv.get("extensions"):
             self.fail(f"{where} is compressed with {', '.join(bv['extensions'])}, which this reader does not "
                       "decode")
-        data = self.buffer(self.number(bv, "buffer", where))
+        source = self.buffer(self.number(bv, "buffer", where))
         offset = self.number(bv, "byteOffset", where, default=0)
         length = self.number(bv, "byteLength", where, minimum=1)
-        if offset + length > len(data):
+        if offset + length > source.length:
             self.fail(f"{where} (bytes {offset}..{offset + length}) runs past the end of its "
-                      f"{len(data)}-byte buffer")
+                      f"{source.length}-byte buffer")
         stride = bv.get("byteStride")
         if stride is not None and (not _is_int(stride) or not 4 <= stride <= 252):
             self.fail(f"{where}.byteStride must be 4..252, not {json.dumps(stride)[:20]}")
-        return data[offset:offset + length], stride
+        return source, offset, length, stride
 
-    def accessor(self, index, what: str, widths: tuple[int, ...]) -> np.ndarray:
-        """(count, width) float32 values of accessors[index] as glTF defines them (normalised integers
-        divided, sparse values applied; zeros without a buffer view)."""
+    def locate(self, index, what: str, widths: tuple[int, ...]) -> _Located:
+        """Where accessors[index]'s elements are and what they are, checked (nothing read yet)."""
         acc = self.item("accessors", index, what)
         where = f"accessors[{index}] ({what})"
         ctype, kind = _hashable(acc.get("componentType")), _hashable(acc.get("type"))
         if ctype not in _COMPONENTS or kind not in _WIDTHS or _WIDTHS[kind] not in widths:
             self.fail(f"{where} is {kind} of component type {ctype}; expected "
                       f"{'/'.join(k for k, w in _WIDTHS.items() if w in widths)} of a glTF component type")
-        dtype, divisor = _COMPONENTS[ctype]
-        width = _WIDTHS[kind]
         count = self.number(acc, "count", where)
         normalized = acc.get("normalized", False) is True
         if normalized and ctype == _FLOAT:
             self.fail(f"{where} is a normalised float")
-        values = self._dense(acc, where, dtype, width, count)
-        if acc.get("sparse") is not None:
-            values = self._sparse(acc["sparse"], where, dtype, width, count, values)
-        if ctype == _FLOAT:
-            return values
-        out = values.astype(np.float32)
-        if normalized:
-            out /= np.float32(divisor)
-            if dtype.lstrip("<")[0] == "i":
-                np.maximum(out, np.float32(-1.0), out=out)
-        return out
+        dtype, width = _COMPONENTS[ctype][0], _WIDTHS[kind]
+        span = None
+        if acc.get("bufferView") is not None:
+            span = self._span(acc["bufferView"], self.number(acc, "byteOffset", where, default=0), dtype, width,
+                              count, None, where)
+        return _Located(where, ctype, dtype, width, count, normalized, span, acc.get("sparse"))
 
-    def _strided(self, view_index, offset: int, dtype: str, width: int, count: int, stride: int | None,
-                 where: str) -> np.ndarray:
-        data, view_stride = self.view(view_index, where)
+    def _span(self, view_index, offset: int, dtype: str, width: int, count: int, stride: int | None,
+              where: str) -> tuple[_Source, int, int]:
+        """(buffer, byte offset in it, stride) of `count` elements from `offset` of a buffer view, checked."""
+        source, view_offset, view_length, view_stride = self.view(view_index, where)
         item = np.dtype(dtype).itemsize
         stride = stride or view_stride or item * width
         end = offset + stride * (count - 1) + item * width if count else offset
-        if end > len(data):
-            self.fail(f"{where} needs bytes {offset}..{end} of a {len(data)}-byte buffer view (truncated?)")
+        if end > view_length:
+            self.fail(f"{where} needs bytes {offset}..{end} of a {view_length}-byte buffer view (truncated?)")
         if stride < item * width:
             self.fail(f"{where}: byteStride {stride} is smaller than an element ({item * width} bytes)")
-        return np.ndarray((count, width), dtype, buffer=data, offset=offset, strides=(stride, item))
+        return source, view_offset + offset, stride
 
-    def _dense(self, acc: dict, where: str, dtype: str, width: int, count: int) -> np.ndarray:
-        if acc.get("bufferView") is None:
-            return np.zeros((count, width), dtype)
-        offset = self.number(acc, "byteOffset", where, default=0)
-        return self._strided(acc["bufferView"], offset, dtype, width, count, None, where)
+    def elements(self, span, dtype: str, width: int, count: int) -> np.ndarray:
+        """(count, width) elements of `dtype` at `span`, in a new array."""
+        source, offset, stride = span
+        item = np.dtype(dtype).itemsize
+        if stride == item * width:
+            return self.read(source, offset, count * stride).view(dtype).reshape(count, width)
+        raw = self.read(source, offset, stride * (count - 1) + item * width if count else 0)
+        return np.ndarray((count, width), dtype, buffer=raw, strides=(stride, item)).copy()
 
-    def _sparse(self, sparse, where: str, dtype: str, width: int, count: int, values: np.ndarray) -> np.ndarray:
+    def accessor(self, index, what: str, widths: tuple[int, ...]) -> np.ndarray:
+        """(count, width) float32 values of accessors[index] as glTF defines them (normalised integers
+        divided, sparse values applied; zeros without a buffer view), in a new array."""
+        loc = self.locate(index, what, widths)
+        if loc.span is None:
+            values = np.zeros((loc.count, loc.width), loc.dtype)
+        else:
+            values = self.elements(loc.span, loc.dtype, loc.width, loc.count)
+        if loc.sparse is not None:
+            values = self._sparse(loc, values)
+        if loc.ctype == _FLOAT:
+            return values
+        out = values.astype(np.float32)
+        if loc.normalized:
+            out /= np.float32(_COMPONENTS[loc.ctype][1])
+            if loc.dtype.lstrip("<")[0] == "i":
+                np.maximum(out, np.float32(-1.0), out=out)
+        return out
+
+    def _sparse(self, loc: _Located, values: np.ndarray) -> np.ndarray:
+        sparse, where = loc.sparse, loc.where
         if not isinstance(sparse, dict) or not isinstance(sparse.get("indices"), dict) \
                 or not isinstance(sparse.get("values"), dict):
             self.fail(f"{where}.sparse must hold count, indices and values")
@@ -284,15 +334,30 @@ class _Document:
         itype = {5121: "u1", 5123: "<u2", 5125: "<u4"}.get(_hashable(ind.get("componentType")))
         if itype is None:
             self.fail(f"{where}.sparse.indices.componentType must be an unsigned integer type")
-        idx = self._strided(ind.get("bufferView"), self.number(ind, "byteOffset", where, default=0), itype, 1, n,
-                            np.dtype(itype).itemsize, f"{where}.sparse.indices")[:, 0].astype(np.int64)
-        if n and (idx.max() >= count or np.any(np.diff(idx) <= 0)):
-            self.fail(f"{where}.sparse.indices must be strictly increasing and below the count {count}")
-        new = self._strided(val.get("bufferView"), self.number(val, "byteOffset", where, default=0), dtype, width,
-                            n, np.dtype(dtype).itemsize * width, f"{where}.sparse.values")
-        out = np.array(values)
-        out[idx] = new
-        return out
+        span = self._span(ind.get("bufferView"), self.number(ind, "byteOffset", where, default=0), itype, 1, n,
+                          np.dtype(itype).itemsize, f"{where}.sparse.indices")
+        idx = self.elements(span, itype, 1, n)[:, 0].astype(np.int64)
+        if n and (idx.max() >= loc.count or np.any(np.diff(idx) <= 0)):
+            self.fail(f"{where}.sparse.indices must be strictly increasing and below the count {loc.count}")
+        span = self._span(val.get("bufferView"), self.number(val, "byteOffset", where, default=0), loc.dtype,
+                          loc.width, n, np.dtype(loc.dtype).itemsize * loc.width, f"{where}.sparse.values")
+        values[idx] = self.elements(span, loc.dtype, loc.width, n)
+        return values
+
+
+@dataclass(frozen=True)
+class _Located:
+    """An accessor, checked: what its elements are and where (`span`: buffer, byte offset, stride;
+    None without a buffer view)."""
+
+    where: str
+    ctype: int
+    dtype: str
+    width: int
+    count: int
+    normalized: bool
+    span: tuple | None
+    sparse: object
 
 
 def _is_int(v) -> bool:
@@ -323,21 +388,18 @@ def has_splats(path) -> bool:
 def _load(path: Path, where: str, *, json_only: bool = False) -> _Document:
     try:
         with open(path, "rb") as f:
-            head = f.read(_GLB_HEADER.size)
+            head = f.read(len(GLB_MAGIC))
+        size = path.stat().st_size
     except OSError as exc:
         raise PlyError(f"{where}: cannot read: {exc.strerror or exc}") from None
-    if head[:4] == GLB_MAGIC and json_only:
-        json_bytes, glb_bin = _glb_json(path, where), None
-    elif head[:4] == GLB_MAGIC:
-        data = np.fromfile(path, np.uint8)
-        json_bytes, glb_bin = _glb_chunks(data, where)
+    if head == GLB_MAGIC:
+        json_bytes, glb_bin = _glb(path, where, size, json_only)
     else:
-        size = path.stat().st_size
         if size > _MAX_JSON_BYTES:
             raise PlyError(f"{where}: a {size}-byte .gltf; this reader takes JSON up to {_MAX_JSON_BYTES} bytes")
         json_bytes, glb_bin = path.read_bytes(), None
     try:
-        gltf = json.loads(bytes(json_bytes).decode("utf-8-sig"))
+        gltf = json.loads(json_bytes.decode("utf-8-sig"))
     except (UnicodeDecodeError, ValueError) as exc:
         raise PlyError(f"{where}: the glTF JSON is not valid: {exc}") from None
     if not isinstance(gltf, dict) or not isinstance(gltf.get("asset"), dict):
@@ -348,46 +410,42 @@ def _load(path: Path, where: str, *, json_only: bool = False) -> _Document:
     return _Document(gltf, where, path.parent, glb_bin)
 
 
-def _glb_json(path: Path, where: str) -> bytes:
-    """The JSON chunk of a GLB file, read alone."""
+def _glb(path: Path, where: str, size: int, json_only: bool) -> tuple[bytes, _Source | None]:
+    """A GLB file's JSON chunk and where its (first) BIN chunk is (not read), checked against the
+    header's length and the file's size."""
     with open(path, "rb") as f:
         head = f.read(_GLB_HEADER.size + _CHUNK_HEADER.size)
         if len(head) < _GLB_HEADER.size + _CHUNK_HEADER.size:
-            raise PlyError(f"{where}: truncated: a GLB file of {len(head)} bytes has no room for its JSON chunk")
-        _, version, _ = _GLB_HEADER.unpack_from(head)
-        size, kind = _CHUNK_HEADER.unpack_from(head, _GLB_HEADER.size)
-        if version != 2 or kind != _JSON_CHUNK:
-            raise PlyError(f"{where}: not a GLB version 2 file whose first chunk is JSON")
-        if size > _MAX_JSON_BYTES:
-            raise PlyError(f"{where}: a {size}-byte JSON chunk; this reader takes JSON up to {_MAX_JSON_BYTES} bytes")
-        data = f.read(size)
-    if len(data) < size:
-        raise PlyError(f"{where}: truncated inside the GLB JSON chunk")
-    return data
-
-
-def _glb_chunks(data: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray | None]:
-    """The JSON chunk and the BIN chunk (or None) of a GLB file's bytes."""
-    if len(data) < _GLB_HEADER.size + _CHUNK_HEADER.size:
-        raise PlyError(f"{where}: truncated: a GLB file of {len(data)} bytes has no room for its JSON chunk")
-    _, version, length = _GLB_HEADER.unpack_from(data)
-    if version != 2:
-        raise PlyError(f"{where}: GLB container version {version}; this reader knows version 2")
-    if length > len(data):
-        raise PlyError(f"{where}: truncated: the GLB header declares {length} bytes, the file has {len(data)}")
-    pos, chunks = _GLB_HEADER.size, []
-    while pos + _CHUNK_HEADER.size <= length:
-        size, kind = _CHUNK_HEADER.unpack_from(data, pos)
-        pos += _CHUNK_HEADER.size
-        if pos + size > length:
-            raise PlyError(f"{where}: truncated: a GLB chunk of {size} bytes at byte {pos} runs past the end "
-                           f"({length} bytes)")
-        chunks.append((kind, data[pos:pos + size]))
-        pos += size
-    if not chunks or chunks[0][0] != _JSON_CHUNK:
-        raise PlyError(f"{where}: a GLB file whose first chunk is not JSON")
-    bins = [c for kind, c in chunks[1:] if kind == _BIN_CHUNK]
-    return chunks[0][1], (bins[0] if bins else None)
+            raise PlyError(f"{where}: truncated: a GLB file of {size} bytes has no room for its JSON chunk")
+        _, version, length = _GLB_HEADER.unpack_from(head)
+        if version != 2:
+            raise PlyError(f"{where}: GLB container version {version}; this reader knows version 2")
+        if length > size:
+            raise PlyError(f"{where}: truncated: the GLB header declares {length} bytes, the file has {size}")
+        json_size, kind = _CHUNK_HEADER.unpack_from(head, _GLB_HEADER.size)
+        pos = _GLB_HEADER.size + _CHUNK_HEADER.size
+        if kind != _JSON_CHUNK:
+            raise PlyError(f"{where}: a GLB file whose first chunk is not JSON")
+        if pos + json_size > length:
+            raise PlyError(f"{where}: truncated: the JSON chunk of {json_size} bytes runs past the end ({length} "
+                           "bytes)")
+        if json_size > _MAX_JSON_BYTES:
+            raise PlyError(f"{where}: a {json_size}-byte JSON chunk; this reader takes JSON up to {_MAX_JSON_BYTES} "
+                           "bytes")
+        text = f.read(json_size)
+        pos += json_size
+        bin_chunk = None
+        while not json_only and bin_chunk is None and pos + _CHUNK_HEADER.size <= length:
+            f.seek(pos)
+            chunk_size, kind = _CHUNK_HEADER.unpack(f.read(_CHUNK_HEADER.size))
+            pos += _CHUNK_HEADER.size
+            if pos + chunk_size > length:
+                raise PlyError(f"{where}: truncated: a GLB chunk of {chunk_size} bytes at byte {pos} runs past the "
+                               f"end ({length} bytes)")
+            if kind == _BIN_CHUNK:
+                bin_chunk = _Source(chunk_size, path=path, start=pos)
+            pos += chunk_size
+    return text, bin_chunk
 
 
 def read_gltf(path, *, sanitize: bool = False) -> GaussianCloud:
@@ -397,20 +455,23 @@ def read_gltf(path, *, sanitize: bool = False) -> GaussianCloud:
     path = Path(path)
     where = str(path)
     doc = _load(path, where)
-    placed, notes = _splat_primitives(doc)
-    legacy = _legacy(doc.gltf)
-    clouds = []
-    for mesh_i, prim_i, matrix in placed:
-        what = f"meshes[{mesh_i}].primitives[{prim_i}]"
-        if not np.isfinite(matrix).all():
-            doc.fail(f"{what} is placed by a node transform that is not finite")
-        if abs(np.linalg.det(matrix[:3, :3])) < 1e-30:
-            notes.append(f"{what} is placed by a node transform of scale zero (nothing to draw): left out")
-            continue
-        cloud, prim_notes = _primitive(doc, doc.gltf["meshes"][mesh_i]["primitives"][prim_i], what, legacy,
-                                       sanitize, matrix)
-        notes += prim_notes
-        clouds.append(cloud)
+    try:
+        placed, notes = _splat_primitives(doc)
+        legacy = _legacy(doc.gltf)
+        clouds = []
+        for mesh_i, prim_i, matrix in placed:
+            what = f"meshes[{mesh_i}].primitives[{prim_i}]"
+            if not np.isfinite(matrix).all():
+                doc.fail(f"{what} is placed by a node transform that is not finite")
+            if abs(np.linalg.det(matrix[:3, :3])) < 1e-30:
+                notes.append(f"{what} is placed by a node transform of scale zero (nothing to draw): left out")
+                continue
+            cloud, prim_notes = _primitive(doc, doc.gltf["meshes"][mesh_i]["primitives"][prim_i], what, legacy,
+                                           sanitize, matrix)
+            notes += prim_notes
+            clouds.append(cloud)
+    finally:
+        doc.close()
     for note in dict.fromkeys(notes):
         warnings.warn(f"{where}: {note}", stacklevel=2)
     cloud = GaussianCloud.concat(clouds) if len(clouds) != 1 else clouds[0]
@@ -586,8 +647,9 @@ def _extension_notes(ext: dict, what: str) -> list[str]:
 def _spz_primitive(doc: _Document, spz, attrs: dict, what: str, sanitize: bool) -> GaussianCloud:
     if not isinstance(spz, dict):
         doc.fail(f"{what}: {SPZ_EXTENSION} is not a JSON object")
-    data, _ = doc.view(spz.get("bufferView"), f"{what} {SPZ_EXTENSION}")
-    cloud = decode_spz(bytes(data), f"{doc.where} ({what}, {SPZ_EXTENSION})", sanitize=sanitize)
+    source, offset, length, _ = doc.view(spz.get("bufferView"), f"{what} {SPZ_EXTENSION}")
+    data = doc.read(source, offset, length).tobytes()
+    cloud = decode_spz(data, f"{doc.where} ({what}, {SPZ_EXTENSION})", sanitize=sanitize)
     position = attrs.get("POSITION")
     if position is not None:
         count = doc.item("accessors", position, f"{what} POSITION").get("count")
@@ -616,27 +678,30 @@ def _attribute_primitive(doc: _Document, attrs: dict, what: str, legacy, sanitiz
     known = set(required) | {sh_attribute(b, n) for b in (1, 2, 3) for n in range(2 * b + 1)} | {"COLOR_0"}
     notes = [f"{what}: attribute(s) not read: {', '.join(sorted(k for k in attrs if k not in known))}"] \
         if any(k not in known for k in attrs) else []
+    names = [sh_attribute(b, m) for b in range(1, degree + 1) for m in range(2 * b + 1)]
+    located = {name: doc.locate(attrs[name], f"{what} {name.split(':')[-1]}", (4,) if name == ROTATION else
+                                (1,) if name == OPACITY else (3,)) for name in (*required, *names)}
+    n = located["POSITION"].count
+    for name, loc in located.items():
+        if loc.count != n:
+            doc.fail(f"{what}: {name} has {loc.count} values for {n} points")
     means = doc.accessor(attrs["POSITION"], f"{what} POSITION", (3,))
-    n = len(means)
     xyzw = doc.accessor(attrs[ROTATION], f"{what} ROTATION", (4,))
     linear = doc.accessor(attrs[SCALE], f"{what} SCALE", (3,))
     alpha = doc.accessor(attrs[OPACITY], f"{what} OPACITY", (1,))[:, 0]
     dc = doc.accessor(attrs[sh_attribute(0, 0)], f"{what} SH_DEGREE_0_COEF_0", (3,))
-    k = SH_REST_COUNTS[degree]
-    coefficients = []
-    for band in range(1, degree + 1):
-        for m in range(2 * band + 1):
-            name = sh_attribute(band, m)
-            coefficients.append(doc.accessor(attrs[name], f"{what} {name[len(EXTENSION) + 1:]}", (3,)))
-    for name, a in (("ROTATION", xyzw), ("SCALE", linear), ("OPACITY", alpha), ("SH_DEGREE_0_COEF_0", dc),
-                    *((f"SH coefficient {j}", c) for j, c in enumerate(coefficients))):
-        if len(a) != n:
-            doc.fail(f"{what}: {name} has {len(a)} values for {n} points")
     s32 = signs.astype(np.float32)
+    means *= s32
     quats = np.empty((n, 4), np.float32)
     quats[:, 0] = xyzw[:, 3]
     np.multiply(xyzw[:, :3], s32, out=quats[:, 1:])
-    rest = _gaussian_major(_stacked(coefficients, n), _sh_signs(k, signs))
+    sign = _sh_signs(len(names), signs)
+    run = _consecutive([located[name] for name in names], n)
+    if run is not None:  # the usual layout (this writer's, splat-transform's): read and turned in blocks
+        rest = _read_gaussian_major(doc, *run, n, sign)
+    else:
+        coefficients = [doc.accessor(attrs[name], f"{what} {name.split(':')[-1]}", (3,)) for name in names]
+        rest = _gaussian_major(np.stack(coefficients) if names else np.zeros((0, n, 3), np.float32), sign)
     with np.errstate(divide="ignore", invalid="ignore"):
         if legacy is not None:
             notes.append(f"written by splat-transform {'.'.join(map(str, legacy))} (before 2.7.0): SCALE read as "
@@ -659,8 +724,7 @@ def _attribute_primitive(doc: _Document, attrs: dict, what: str, legacy, sanitiz
                          "sanitize=True to drop them")
             p[outside] = np.nan
         opacities = np.log(p / (1.0 - p)).astype(np.float32)
-    return GaussianCloud(means=means * s32, scales=scales, quats=quats, opacities=opacities,
-                         sh_dc=np.array(dc, np.float32), sh_rest=rest), notes
+    return GaussianCloud(means=means, scales=scales, quats=quats, opacities=opacities, sh_dc=dc, sh_rest=rest), notes
 
 
 # ----------------------------------------------------------------------------------- write
@@ -762,29 +826,41 @@ def _sh_signs(k: int, signs) -> np.ndarray:
     return np.diag(sh_rotation(np.diag(signs), {v: d for d, v in SH_REST_COUNTS.items()}[k])).astype(np.float32)
 
 
-def _stacked(coefficients: list[np.ndarray], n: int) -> np.ndarray:
-    """The (k, n, 3) float32 array of k coefficient arrays (n, 3): a view when they lie one after
-    the other at one spacing in one buffer (as this writer and splat-transform lay them out, tightly
-    packed), else a copy."""
-    k = len(coefficients)
-    if k == 0:
-        return np.zeros((0, n, 3), np.float32)
-    first = coefficients[0]
-    tight = all(c.dtype == np.float32 and c.strides == (12, 4) and c.base is not None for c in coefficients)
-    if tight and n:
-        starts = [c.__array_interface__["data"][0] for c in coefficients]
-        step = starts[1] - starts[0] if k > 1 else 12 * n
-        if step >= 12 * n and all(b - a == step for a, b in zip(starts, starts[1:])):
-            # every coefficient's bytes were checked to lie in its buffer view: the view reads only those
-            return np.lib.stride_tricks.as_strided(first, (k, n, 3), (step, 12, 4), writeable=False)
-    return np.stack(coefficients)
+def _consecutive(located: list[_Located], n: int) -> tuple[_Source, int, int] | None:
+    """(buffer, byte offset of the first, spacing) when the SH coefficient accessors are tightly packed
+    float32 (n, 3) blocks one after the other at one spacing in one buffer, without sparse values."""
+    if not located or any(loc.ctype != _FLOAT or loc.sparse is not None or loc.span is None
+                          or loc.span[2] != 12 for loc in located):
+        return None
+    source, first = located[0].span[:2]
+    step = located[1].span[1] - first if len(located) > 1 else 12 * n
+    if step < 12 * n or any(loc.span[0] is not source or loc.span[1] != first + j * step
+                            for j, loc in enumerate(located)):
+        return None
+    return source, first, step
 
 
-def _gaussian_major(coefficients: np.ndarray, sign: np.ndarray) -> np.ndarray:
-    """(n, k, 3) sh_rest of (k, n, 3) coefficients, each multiplied by its sign, transposed in blocks
-    of rows that stay in cache, one colour channel at a time (numpy's inner loop then runs along k)."""
-    k, n = coefficients.shape[:2]
+def _read_gaussian_major(doc: _Document, source: _Source, first: int, step: int, n: int,
+                         sign: np.ndarray) -> np.ndarray:
+    """(n, k, 3) sh_rest of k coefficient blocks laid out as `_consecutive` found them, each times its
+    sign, read `_WRITE_ROWS` rows of every coefficient at a time (the file is never held whole)."""
+    k = len(sign)
     out = np.empty((n, k, 3), np.float32)
+    block = np.empty((k, min(n, _WRITE_ROWS), 3), np.float32)
+    for row in range(0, n, _WRITE_ROWS):
+        m = min(_WRITE_ROWS, n - row)
+        for j in range(k):
+            doc.read(source, first + j * step + 12 * row, 12 * m, out=block[j, :m].reshape(-1).view(np.uint8))
+        _gaussian_major(block[:, :m], sign, out=out[row:row + m])
+    return out
+
+
+def _gaussian_major(coefficients: np.ndarray, sign: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """(n, k, 3) sh_rest (into `out` when given) of (k, n, 3) coefficients, each multiplied by its sign,
+    transposed in blocks of rows that stay in cache, one colour channel at a time (numpy's inner loop
+    then runs along k)."""
+    k, n = coefficients.shape[:2]
+    out = np.empty((n, k, 3), np.float32) if out is None else out
     for start in range(0, n, _BLOCK_ROWS):
         stop = start + _BLOCK_ROWS
         for ch in range(3):
