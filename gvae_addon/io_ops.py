@@ -83,28 +83,39 @@ def blender_webp() -> WebpCodec:
     return WebpCodec("Blender", decode, encode)
 
 
-def build_native_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE"):
-    """A new Blender 5.3+ Gaussian-splat point cloud object holding `cloud` (`convert.pointcloud_from_cloud`),
-    linked to the active collection (removed again if anything fails)."""
-    pc = convert.pointcloud_from_cloud(cloud, name)
+def _remove_data(data) -> None:
+    (bpy.data.pointclouds if isinstance(data, bpy.types.PointCloud) else bpy.data.meshes).remove(data)
+
+
+def _new_object(context, name: str, data, axes: str, setup=None):
+    """A new object of `data` (a splat mesh or point cloud) turned by `axes`, `setup(obj)` applied,
+    linked to the active collection; on any failure the object and its data are removed again."""
     obj = None
     try:
-        obj = bpy.data.objects.new(name, pc)
+        obj = bpy.data.objects.new(name, data)
         obj.rotation_euler = AXES[axes]
+        if setup is not None:
+            setup(obj)
         context.collection.objects.link(obj)
     except BaseException:
         if obj is not None:
             bpy.data.objects.remove(obj)
-        bpy.data.pointclouds.remove(pc)
+        _remove_data(data)
         raise
     return obj
+
+
+def build_native_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE"):
+    """A new Blender 5.3+ Gaussian-splat point cloud object holding `cloud` (`convert.pointcloud_from_cloud`),
+    linked to the active collection (removed again if anything fails)."""
+    return _new_object(context, name, convert.pointcloud_from_cloud(cloud, name), axes)
 
 
 def remove_splat(obj) -> None:
     """Remove a splat object made by an import, and its data."""
     data = obj.data
     bpy.data.objects.remove(obj)
-    (bpy.data.pointclouds if isinstance(data, bpy.types.PointCloud) else bpy.data.meshes).remove(data)
+    _remove_data(data)
 
 
 def is_plain_gltf(path: str) -> bool:
@@ -126,21 +137,10 @@ def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
         cloud = cloud.replace(extra={k: v for k, v in cloud.extra.items() if k != convert.STEP_ATTR})
     else:
         steps = None
-    me = convert.mesh_from_cloud(cloud, name, steps=steps)
-    obj = None
-    try:
-        obj = bpy.data.objects.new(name, me)
-        obj.rotation_euler = AXES[axes]
-        nodes.add_splat_modifier(obj, scale_factor=scale_factor, fraction=fraction,
-                                 points_only=points_only, min_opacity=min_opacity,
-                                 view_dependent=view_dependent)
-        context.collection.objects.link(obj)
-    except BaseException:
-        if obj is not None:
-            bpy.data.objects.remove(obj)
-        bpy.data.meshes.remove(me)
-        raise
-    return obj
+    return _new_object(context, name, convert.mesh_from_cloud(cloud, name, steps=steps), axes, lambda obj:
+                       nodes.add_splat_modifier(obj, scale_factor=scale_factor, fraction=fraction,
+                                                points_only=points_only, min_opacity=min_opacity,
+                                                view_dependent=view_dependent))
 
 
 def export_splat(obj, path: str, *, apply_transform: bool = False, write_step: bool = False, bake: float = 0.0):
