@@ -15,6 +15,7 @@ import math
 import struct
 import types
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -520,3 +521,23 @@ def test_cli_refine_and_compact_take_and_give_gltf(tmp_path, capsys, monkeypatch
     np.testing.assert_array_equal(read_splat_file(tmp_path / "out.gltf").means, cloud.means)
     assert main(["compact", str(src), str(tmp_path / "small.glb"), "--keep", "50%", "--resolution", "24"]) == 0
     assert "120 -> 60" in capsys.readouterr().out and len(read_splat_file(tmp_path / "small.glb")) == 60
+
+
+@pytest.mark.parametrize("version", ["1.10.1", "2.3.1", "2.7.1"])
+def test_files_of_older_splat_transform_versions(version):
+    """Files splat-transform itself wrote (tests/data/splat_transform): log-scales before 2.7.0, the
+    PLY's frame before 2.0; every Gaussian back as the PLY has it (its quaternions as it stored them)."""
+    folder = Path(__file__).parent / "data" / "splat_transform"
+    source = read_splat_file(folder / "source.ply")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        back = read_splat_file(folder / f"splat-transform-{version}.glb")
+    said = " | ".join(str(w.message) for w in caught)
+    assert ("before 2.7.0" in said) == (version < "2.7") and ("PLY's frame" in said) == version.startswith("1.")
+    for field in ("means", "sh_dc", "sh_rest"):
+        np.testing.assert_array_equal(getattr(back, field), getattr(source, field), err_msg=field)
+    assert (np.abs(back.scales - source.scales) <= 2.0 ** -24 + np.spacing(np.abs(source.scales))).all()
+    defined = np.linalg.norm(source.quats, axis=1) > 0
+    np.testing.assert_allclose(covariances(back.select(defined)), covariances(source.select(defined)), rtol=1e-6,
+                               atol=1e-12)
+    assert np.abs(sigmoid(back.opacities) - sigmoid(source.opacities))[2:].max() < 1e-7 and back.opacities[1] == 50
