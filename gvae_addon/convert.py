@@ -247,7 +247,8 @@ def native_sh(j: int) -> str:
 
 def native_available() -> bool:
     """Whether this Blender draws Gaussian splats itself (point clouds of type GAUSSIAN_SPLAT, 5.3+)."""
-    prop = bpy.types.PointCloud.bl_rna.properties.get("type")
+    point_cloud = getattr(bpy.types, "PointCloud", None)
+    prop = point_cloud.bl_rna.properties.get("type") if point_cloud is not None else None
     return prop is not None and "GAUSSIAN_SPLAT" in prop.enum_items.keys()
 
 

@@ -84,7 +84,7 @@ def blender_webp() -> WebpCodec:
 
 
 def _remove_data(data) -> None:
-    (bpy.data.pointclouds if isinstance(data, bpy.types.PointCloud) else bpy.data.meshes).remove(data)
+    (bpy.data.meshes if isinstance(data, bpy.types.Mesh) else bpy.data.pointclouds).remove(data)
 
 
 def _new_object(context, name: str, data, axes: str, setup=None):

@@ -528,7 +528,7 @@ def _splat_primitives(doc: _Document) -> tuple[list[tuple[int, int, np.ndarray]]
     else:
         children = {c for n in nodes if isinstance(n, dict) for c in _list(n.get("children")) if _is_int(c)}
         roots = [i for i in range(len(nodes)) if i not in children]
-    placed, seen_meshes = [], set()
+    placed = []
     stack = [(r, np.eye(4), ()) for r in reversed(roots if isinstance(roots, list) else [])]
     while stack:
         index, parent, path = stack.pop()
@@ -539,7 +539,6 @@ def _splat_primitives(doc: _Document) -> tuple[list[tuple[int, int, np.ndarray]]
         mesh_i = node.get("mesh")
         if mesh_i is not None:
             mesh = doc.item("meshes", mesh_i, f"nodes[{index}]")
-            seen_meshes.add(mesh_i)
             splats = [i for i, p in enumerate(_list(mesh.get("primitives"))) if _is_splat(p)]
             if splats and isinstance(node.get("extensions"), dict) and "EXT_mesh_gpu_instancing" in node["extensions"]:
                 doc.fail(f"nodes[{index}] instances its splats with EXT_mesh_gpu_instancing, which this reader "
@@ -707,11 +706,11 @@ def _attribute_primitive(doc: _Document, attrs: dict, what: str, legacy, sanitiz
             notes.append(f"written by splat-transform {'.'.join(map(str, legacy))} (before 2.7.0): SCALE read as "
                          "log-scales, as it wrote them"
                          + (", and positions in the PLY's frame (before 2.0)" if legacy < _GLTF_FRAME_SINCE else ""))
-            scales = np.array(linear, np.float32)
+            scales = linear
         elif (linear < 0).any():
             notes.append(f"{what}: negative SCALE values: read as log-scales, as drafts of the extension stored "
                          "them (the ratified one stores linear scales)")
-            scales = np.array(linear, np.float32)
+            scales = linear
         else:
             scales = np.log(linear.astype(np.float64)).astype(np.float32)
         p = alpha.astype(np.float64)

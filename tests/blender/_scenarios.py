@@ -411,7 +411,9 @@ def scenario_formats(bpy, args: dict) -> dict:
     res["plain_glb"] = sorted(bpy.ops.import_scene.gaussian_splat(filepath=args["plain_glb"]))
     res["plain_new"] = sorted((o.name, o.type, len(o.data.vertices)) for o in bpy.data.objects
                               if o.name not in before["objects"])
-    res["native_available"] = hasattr(bpy.types.PointCloud.bl_rna.properties.get("type"), "enum_items")
+    from bl_ext.user_default.gaussian_vae.gvae_addon import convert
+
+    res["native_available"] = convert.native_available()
     if not res["native_available"]:
         res["native_refused"] = failure(bpy, lambda: bpy.ops.import_scene.gaussian_splat(
             filepath=args["files"]["ply"], splat_type="NATIVE"))
