@@ -37,7 +37,7 @@ test: install
 # Python 3.11 with numpy 1.26 (torch: the CPU build from local disk); 5.1 and later run Python 3.13 with
 # numpy 2 (2.3, the VFX Reference Platform 2026's, as Blender ships it) and get no torch here: PyPI's
 # Linux torch for cp313 is the CUDA build, so the Refine job test says so and skips there.
-BLENDER_VERSIONS ?= 4.2.0 4.5.15 5.0.1 5.1.2 5.2.3
+BLENDER_VERSIONS ?= 4.2.0 4.5.15 5.0.1 5.1.2 5.2.3 5.3.0
 BLENDER_EVERYDAY := 5.0.1
 PYTHON311 ?= python3.11
 PYTHON313 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.13*/bin/python3.13) python3.13)

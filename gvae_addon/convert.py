@@ -8,6 +8,12 @@ stored losslessly so that export writes back exactly what was imported:
 - uint32 as INT and float64/int64/uint64 as INT32_2D holding the raw bits.
 The mesh's custom property `gvae_ply` (JSON) records the SH degree and the extra properties with
 their dtypes, in file order. All transfers are vectorised (`foreach_get`/`foreach_set`).
+
+Blender 5.3 and later also draw Gaussian splats themselves: a point cloud of type GAUSSIAN_SPLAT
+(`pointcloud_from_cloud`, `cloud_from_pointcloud`) with the attributes Blender's own PLY importer
+gives one: `position`, `radiance:base` (f_dc and the opacity after the sigmoid), `scale` (exp of the
+log-scales), `rotation` (unit quaternion w, x, y, z) and `radiance:sh_0..` (one per SH rest
+coefficient, RGB); extra properties as point attributes, recorded in `gvae_ply` as on a mesh.
 """
 
 from __future__ import annotations
@@ -18,7 +24,7 @@ import bpy
 import numpy as np
 
 from gvae_core.cloud import GaussianCloud
-from gvae_core.conventions import SH_REST_COUNTS
+from gvae_core.conventions import LOG_SCALE_RANGE, OPACITY_LOGIT_RANGE, SH_REST_COUNTS
 
 LAYOUT_KEY = "gvae_ply"
 STEP_ATTR = "gvae_step"
@@ -216,10 +222,121 @@ def cloud_from_mesh(me: bpy.types.Mesh) -> tuple[GaussianCloud, np.ndarray | Non
 
 
 def cloud_from_object(obj) -> tuple[GaussianCloud, np.ndarray | None]:
-    """`cloud_from_mesh` of an object's own (unevaluated) mesh, edit-mode changes included."""
-    if not is_splat(obj):
+    """The Gaussians of a splat object's own (unevaluated) data, edit-mode changes included: a
+    splat mesh (`cloud_from_mesh`) or a Blender 5.3+ Gaussian-splat point cloud (no steps)."""
+    if not (is_splat(obj) or is_native_splat(obj)):
         raise ValueError(f"object {getattr(obj, 'name', None)!r} is not a Gaussian splat object "
                          "(import one with File > Import > Gaussian Splat)")
     if obj.mode == "EDIT":
         obj.update_from_editmode()
+    if is_native_splat(obj):
+        return cloud_from_pointcloud(obj.data), None
     return cloud_from_mesh(obj.data)
+
+
+# ------------------------------------------------------------------ Blender's own Gaussian splats
+
+NATIVE_BASE, NATIVE_SCALE, NATIVE_ROTATION = "radiance:base", "scale", "rotation"
+_NATIVE_RESERVED = {"position", NATIVE_BASE, NATIVE_SCALE, NATIVE_ROTATION}
+
+
+def native_sh(j: int) -> str:
+    """The attribute of SH rest coefficient j (0-based, in `sh_rest` order) of a native splat."""
+    return f"radiance:sh_{j}"
+
+
+def native_available() -> bool:
+    """Whether this Blender draws Gaussian splats itself (point clouds of type GAUSSIAN_SPLAT, 5.3+)."""
+    point_cloud = getattr(bpy.types, "PointCloud", None)
+    prop = point_cloud.bl_rna.properties.get("type") if point_cloud is not None else None
+    return prop is not None and "GAUSSIAN_SPLAT" in prop.enum_items.keys()
+
+
+def is_native_splat(obj) -> bool:
+    return obj is not None and obj.type == "POINTCLOUD" and getattr(obj.data, "type", None) == "GAUSSIAN_SPLAT"
+
+
+def pointcloud_from_cloud(cloud: GaussianCloud, name: str) -> bpy.types.PointCloud:
+    """A new Gaussian-splat point cloud (Blender 5.3+) holding `cloud`, the attributes as Blender's own
+    PLY importer makes them (exp and sigmoid in float64; quaternions normalised, zero: the identity);
+    extra properties as point attributes. Removed again if anything fails."""
+    if not native_available():
+        raise ValueError(f"Blender {bpy.app.version_string} has no Gaussian-splat point clouds (5.3 and later)")
+    c = cloud.numpy()
+    n, k = len(c), c.sh_rest.shape[1]
+    extras = list(c.extra.items())
+    for key, value in extras:
+        if key in _NATIVE_RESERVED or key.startswith(("radiance:", ".")):
+            raise ValueError(f"extra property {key!r} cannot be stored beside a Gaussian splat's own attributes")
+        if value.shape != (n,):
+            raise ValueError(f"extra property {key!r} has shape {value.shape}; one value per Gaussian is expected")
+    buffers = [(key, *_extra_to_buffer(value)) for key, value in extras]
+    q = np.asarray(c.quats, np.float64)
+    norm = np.linalg.norm(q, axis=1)
+    good = norm > 1e-12
+    q = np.where(good[:, None], q / np.where(good, norm, 1.0)[:, None], (1.0, 0.0, 0.0, 0.0))
+    base = np.empty((n, 4), np.float32)
+    base[:, :3] = c.sh_dc
+    base[:, 3] = 1.0 / (1.0 + np.exp(-c.opacities.astype(np.float64)))
+    with np.errstate(over="ignore"):
+        linear = np.exp(c.scales.astype(np.float64)).astype(np.float32)
+    pc = bpy.data.pointclouds.new(name)
+    try:
+        pc.resize(n)
+        pc.type = "GAUSSIAN_SPLAT"
+        _set(pc.attributes["position"], "vector", np.ascontiguousarray(c.means, np.float32).ravel())
+        _set(_new_attribute(pc, NATIVE_BASE, "FLOAT4"), "vector", base.ravel())
+        _set(_new_attribute(pc, NATIVE_SCALE, "FLOAT_VECTOR"), "vector", linear.ravel())
+        _set(_new_attribute(pc, NATIVE_ROTATION, "QUATERNION"), "value", q.astype(np.float32).ravel())
+        for j in range(k):
+            _set(_new_attribute(pc, native_sh(j), "FLOAT_VECTOR"), "vector",
+                 np.ascontiguousarray(c.sh_rest[:, j], np.float32).ravel())
+        for key, kind, buf in buffers:
+            _set(_new_attribute(pc, key, kind), "value", buf)
+        pc[LAYOUT_KEY] = json.dumps({"sh_degree": c.sh_degree,
+                                     "extra": [[key, value.dtype.str] for key, value in extras]})
+    except BaseException:
+        bpy.data.pointclouds.remove(pc)
+        raise
+    return pc
+
+
+def cloud_from_pointcloud(pc) -> GaussianCloud:
+    """The Gaussians of a Gaussian-splat point cloud (made here or by Blender itself): log-scales and
+    logits in float64 of its linear values, a zero scale read as a flat axis (LOG_SCALE_RANGE[0]) and
+    an opacity of 0 or 1 as the ends of OPACITY_LOGIT_RANGE; extras as recorded in `gvae_ply`."""
+    n = len(pc.points)
+    for name, kind in (("position", "FLOAT_VECTOR"), (NATIVE_BASE, "FLOAT4"), (NATIVE_SCALE, "FLOAT_VECTOR"),
+                       (NATIVE_ROTATION, "QUATERNION")):
+        attr = pc.attributes.get(name)
+        if attr is None or attr.domain != "POINT" or attr.data_type != kind:
+            raise ValueError(f"point cloud {pc.name!r} has no {kind} point attribute {name!r}: not a complete "
+                             "Gaussian splat")
+    k = sum(1 for a in pc.attributes if a.name.startswith("radiance:sh_") and a.name[12:].isdigit())
+    if k not in SH_REST_COUNTS.values() or any(native_sh(j) not in pc.attributes for j in range(k)):
+        raise ValueError(f"point cloud {pc.name!r} has {k} radiance:sh_* attributes; expected 0, 3, 8 or 15 "
+                         "numbered from 0")
+
+    def get(name: str, prop: str, width: int) -> np.ndarray:
+        buf = np.empty(n * width, np.float32)
+        pc.attributes[name].data.foreach_get(prop, buf)
+        return buf.reshape(n, width)
+
+    base = get(NATIVE_BASE, "vector", 4)
+    with np.errstate(divide="ignore"):
+        scales = np.log(get(NATIVE_SCALE, "vector", 3).astype(np.float64))
+        p = base[:, 3].astype(np.float64)
+        logits = np.log(p / (1.0 - p))
+    scales[np.isneginf(scales)] = LOG_SCALE_RANGE[0]
+    logits = np.clip(logits, *OPACITY_LOGIT_RANGE)
+    rest = np.empty((n, k, 3), np.float32)
+    for j in range(k):
+        rest[:, j] = get(native_sh(j), "vector", 3)
+    extra = {}
+    for key, dt in json.loads(pc.get(LAYOUT_KEY, '{"extra": []}'))["extra"]:
+        dtype = np.dtype(dt)
+        kind = _EXTRA_STORAGE[dtype.str[1:]][0]
+        extra[key] = _extra_from_buffer(_get(pc, key, kind, 2 if kind == "INT32_2D" else 1, n), dtype)
+    return GaussianCloud(means=get("position", "vector", 3), scales=scales.astype(np.float32),
+                         quats=get(NATIVE_ROTATION, "value", 4), opacities=logits.astype(np.float32),
+                         sh_dc=np.ascontiguousarray(base[:, :3]), sh_rest=rest, extra=extra)

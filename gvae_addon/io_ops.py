@@ -1,4 +1,9 @@
-"""File > Import / Export > Gaussian Splat: splat files (.ply, .splat, .spz, .sog) <-> splat objects."""
+"""File > Import / Export > Gaussian Splat: splat files (.ply, .splat, .spz, .sog, .glb/.gltf) <-> splat objects.
+
+A .glb or .gltf without Gaussian splats is handed to Blender's own glTF importer (an ordinary glTF
+file dropped on the viewport offers both importers, Blender's first: a file handler sees only the
+file's extension, not its content). Blender 5.3 and later draw splats themselves: Import can make
+such a Gaussian-splat point cloud instead of the add-on's splat mesh, and Export writes either."""
 
 from __future__ import annotations
 
@@ -16,7 +21,8 @@ from bpy.types import Operator, OperatorFileListElement
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from gvae_core.cloud import GaussianCloud
-from gvae_core.formats import WebpCodec, read_splat_file, write_splat_file
+from gvae_core.formats import WebpCodec, detect_format, read_splat_file, write_splat_file
+from gvae_core.formats.gltf import has_splats
 from gvae_core.octaves import bake as bake_octaves
 from gvae_core.octaves import has_octaves
 
@@ -77,6 +83,49 @@ def blender_webp() -> WebpCodec:
     return WebpCodec("Blender", decode, encode)
 
 
+def _remove_data(data) -> None:
+    (bpy.data.meshes if isinstance(data, bpy.types.Mesh) else bpy.data.pointclouds).remove(data)
+
+
+def _new_object(context, name: str, data, axes: str, setup=None):
+    """A new object of `data` (a splat mesh or point cloud) turned by `axes`, `setup(obj)` applied,
+    linked to the active collection; on any failure the object and its data are removed again."""
+    obj = None
+    try:
+        obj = bpy.data.objects.new(name, data)
+        obj.rotation_euler = AXES[axes]
+        if setup is not None:
+            setup(obj)
+        context.collection.objects.link(obj)
+    except BaseException:
+        if obj is not None:
+            bpy.data.objects.remove(obj)
+        _remove_data(data)
+        raise
+    return obj
+
+
+def build_native_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE"):
+    """A new Blender 5.3+ Gaussian-splat point cloud object holding `cloud` (`convert.pointcloud_from_cloud`),
+    linked to the active collection (removed again if anything fails)."""
+    return _new_object(context, name, convert.pointcloud_from_cloud(cloud, name), axes)
+
+
+def remove_splat(obj) -> None:
+    """Remove a splat object made by an import, and its data."""
+    data = obj.data
+    bpy.data.objects.remove(obj)
+    _remove_data(data)
+
+
+def is_plain_gltf(path: str) -> bool:
+    """Whether `path` is a glTF file without Gaussian splats (for Blender's own glTF importer)."""
+    try:
+        return detect_format(path) == "gltf" and not has_splats(path)
+    except (OSError, ValueError):
+        return False  # (the splat reader says what is wrong with it)
+
+
 def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
                 scale_factor: float = nodes.DEFAULT_SCALE_FACTOR, fraction: float = 1.0,
                 points_only: bool = False, min_opacity: float = 0.0, view_dependent: bool = True):
@@ -88,21 +137,10 @@ def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
         cloud = cloud.replace(extra={k: v for k, v in cloud.extra.items() if k != convert.STEP_ATTR})
     else:
         steps = None
-    me = convert.mesh_from_cloud(cloud, name, steps=steps)
-    obj = None
-    try:
-        obj = bpy.data.objects.new(name, me)
-        obj.rotation_euler = AXES[axes]
-        nodes.add_splat_modifier(obj, scale_factor=scale_factor, fraction=fraction,
-                                 points_only=points_only, min_opacity=min_opacity,
-                                 view_dependent=view_dependent)
-        context.collection.objects.link(obj)
-    except BaseException:
-        if obj is not None:
-            bpy.data.objects.remove(obj)
-        bpy.data.meshes.remove(me)
-        raise
-    return obj
+    return _new_object(context, name, convert.mesh_from_cloud(cloud, name, steps=steps), axes, lambda obj:
+                       nodes.add_splat_modifier(obj, scale_factor=scale_factor, fraction=fraction,
+                                                points_only=points_only, min_opacity=min_opacity,
+                                                view_dependent=view_dependent))
 
 
 def export_splat(obj, path: str, *, apply_transform: bool = False, write_step: bool = False, bake: float = 0.0):
@@ -135,18 +173,24 @@ def splat_name(path: str) -> str:
 
 
 class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
-    """Import Gaussian splat files (3DGS or compressed PLY, .splat, .spz, .sog or a SOG meta.json) as splat
-    objects (one per file)"""
+    """Import Gaussian splat files (3DGS or compressed PLY, .splat, .spz, .sog or a SOG meta.json, glTF
+    .glb/.gltf) as splat objects (one per file); a glTF file without splats goes to Blender's glTF importer"""
 
     bl_idname = "import_scene.gaussian_splat"
     bl_label = "Import Gaussian Splat"
     bl_options = {"REGISTER", "UNDO", "PRESET"}
 
     filename_ext = ".ply"
-    filter_glob: StringProperty(default="*.ply;*.splat;*.spz;*.sog;*meta.json", options={"HIDDEN"})
+    filter_glob: StringProperty(default="*.ply;*.splat;*.spz;*.sog;*meta.json;*.glb;*.gltf", options={"HIDDEN"})
     files: CollectionProperty(type=OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
     directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
 
+    splat_type: EnumProperty(
+        name="Splat Type", default="MESH",
+        items=(("MESH", "Add-on Splat", "A mesh drawn by the add-on's Geometry Nodes (every Blender version; "
+                "Refine and Compact work on it)"),
+               ("NATIVE", "Blender Gaussian Splat", "A point cloud of type Gaussian Splat, drawn by Blender itself "
+                "(Blender 5.3 and later; exported back as it is, not refined or compacted)")))
     axis_conversion: EnumProperty(
         name="Axes", default="NONE",
         items=(("NONE", "As Stored (Z Up)", "Keep the file's axes (scenes made in Blender, NeRF-Synthetic)"),
@@ -181,18 +225,32 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
     def execute(self, context):
         start = time.perf_counter()
         made = []
+        paths = self._paths()
+        plain = [p for p in paths if is_plain_gltf(p)]
         try:
+            if self.splat_type == "NATIVE" and not convert.native_available():
+                raise ValueError(f"Blender {bpy.app.version_string} has no Gaussian-splat point clouds (5.3 and "
+                                 "later); import as Add-on Splat")
             # Read every file first: a bad file leaves the blend file untouched.
             loaded = []
-            for path in self._paths():
+            for path in (p for p in paths if p not in plain):
                 cloud, messages = _with_messages(read_splat_file, path, sanitize=self.drop_invalid,
                                                  webp=blender_webp())
                 loaded.append((path, cloud))
                 for msg in messages:
                     self.report({"WARNING"}, msg)
+            for path in plain:  # ordinary glTF: Blender's own importer
+                if not hasattr(bpy.ops.import_scene, "gltf"):
+                    raise ValueError(f"{path}: a glTF file without Gaussian splats; enable Blender's glTF 2.0 "
+                                     "add-on to import it")
+                bpy.ops.import_scene.gltf(filepath=path)
+                self.report({"INFO"}, f"{path}: no Gaussian splats, imported with Blender's glTF 2.0 importer")
             for path, cloud in loaded:
                 name = splat_name(path)
                 try:
+                    if self.splat_type == "NATIVE":
+                        made.append(build_native_splat(context, cloud, name, axes=self.axis_conversion))
+                        continue
                     made.append(build_splat(
                         context, cloud, name, axes=self.axis_conversion,
                         scale_factor=self.scale_factor, fraction=self.display_fraction,
@@ -202,17 +260,17 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
                     raise ValueError(f"{path}: {exc}") from exc
         except Exception as exc:
             for obj in made:
-                me = obj.data
-                bpy.data.objects.remove(obj)
-                bpy.data.meshes.remove(me)
+                remove_splat(obj)
             self.report({"ERROR"}, f"Gaussian splat import failed: {exc}")
             return {"CANCELLED"}
+        if not made:
+            return {"FINISHED"}
         for other in context.view_layer.objects:
             other.select_set(False)
         for obj in made:
             obj.select_set(True)
         context.view_layer.objects.active = made[-1]
-        total = sum(len(o.data.vertices) for o in made)
+        total = sum(len(o.data.vertices if o.type == "MESH" else o.data.points) for o in made)
         scene_note = self._scene(context.scene)
         self.report({"INFO"}, f"Imported {total} Gaussians into {len(made)} object(s) in "
                     f"{time.perf_counter() - start:.2f} s{scene_note}")
@@ -233,9 +291,14 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
     def draw(self, context):
         layout = self.layout
         layout.use_property_split = True
-        for prop in ("axis_conversion", "scale_factor", "view_dependent", "display_fraction", "points_only",
-                     "min_opacity", "setup_scene", "drop_invalid"):
-            layout.prop(self, prop)
+        native = convert.native_available()
+        if native:
+            layout.prop(self, "splat_type")
+        mesh_only = ("scale_factor", "view_dependent", "display_fraction", "points_only", "min_opacity")
+        for prop in ("axis_conversion", *mesh_only, "setup_scene", "drop_invalid"):
+            row = layout.row()
+            row.enabled = not (native and self.splat_type == "NATIVE" and prop in mesh_only)
+            row.prop(self, prop)
 
 
 class _SplatExport(ExportHelper):
@@ -251,7 +314,8 @@ class _SplatExport(ExportHelper):
 
     @classmethod
     def poll(cls, context):
-        return convert.is_splat(context.active_object)
+        obj = context.active_object
+        return convert.is_splat(obj) or convert.is_native_splat(obj)
 
     def execute(self, context):
         obj = context.active_object
@@ -316,13 +380,31 @@ class EXPORT_SCENE_OT_gaussian_splat_sog(_SplatExport, Operator):
         "the training resolution (SOG keeps no other properties; 0: the splat as it was before refining)")
 
 
+class EXPORT_SCENE_OT_gaussian_splat_glb(_SplatExport, Operator):
+    """Export the active splat object as glTF 2.0 (.glb, Khronos's KHR_gaussian_splatting: three.js, CesiumJS,
+    Babylon.js, PlayCanvas)"""
+
+    bl_idname = "export_scene.gaussian_splat_glb"
+    bl_label = "Export Gaussian Splat (.glb)"
+
+    filename_ext = ".glb"
+    filter_glob: StringProperty(default="*.glb", options={"HIDDEN"})
+    write_step = False  # glTF splats hold no extra properties such as gvae_step
+    bake_refinement: FloatProperty(
+        name="Bake Refinement", default=2.0, min=0.0, soft_max=8.0,
+        description="A refined splat's changes written into the Gaussians as they are drawn at this factor of "
+        "the training resolution (glTF splats keep no other properties; 0: the splat as it was before refining)")
+
+
 class GVAE_FH_gaussian_splat(bpy.types.FileHandler):
-    """Drag and drop of .ply, .splat, .spz, .sog files and SOG meta.json files into the viewport."""
+    """Drag and drop of .ply, .splat, .spz, .sog, .glb/.gltf files and SOG meta.json files into the viewport
+    (a .glb or .gltf dropped offers Blender's glTF importer too: the handler cannot see whether it holds
+    splats; Import hands one without splats to Blender's importer)."""
 
     bl_idname = "GVAE_FH_gaussian_splat"
     bl_label = "Gaussian Splat"
     bl_import_operator = "import_scene.gaussian_splat"
-    bl_file_extensions = ".ply;.splat;.spz;.sog;.json"
+    bl_file_extensions = ".ply;.splat;.spz;.sog;.json;.glb;.gltf"
 
     @classmethod
     def poll_drop(cls, context):
@@ -330,17 +412,19 @@ class GVAE_FH_gaussian_splat(bpy.types.FileHandler):
 
 
 def menu_import(self, context):
-    self.layout.operator(IMPORT_SCENE_OT_gaussian_splat.bl_idname, text="Gaussian Splat (.ply, .splat, .spz, .sog)")
+    self.layout.operator(IMPORT_SCENE_OT_gaussian_splat.bl_idname,
+                         text="Gaussian Splat (.ply, .splat, .spz, .sog, .glb)")
 
 
 def menu_export(self, context):
     self.layout.operator(EXPORT_SCENE_OT_gaussian_splat.bl_idname, text="Gaussian Splat (.ply)")
     self.layout.operator(EXPORT_SCENE_OT_gaussian_splat_spz.bl_idname, text="Gaussian Splat (.spz)")
     self.layout.operator(EXPORT_SCENE_OT_gaussian_splat_sog.bl_idname, text="Gaussian Splat (.sog)")
+    self.layout.operator(EXPORT_SCENE_OT_gaussian_splat_glb.bl_idname, text="Gaussian Splat (.glb)")
 
 
 classes = (IMPORT_SCENE_OT_gaussian_splat, EXPORT_SCENE_OT_gaussian_splat, EXPORT_SCENE_OT_gaussian_splat_spz,
-           EXPORT_SCENE_OT_gaussian_splat_sog, GVAE_FH_gaussian_splat)
+           EXPORT_SCENE_OT_gaussian_splat_sog, EXPORT_SCENE_OT_gaussian_splat_glb, GVAE_FH_gaussian_splat)
 
 
 def register():

@@ -353,8 +353,9 @@ class GaussianCloud:
         """Rows (ascending) with a NaN or an infinity in any parameter."""
         c = self.numpy()
         arrays = [getattr(c, name) for name in _FIELDS]
-        if all(np.isfinite(a).all() for a in arrays):  # the usual case, without per-row bookkeeping
-            return np.zeros(0, np.int64)
+        with np.errstate(over="ignore", invalid="ignore"):  # a finite sum: every value is finite (cheap)
+            if all(np.isfinite(a.sum()) for a in arrays):  # the usual case, without per-row bookkeeping
+                return np.zeros(0, np.int64)
         finite = np.ones(len(c), bool)
         for a in arrays:
             finite &= np.isfinite(a.reshape(len(c), int(np.prod(a.shape[1:])))).all(axis=1)

@@ -93,12 +93,12 @@ def footprint_sigmas(opacity):
     return np.sqrt(2.0 * np.log(np.maximum(np.asarray(opacity, np.float64) / ALPHA_MIN, 1.0)))
 
 
-def srgb_to_linear(c):
-    """The sRGB EOTF (numpy), extended above 1 by its power law: what a Blender material emits
-    for a display-referred colour c >= 0 so that the Standard view transform shows c."""
-    thr, slope, off, scale, gamma = SRGB_EOTF
-    c = np.asarray(c, np.float64)
-    return np.where(c < thr, c / slope, ((np.maximum(c, 0.0) + off) / scale) ** gamma)
+def srgb_to_linear(c, dtype=np.float64):
+    """The sRGB EOTF (numpy, in `dtype`), extended above 1 by its power law: what a Blender material
+    emits for a display-referred colour c >= 0 so that the Standard view transform shows c."""
+    thr, slope, off, scale, gamma = (np.dtype(dtype).type(v) for v in SRGB_EOTF)
+    c = np.asarray(c, dtype)
+    return np.where(c < thr, c / slope, ((np.maximum(c, dtype(0)) + off) / scale) ** gamma)
 
 
 def linear_to_srgb(x):

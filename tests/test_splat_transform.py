@@ -9,10 +9,14 @@ SH degree 3). Skipped, saying so, only where node or npm are missing.
 - What it reads of ours: our PLY, compressed PLY, .spz v3 and v4 and .sog, which it converts to a PLY
   that must hold what our reader reads from the same file (the same dequantisation: float32
   rounding; SOG exactly).
-- What we read of its: the PLY, compressed PLY, .spz (v3 and v4) and .sog it writes from our PLY,
-  and the PLY it writes from its compressed PLY (fully opaque and transparent Gaussians as +-inf),
-  every row, each attribute within the format's quantisation of the original (rows matched by their
-  values where it reorders them).
+- What we read of its: the PLY, compressed PLY, .spz (v3 and v4), .sog and .glb it writes from our
+  PLY, and the PLY it writes from its compressed PLY (fully opaque and transparent Gaussians as
+  +-inf), every row, each attribute within the format's quantisation of the original (rows matched by
+  their values where it reorders them); its .glb (KHR_gaussian_splatting, glTF's frame) back in the
+  PLY's frame: positions and SH exactly, scales and opacities within float32 rounding.
+- Khronos's glTF validator (npm `gltf-validator` 2.0.0-dev.3.10, which does not know the extension
+  yet) on our .glb and .gltf and on splat-transform's .glb: one error per extension attribute (an
+  attribute name it does not know), an info that it cannot check the extension, nothing else.
 """
 
 from __future__ import annotations
@@ -28,11 +32,14 @@ import pytest
 from scipy.spatial import cKDTree
 
 from tests.test_formats import make_cloud, quat_error, sigmoid
+from tests.test_gltf import covariances
 
 from gvae_core import GaussianCloud, read_splat_file, write_ply
+from gvae_core.benchmarks import gltf_validator
 from gvae_core.benchmarks.splat_transform import Unavailable, convert
 from gvae_core.benchmarks.splat_transform import command as splat_transform_command
-from gvae_core.formats import write_compressed_ply, write_sog, write_spz
+from gvae_core.formats import write_compressed_ply, write_gltf, write_sog, write_spz
+from gvae_core.formats.gltf import EXTENSION
 from gvae_core.formats import _quantize as quantize
 from gvae_core.formats.spz import read_spz_header
 
@@ -101,7 +108,8 @@ def files(splat_transform, tmp_path_factory) -> dict:
                  ("theirs", "compressed"): (ours["ply"], folder / "st.compressed.ply"),
                  ("theirs", "spz3"): (ours["ply"], folder / "st3.spz", "--spz-version", "3"),
                  ("theirs", "spz4"): (ours["ply"], folder / "st4.spz"),
-                 ("theirs", "sog"): (ours["ply"], folder / "st.sog")})
+                 ("theirs", "sog"): (ours["ply"], folder / "st.sog"),
+                 ("theirs", "glb"): (ours["ply"], folder / "st.glb")})
     out = {"cloud": cloud, "ours": ours, "read_by_st": {}, "theirs": {}}
     with ThreadPoolExecutor(2) as pool:  # node starts in about a second: two at a time
         for (group, name), path in zip(jobs, pool.map(lambda job: convert(st, *job), jobs.values())):
@@ -223,3 +231,51 @@ def _check_sog(cloud: GaussianCloud, back: GaussianCloud, meta: dict) -> None:
                 <= np.abs(nearest - getattr(want, field)) + 1e-6)[rows].all(), field
     err = back.sh_rest - want.sh_rest
     assert np.sqrt((err ** 2).mean()) < 0.5 * np.sqrt((want.sh_rest ** 2).mean())
+
+
+def test_we_read_the_glb_splat_transform_writes(files):
+    """Every Gaussian, back in the PLY's frame: positions and SH exactly; its quaternions are the
+    PLY's (not normalised) turned with the frame, so the covariances are compared; SCALE = exp and
+    OPACITY = sigmoid rounded to float32 (+-20 logits: opacity 1 reads as +inf, then 50)."""
+    cloud = files["cloud"]
+    with pytest.warns(UserWarning, match="opacity logit"):
+        back = read_splat_file(files["theirs"]["glb"])
+    assert len(back) == len(cloud) and back.sh_degree == 3
+    for field in ("means", "sh_dc", "sh_rest"):
+        np.testing.assert_array_equal(getattr(back, field), getattr(cloud, field), err_msg=field)
+    assert (np.abs(back.scales - cloud.scales) <= 2.0 ** -24 + np.spacing(np.abs(cloud.scales))).all()
+    bound = 2.0 ** -25 + 0.25 * np.spacing(np.abs(back.opacities)).astype(np.float64)
+    opaque = cloud.opacities > 17
+    assert (np.abs(sigmoid(back.opacities) - sigmoid(cloud.opacities)) <= bound)[~opaque].all()
+    assert (back.opacities[opaque] == 50).all()
+    defined = np.linalg.norm(cloud.quats, axis=1) > 0  # (the zero quaternion: see rotation_error)
+    want, got = (covariances(c.select(defined).replace(scales=cloud.scales[defined])) for c in (cloud, back))
+    assert (np.abs(got - want).max((1, 2)) <= 1e-6 * np.abs(want).max((1, 2))).all()
+
+
+@pytest.fixture(scope="module")
+def validator():
+    """Khronos's glTF validator (installed into the cache folder on first use)."""
+    try:
+        gltf_validator.module()
+    except Unavailable as exc:
+        pytest.skip(f"node and npm are needed to install and run the glTF validator: {exc}")
+    return gltf_validator.validate
+
+
+def test_glb_passes_khronos_validator_as_splat_transform_does(files, validator, tmp_path):
+    """No error, warning or hint but one MESH_PRIMITIVE_INVALID_ATTRIBUTE per extension attribute (the
+    validator does not know KHR_gaussian_splatting yet) and the info that it cannot check the
+    extension: the same as splat-transform's own .glb gets."""
+    ours = {"glb": write_gltf(files["cloud"], tmp_path / "ours.glb"),
+            "gltf": write_gltf(files["cloud"], tmp_path / "ours.gltf")}
+    reports = {name: validator(path) for name, path in {**ours, "theirs": files["theirs"]["glb"]}.items()}
+    for name, report in reports.items():
+        messages = report["issues"]["messages"]
+        unknown = sorted(m["pointer"].rsplit("/", 1)[1] for m in messages
+                         if m["code"] == "MESH_PRIMITIVE_INVALID_ATTRIBUTE" and m["severity"] == 0)
+        assert len(unknown) == 19 and all(a.startswith(EXTENSION + ":") for a in unknown), (name, unknown)
+        rest = [(m["code"], m["severity"]) for m in messages if m["code"] != "MESH_PRIMITIVE_INVALID_ATTRIBUTE"]
+        assert rest == [("UNSUPPORTED_EXTENSION", 2)], (name, messages)
+        assert report["issues"]["numErrors"] == 19 and report["issues"]["numWarnings"] == 0, name
+    assert reports["gltf"]["info"]["resources"][0]["storage"] == "external"

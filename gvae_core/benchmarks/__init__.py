@@ -8,6 +8,7 @@ are never asserted on (speed goals live here, not in tests).
 BENCHMARKS = (
     "ply",
     "sog",
+    "gltf",
     "render",
     "antialias",
     "blender",

@@ -9,11 +9,12 @@ from pathlib import Path
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "convert", help="convert a splat file between .ply, compressed PLY, .spz, .splat and .sog",
-        description="Read IN (3DGS or compressed PLY, .splat, .spz, .sog, a SOG meta.json or its folder; the "
-        "format found from the content) and write OUT in the format its name asks for: .ply (3DGS), "
-        ".compressed.ply (SuperSplat), .spz (Niantic), .splat, .sog (PlayCanvas bundle) or meta.json (SOG "
-        "images beside it). An OUT name it cannot write is refused before anything is read.")
+        "convert", help="convert a splat file between .ply, compressed PLY, .spz, .splat, .sog and .glb",
+        description="Read IN (3DGS or compressed PLY, .splat, .spz, .sog, a SOG meta.json or its folder, a glTF "
+        ".glb or .gltf; the format found from the content) and write OUT in the format its name asks for: .ply "
+        "(3DGS), .compressed.ply (SuperSplat), .spz (Niantic), .splat, .sog (PlayCanvas bundle), meta.json (SOG "
+        "images beside it), .glb or .gltf (KHR_gaussian_splatting; .gltf with its .bin). An OUT name it cannot "
+        "write is refused before anything is read.")
     p.add_argument("input", type=Path, help="the splat file to read")
     p.add_argument("output", type=Path, help="the file to write (its name picks the format)")
     p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3),

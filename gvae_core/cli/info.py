@@ -1,4 +1,4 @@
-"""`gvae info FILE`: what a splat file (3DGS or compressed PLY, .splat, .spz, .sog) holds and whether it is sound."""
+"""`gvae info FILE`: what a splat file (3DGS or compressed PLY, .splat, .spz, .sog, .glb) holds and if it is sound."""
 
 from __future__ import annotations
 
@@ -13,13 +13,15 @@ from ..conventions import SH_REST_COUNTS
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("info", help="summarise a splat file (.ply, .splat, .spz, .sog) and validate it",
+    p = subparsers.add_parser("info", help="summarise a splat file (.ply, .splat, .spz, .sog, .glb) and validate it",
                               description="Print the format, Gaussian count, SH degree, bounding box, "
                               "opacity and scale statistics, extra properties, what was read as what it "
                               "means (infinite opacities, flat axes) and the validation report of a 3DGS "
-                              "PLY, a compressed (SuperSplat) PLY, a .splat, an .spz or a SOG scene (.sog, "
-                              "meta.json or its folder; the format is found from the content).")
-    p.add_argument("file", type=Path, help="the .ply, .splat, .spz or .sog file (or a SOG meta.json or folder)")
+                              "PLY, a compressed (SuperSplat) PLY, a .splat, an .spz, a SOG scene (.sog, "
+                              "meta.json or its folder) or the splats of a glTF file (.glb, .gltf; what else it "
+                              "holds is named); the format is found from the content.")
+    p.add_argument("file", type=Path, help="the .ply, .splat, .spz, .sog, .glb or .gltf file (or a SOG meta.json or "
+                   "folder)")
     p.add_argument("--sanitize", action="store_true",
                    help="drop Gaussians with non-finite values instead of failing on them")
     p.set_defaults(func=run)

@@ -63,7 +63,7 @@ from ..cloud import GaussianCloud
 from ..ply import PlyError, drop_nonfinite
 from ._codec import OPACITY_OF_CODE, byte_codes, opacity_codes, round_half_away, writable
 
-__all__ = ["read_spz", "write_spz", "SpzHeader", "WRITE_VERSION"]
+__all__ = ["read_spz", "decode_spz", "write_spz", "SpzHeader", "WRITE_VERSION"]
 
 MAGIC = b"NGSP"
 GZIP_MAGIC = b"\x1f\x8b"
@@ -121,8 +121,12 @@ def read_spz(path, *, sanitize: bool = False) -> GaussianCloud:
     """Read an .spz file (versions 1-4) into a numpy GaussianCloud. Only version 1's float16
     positions can be non-finite: such rows raise PlyError naming them, or `sanitize` drops them."""
     path = Path(path)
-    where = str(path)
-    data = path.read_bytes()
+    return decode_spz(path.read_bytes(), str(path), sanitize=sanitize)
+
+
+def decode_spz(data: bytes, where: str, *, sanitize: bool = False) -> GaussianCloud:
+    """The cloud of an .spz file's bytes (`read_spz`; a glTF file holds them in a buffer view);
+    `where` names the file in errors."""
     if data[:2] == GZIP_MAGIC:
         header, streams = _read_legacy(data, where)
     elif data[:4] == MAGIC:
@@ -130,7 +134,7 @@ def read_spz(path, *, sanitize: bool = False) -> GaussianCloud:
     else:
         raise PlyError(f"{where}: not an .spz file: it starts neither with gzip's 1f 8b nor with 'NGSP'")
     cloud = _unpack(header, streams, where)
-    return drop_nonfinite(cloud, np.isfinite(cloud.means).all(1), where, sanitize, stacklevel=3)
+    return drop_nonfinite(cloud, np.isfinite(cloud.means).all(1), where, sanitize, stacklevel=4)
 
 
 def read_spz_header(path) -> SpzHeader:

@@ -400,6 +400,64 @@ def scenario_formats(bpy, args: dict) -> dict:
     res["multi_new"] = len(set(counts(bpy)["objects"]) - set(before["objects"]))
     res["file_handler_extensions"] = bpy.types.GVAE_FH_gaussian_splat.bl_file_extensions
     res["import_filter"] = bpy.ops.import_scene.gaussian_splat.get_rna_type().properties["filter_glob"].default
+    # glTF: export to .glb; an ordinary .glb goes to Blender's own glTF importer; Blender's splats need 5.3
+    glb_obj = bpy.data.objects[res["imported"]["glb"]["object"]]
+    for obj in bpy.context.view_layer.objects:
+        obj.select_set(False)
+    glb_obj.select_set(True)
+    bpy.context.view_layer.objects.active = glb_obj
+    res["export_glb"] = sorted(bpy.ops.export_scene.gaussian_splat_glb(filepath=args["export_glb"]))
+    before = counts(bpy)
+    res["plain_glb"] = sorted(bpy.ops.import_scene.gaussian_splat(filepath=args["plain_glb"]))
+    res["plain_new"] = sorted((o.name, o.type, len(o.data.vertices)) for o in bpy.data.objects
+                              if o.name not in before["objects"])
+    from bl_ext.user_default.gaussian_vae.gvae_addon import convert
+
+    res["native_available"] = convert.native_available()
+    if not res["native_available"]:
+        res["native_refused"] = failure(bpy, lambda: bpy.ops.import_scene.gaussian_splat(
+            filepath=args["files"]["ply"], splat_type="NATIVE"))
+    return res
+
+
+def scenario_native(bpy, args: dict) -> dict:
+    """Blender 5.3+: File > Import as a Gaussian-splat point cloud (beside Blender's own PLY importer
+    on the same file), File > Export of such an object (ours and Blender's own) to .ply and .glb."""
+    import numpy as np
+
+    def dump(obj, name):
+        pc = obj.data
+        n = len(pc.points)
+        out = {}
+        for attr in pc.attributes:
+            if attr.name.startswith("."):
+                continue
+            width = {"FLOAT_VECTOR": 3, "FLOAT4": 4, "QUATERNION": 4}.get(attr.data_type, 1)
+            buf = np.empty(n * width, np.float32)
+            attr.data.foreach_get("vector" if attr.data_type in ("FLOAT_VECTOR", "FLOAT4") else "value", buf)
+            out[attr.name.replace(":", "__")] = buf.reshape(n, width) if width > 1 else buf
+        np.savez(args["out"] + f".{name}.npz", **out)
+        return {"type": obj.type, "data_type": pc.type, "points": n}
+
+    res = {}
+    before = counts(bpy)
+    res["import"] = sorted(bpy.ops.import_scene.gaussian_splat(filepath=args["ply"], splat_type="NATIVE"))
+    ours = bpy.context.active_object
+    res["ours"] = dump(ours, "ours")
+    res["new"] = sorted(set(counts(bpy)["objects"]) - set(before["objects"]))
+    bpy.ops.wm.ply_import(filepath=args["ply"])
+    blenders = bpy.context.active_object
+    res["blender"] = dump(blenders, "blender")
+    for obj, path in ((ours, args["export_ply"]), (blenders, args["export_glb"])):
+        for other in bpy.context.view_layer.objects:
+            other.select_set(False)
+        obj.select_set(True)
+        bpy.context.view_layer.objects.active = obj
+        res.setdefault("poll", []).append(bpy.ops.export_scene.gaussian_splat.poll())
+        op = bpy.ops.export_scene.gaussian_splat_glb if path.endswith(".glb") else bpy.ops.export_scene.gaussian_splat
+        res.setdefault("export", []).append(sorted(op(filepath=path)))
+    bpy.ops.import_scene.gaussian_splat(filepath=args["glb"], splat_type="NATIVE")
+    res["from_glb"] = dump(bpy.context.active_object, "from_glb")
     return res
 
 

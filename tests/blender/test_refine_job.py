@@ -65,6 +65,7 @@ def test_compact_job_batch_button_and_undo(extension_zip, tmp_path):
     was; a run keeps every attribute (the input's values where nothing was merged) and one undo
     step takes it back."""
     pytest.importorskip("torch", reason="Compact needs PyTorch (an optional runtime in Blender)")
+    requires_blender_torch()  # (the Python that runs Blender, not this one: none for Blender 5.1+ here)
     n = 60
     cloud = make_cloud(n, degree=1)
     src = tmp_path / "in.ply"
