@@ -22,7 +22,9 @@ from gvae_core.refinement import refine
 from gvae_core.rendering import render
 from gvae_core.scenes.faults import FAULTS, faulted_scene
 from gvae_core.superres import ImageMismatchError, SuperResConfig, capture_images, fit_octaves
+from gvae_core.detail.fit import crop
 from gvae_core.superres.children import CHILD_LOGIT
+from gvae_core.superres.fit import _reaching
 from gvae_core.superres.guards import ExposureCorrection, PoseCorrection, _skew
 
 H = 24  # training height of the synthetic capture
@@ -67,6 +69,26 @@ def test_the_fit_sharpens_the_higher_resolution_picture_and_keeps_the_training_o
     for cam in views.cameras:  # at the training resolution nothing is drawn changed
         assert torch.equal(render(refined, cam).image, render(trained, cam).image)
     assert all(np.isfinite(v).all() for v in fit.changes.values())
+
+
+def test_a_patch_is_drawn_from_the_gaussians_that_reach_it_exactly_as_from_all():
+    _, trained, views = _capture(n=600)
+    rng = np.random.default_rng(1)
+    changes = {"scales": rng.normal(0, 0.3, trained.scales.shape).astype(np.float32),
+               "means": rng.normal(0, 0.01, trained.means.shape).astype(np.float32)}
+    rows = trained.to_torch()
+    tc = {f: torch.from_numpy(v) for f, v in changes.items()}
+    full = with_octaves(rows, tc, 1.0)
+    kept = []
+    for cam in views.cameras[:3]:
+        big = cam.scaled(2 * H)
+        for x0, y0, size in ((0, 0, 16), (20, 8, 12), (30, 30, 18)):
+            patch = crop(big, x0, y0, size, size)
+            keep = torch.from_numpy(_reaching(rows, tc, 1.0, patch))
+            sub = with_octaves(rows.select(keep), {f: v[keep] for f, v in tc.items()}, 1.0)
+            assert torch.equal(render(sub, patch).image, render(full, patch).image)
+            kept.append(len(keep) / len(rows))
+    assert min(kept) < 0.9  # (and it does leave some out)
 
 
 def test_children_draw_nothing_at_the_training_rate_and_appear_above_it():
