@@ -1,6 +1,7 @@
 """The `gvae` command line: subcommands, help, info, demo; the example cloud."""
 
 import argparse
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -10,10 +11,11 @@ import pytest
 from PIL import Image
 
 from gvae_core import read_ply, write_ply
+from gvae_core.antialias import with_dilation_3d
 from gvae_core.cli import build_parser, demo, main
 from gvae_core.examples import example_cloud
 from gvae_core.detail import DetailModel, save_detail
-from tests.test_experiment import _scene
+from gvae_core.rendering import render
 
 
 def subcommands() -> list[str]:
@@ -104,26 +106,38 @@ def test_demo_without_a_trained_example_writes_then_reuses_the_example(tmp_path,
     assert path.stat().st_mtime_ns == stamp
 
 
-def test_demo_refines_the_trained_example_and_compares_at_2x(tmp_path, capsys, monkeypatch):
-    """The demo's main path on a small stand-in for the bundled example: a cloud and ground-truth
-    test views at twice its resolution (a ball rendered by our renderer), an untrained detail model
-    (which changes nothing: its outputs start at zero)."""
-    folder = _scene(tmp_path / "example", size=40)
-    cloud = example_cloud(400)
-    write_ply(cloud.replace(means=cloud.means * 0.4), folder / "scene.ply")
+def test_demo_refines_the_trained_example_without_and_with_its_images(tmp_path, capsys, monkeypatch):
+    """The demo's main path on a small stand-in for the bundled example: a trained cloud, its training
+    images and ground-truth test views at twice their resolution (the synthetic capture of
+    tests/test_superres.py), an untrained detail model (which changes nothing: its outputs start at
+    zero); the fit to the images does change the picture at 2x and keeps the one at 1x."""
+    from tests.test_superres import H, _capture, _write_capture  # noqa: PLC0415
+
+    truth, trained, views = _capture(n_views=4, n=200)
+    folder = _write_capture(views, tmp_path / "example")
+    cams = [c.scaled(2 * H) for c in views.cameras[:3]]
+    sharp = with_dilation_3d(truth, cams)
+    (folder / "test").mkdir()
+    frames = []
+    for i, cam in enumerate(cams):
+        img = render(sharp, cam, background=(1.0, 1.0, 1.0)).image.clamp(0, 1).numpy()
+        Image.fromarray((img * 255 + 0.5).astype(np.uint8)).save(folder / "test" / f"r_{i}.png")
+        frames.append({"file_path": f"./test/r_{i}", "transform_matrix": cam.to_blender_c2w().tolist()})
+    (folder / "transforms_test.json").write_text(json.dumps({"camera_angle_x": cams[0].fov_x, "frames": frames}))
+    write_ply(trained, folder / "scene.ply")
     save_detail(DetailModel(), tmp_path / "model")
     monkeypatch.setenv("GVAE_MODEL_DIR", str(tmp_path / "model"))
     monkeypatch.setattr(demo, "trained_example", lambda: folder)
-    assert main(["demo", "--results", str(tmp_path / "out")]) == 0
+    assert main(["demo", "--results", str(tmp_path / "out"), "--fit-steps", "8"]) == 0
     out = capsys.readouterr().out
     rows = [line for line in out.splitlines() if line.startswith("| ")]
-    assert rows[0] == "| view | unrefined | refined | change | model, unchecked | change |"
+    assert rows[0] == "| view | unrefined | detail model (no images) | change | with the images | change |"
     assert len(rows) == 1 + 3 + 1  # head, 3 views, mean
-    before, after, unchecked = (float(rows[-1].split(" | ")[k].split()[0]) for k in (1, 2, 4))
-    assert 0 < before < 60 and after == before and unchecked == before
-    assert "refined cloud draws as the unrefined one: PSNR between the two 100.0 dB" in out
-    refined = read_ply(tmp_path / "out" / "refined.ply")
-    assert len(refined) == 400
+    before, detail, fitted = (float(rows[-1].split(" | ")[k].split()[0]) for k in (1, 2, 4))
+    assert 0 < before < 60 and detail == before and fitted != before
+    assert "both refined clouds draw as the unrefined one: PSNR between them 100.0 dB" in out
+    assert len(read_ply(tmp_path / "out" / "refined.ply")) == 200
+    assert len(read_ply(tmp_path / "out" / "refined_with_images.ply")) >= 200
     sheet = Image.open(tmp_path / "out" / "comparison.png")
-    crop = demo.ZOOM * int(demo.CROP * 40)
-    assert sheet.size == (4 * 40 + 4 * crop, 3 * max(40, crop))  # a row per view: 4 panels, 4 crops
+    crop = demo.ZOOM * int(demo.CROP * 2 * H)
+    assert sheet.size == (4 * 2 * H + 4 * crop, 3 * max(2 * H, crop))  # a row per view: 4 panels, 4 crops

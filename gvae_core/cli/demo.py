@@ -1,15 +1,18 @@
-"""`gvae demo`: refine the bundled trained scene (refine's default: the detail model, with the
-fidelity check) and show, at twice its training resolution, the unrefined cloud, the refined one,
-what the model did before the check, and the ground truth side by side, with zoomed crops and
-PSNRs; and the PSNR at the training resolution, which the refinement keeps."""
+"""`gvae demo`: refine the bundled trained scene two ways, without its images (refine's default: the
+detail model, with the fidelity check) and with them (`refine(images=...)`: the changes fitted to
+its training images), and show, at twice its training resolution, the unrefined cloud, both refined
+ones and the ground truth side by side, with zoomed crops and PSNRs; and the PSNR at the training
+resolution, which both refinements keep."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from . import progress_lines
+
 #: A scene the project trained itself, held out of the bundled model's training: the last training
-#: stage (with its 3D filter) and ground-truth test views at twice its resolution.
+#: stage, its training images and ground-truth test views at twice its resolution.
 TRAINED_EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "trained"
 #: Each crop is this fraction of the image side, drawn this many times larger.
 CROP, ZOOM = 0.3, 3
@@ -17,16 +20,18 @@ CROP, ZOOM = 0.3, 3
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="run the main job on the bundled example",
-                              description="Refine the bundled trained scene (a chair the model never saw) and "
-                              "write the refined PLY and a comparison at twice the training resolution: the "
-                              "unrefined cloud, the refined one, the model's output before the fidelity check and "
-                              "the ground truth, with crops and PSNRs. "
+                              description="Refine the bundled trained scene (a chair the model never saw) without "
+                              "and with its training images and write the refined PLYs and a comparison at twice the "
+                              "training resolution: the unrefined cloud, the two refined ones and the ground truth, "
+                              "with crops and PSNRs. "
                               "Without the bundled example or model: write an example cloud and describe it.")
     p.add_argument("--out", type=Path, default=Path("examples/example.ply"),
                    help="where the fallback example PLY goes (default: %(default)s)")
     p.add_argument("--steps", type=int, default=1, help="octaves the refinement covers (default: 1)")
     p.add_argument("--results", type=Path, default=Path("out/demo"),
-                   help="where the refined PLY and the comparison go (default: %(default)s)")
+                   help="where the refined PLYs and the comparison go (default: %(default)s)")
+    p.add_argument("--fit-steps", type=int, default=None, metavar="N",
+                   help="optimiser steps per octave of the fit to the images (default: superres.SuperResConfig's)")
     p.set_defaults(func=run)
 
 
@@ -71,11 +76,15 @@ def run_trained(folder: Path, args: argparse.Namespace) -> int:
     views = load_nerf_synthetic(folder, "test")
     print(f"trained example {folder}: {len(cloud)} Gaussians, SH degree {cloud.sh_degree}; ground truth: "
           f"{len(views)} test views at {views.cameras[0].height} px")
+    print("refine without the images (the detail model):")
     result = refine(cloud, steps=args.steps, progress=lambda f, msg: print(f"  [{f:4.0%}] {msg}"))
-    unchecked = refine(cloud, steps=args.steps, fidelity=None)
+    print(f"refine with the training images of {folder}:")
+    fit = {} if args.fit_steps is None else {"steps": args.fit_steps}
+    fitted = refine(cloud, steps=args.steps, images=folder, fit=fit, progress=progress_lines())
     out: Path = args.results
     out.mkdir(parents=True, exist_ok=True)
     write_ply(result.cloud, out / "refined.ply")
+    write_ply(fitted.cloud, out / "refined_with_images.ply")
 
     settings = RenderSettings(antialias="auto")  # the example carries its filter: the mip render
 
@@ -86,14 +95,14 @@ def run_trained(folder: Path, args: argparse.Namespace) -> int:
     rows, scores = [], []
     size = int(CROP * views.cameras[0].height)
     for cam, gt in zip(views.cameras, truth):
-        images = [draw(c, cam) for c in (cloud, result.cloud, unchecked.cloud)]
+        images = [draw(c, cam) for c in (cloud, result.cloud, fitted.cloud)]
         scores.append([psnr(img, gt) for img in images])
         y, x = _crop_box(images[0], images[2], size)
         panels = images + [gt]
         crops = [np.kron(p[y:y + size, x:x + size], np.ones((ZOOM, ZOOM, 1))) for p in panels]
         row = [Image.fromarray((p * 255 + 0.5).astype(np.uint8)) for p in panels + crops]
-        labels = (f"unrefined {scores[-1][0]:.2f} dB", f"refined {scores[-1][1]:.2f} dB",
-                  f"unchecked {scores[-1][2]:.2f} dB", "ground truth")
+        labels = (f"unrefined {scores[-1][0]:.2f} dB", f"detail model {scores[-1][1]:.2f} dB",
+                  f"with the images {scores[-1][2]:.2f} dB", "ground truth")
         for img, label in zip(row[:4], labels):
             ImageDraw.Draw(img).text((3, 2), label, fill=(0, 0, 0))
         ImageDraw.Draw(row[0]).rectangle([x, y, x + size, y + size], outline=(255, 0, 0))
@@ -111,19 +120,21 @@ def run_trained(folder: Path, args: argparse.Namespace) -> int:
     sheet.save(out / "comparison.png")
     print(f"\nPSNR against the ground truth at {views.cameras[0].height} px (twice the training resolution), "
           f"rendered with the anti-aliasing filter:")
-    print("| view | unrefined | refined | change | model, unchecked | change |\n|---|---|---|---|---|---|")
+    print("| view | unrefined | detail model (no images) | change | with the images | change |\n"
+          "|---|---|---|---|---|---|")
     for i, (b, a, u) in enumerate(scores + [list(np.mean(scores, 0))]):
         print(f"| {i if i < len(scores) else 'mean'} | {b:.2f} dB | {a:.2f} dB | {a - b:+.2f} dB | {u:.2f} dB | "
               f"{u - b:+.2f} dB |")
     low = [cam.scaled(cam.height // 2) for cam in views.cameras]  # the training resolution
-    kept = [min(100.0, psnr(draw(result.cloud, cam), draw(cloud, cam))) for cam in low]
-    print(f"\nAt the training resolution ({low[0].height} px) the refined cloud draws as the unrefined one: PSNR "
-          f"between the two {min(kept):.1f} dB or more (100: identical).")
-    print(f"\nwrote {out / 'refined.ply'} ({len(result.cloud)} Gaussians; it carries each Gaussian's change per "
-          f"octave, drawn by `gvae render` and the Blender add-on; `gvae refine --bake 2` writes a plain PLY for other "
-          f"tools) and {out / 'comparison.png'} (per view: unrefined, refined, the model's output before the "
-          f"fidelity check put back {len(result.reverted)} of {len(result.selected)} Gaussians' changes, ground "
-          f"truth; then the same four zoomed {ZOOM}x where the model changed the picture most, red box)")
+    kept = [min(100.0, psnr(draw(c, cam), draw(cloud, cam))) for c in (result.cloud, fitted.cloud) for cam in low]
+    print(f"\nAt the training resolution ({low[0].height} px) both refined clouds draw as the unrefined one: PSNR "
+          f"between them {min(kept):.1f} dB or more (100: identical).")
+    print(f"\nwrote {out / 'refined.ply'} ({len(result.cloud)} Gaussians) and {out / 'refined_with_images.ply'} "
+          f"({len(fitted.cloud)}: {len(fitted.added)} added that draw only above the training resolution); each "
+          f"carries its Gaussians' changes per octave, drawn by `gvae render` and the Blender add-on (`gvae refine "
+          f"--bake 2` writes a plain PLY for other tools); and {out / 'comparison.png'} (per view: unrefined, the "
+          f"detail model, with the images, ground truth; then the same four zoomed {ZOOM}x where the images changed "
+          f"the picture most, red box)")
     return 0
 
 
