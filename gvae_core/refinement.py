@@ -46,7 +46,7 @@ from .lineage import (APP_EXIST, GEO_EXIST, GEO_LOG_SCALE, GEO_POSITION, Lineage
                       cloud_from_features, geometry_features)
 from .octaves import has_octaves, octave_fields, with_octaves
 from .rendering.frames import Frame, make_frame
-from .resources import check_refine_memory, reuse_freed_memory
+from .resources import check_image_fit_memory, check_refine_memory, reuse_freed_memory
 from .superres import SuperResConfig, SuperResFit, capture_images, fit_octaves
 from .vae import GaussianVAE, load_default_model
 from .vae.features import FEATURE_LOG_SCALE_RANGE, FEATURE_POSITION_LIMIT
@@ -383,7 +383,14 @@ def refine_images(cloud: GaussianCloud, images: Any, *, steps: int = 1, image_he
     timings: dict[str, float] = {}
     say(0.01, "reading the capture's images")
     t0 = time.perf_counter()
-    capture = capture_images(src, images, image_height)
+    extra = sum(int(np.prod(np.shape(v)[1:], dtype=np.int64)) for v in src.extra.values())
+
+    def memory(count: int, height: int, width: int) -> None:
+        if check_memory:
+            check_image_fit_memory(n, src.sh_degree, images=count, height=height, width=width, extra_values=extra,
+                                   children=config.max_children if config.children is not None else 0.0)
+
+    capture = capture_images(src, images, image_height, before_loading=memory)
     src, views = capture.cloud, capture.views
     timings["images"] = time.perf_counter() - t0
     start = None

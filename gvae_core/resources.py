@@ -23,7 +23,8 @@ from collections.abc import Iterator
 from .conventions import SH_REST_COUNTS
 
 __all__ = ["NotEnoughMemoryError", "available_memory", "estimate_refine_memory", "check_refine_memory",
-           "estimate_compact_memory", "check_compact_memory", "reuse_freed_memory"]
+           "estimate_compact_memory", "check_compact_memory", "estimate_image_fit_memory", "check_image_fit_memory",
+           "reuse_freed_memory"]
 
 #: Bytes of the Python process with torch and the models loaded, before any cloud.
 BASE_BYTES = 600 << 20
@@ -50,6 +51,13 @@ DETAIL_PER_GAUSSIAN = 1000
 #: the per-edge 3x3 temporaries of the cost), and per Gaussian (moments: mass, centre, covariance).
 MERGE_PER_EDGE = 260
 MERGE_PER_GAUSSIAN = 400
+
+
+#: Bytes per value of a Gaussian (14 + 3 K, children included) of a fit to the capture's images: the
+#: cloud as torch tensors, its changes per octave with their gradients and Adam's two moments, and
+#: the copies each step draws from; per image pixel: the images and their composites (float32 RGB).
+IMAGE_FIT_PER_VALUE = 40
+IMAGE_FIT_PER_PIXEL = 28
 
 
 class NotEnoughMemoryError(ValueError):
@@ -153,6 +161,26 @@ def check_compact_memory(n: int, sh_degree: int = 3, **kwargs) -> int:
     return _check(estimate_compact_memory(n, sh_degree, **kwargs),
                   f"compacting {n:,} Gaussians (SH degree {sh_degree})",
                   "compact a smaller part of the cloud or use fewer/smaller scoring views")
+
+
+def estimate_image_fit_memory(n: int, sh_degree: int = 3, *, images: int, height: int, width: int,
+                              extra_values: int = 0, children: float = 0.0) -> int:
+    """Estimated peak bytes of refining `n` Gaussians from `images` training images of `height` x
+    `width` pixels (`refine(images=...)`), with up to `children` added Gaussians per input one."""
+    k = SH_REST_COUNTS[min(int(sh_degree), 3)]
+    values = 14 + 3 * k
+    rows = int(n * (1.0 + max(float(children), 0.0)))
+    return int(BASE_BYTES + n * (values + int(extra_values)) * PER_VALUE + rows * values * IMAGE_FIT_PER_VALUE
+               + int(images) * int(height) * int(width) * IMAGE_FIT_PER_PIXEL)
+
+
+def check_image_fit_memory(n: int, sh_degree: int = 3, **kwargs) -> int:
+    """The estimate of `estimate_image_fit_memory`; raises NotEnoughMemoryError when it exceeds the
+    memory available now (skipped where that cannot be told)."""
+    return _check(estimate_image_fit_memory(n, sh_degree, **kwargs),
+                  f"refining {n:,} Gaussians (SH degree {sh_degree}) from {kwargs.get('images')} images of "
+                  f"{kwargs.get('width')}x{kwargs.get('height')} px",
+                  "fit at a smaller --image-height, with fewer images or a part of the cloud")
 
 
 # glibc's mallopt parameters (malloc.h)

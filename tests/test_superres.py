@@ -218,3 +218,18 @@ def test_faulted_captures_change_what_they_say(tmp_path):
     cubic = load_nerf_synthetic(faulted_scene(scene, "bicubic", H, cache=tmp_path / "cache"), "train")
     assert np.abs(cubic.images - clean.images).max() > 2 / 255
     assert set(FAULTS) >= {"none", "pose 0.1 px", "pose 0.25 px", "pose 0.5 px", "exposure 10%", "bicubic", "lanczos"}
+
+
+def test_a_fit_too_large_for_the_memory_is_refused_before_the_images_are_read(monkeypatch, tmp_path):
+    import gvae_core.resources as resources  # noqa: PLC0415
+    import gvae_core.superres.match as match  # noqa: PLC0415
+
+    _, trained, views = _capture(n_views=3, n=100)
+    folder = _write_capture(views, tmp_path / "capture")
+    need = resources.estimate_image_fit_memory(100, 1, images=3, height=H, width=H)
+    more = resources.estimate_image_fit_memory(100, 1, images=300, height=H, width=H, children=0.5)
+    assert more > need > resources.estimate_image_fit_memory(50, 1, images=3, height=H, width=H)
+    monkeypatch.setattr(resources, "available_memory", lambda: need - 1)
+    monkeypatch.setattr(match, "load_capture_images", lambda *a, **k: pytest.fail("images read"))
+    with pytest.raises(resources.NotEnoughMemoryError, match="from 3 images of 24x24 px"):
+        refine(trained.with_sh_degree(1), images=folder, fit={"children": None})

@@ -64,11 +64,14 @@ class ImageMatch:
     views: int
 
 
-def capture_images(cloud: GaussianCloud, images, height: int | None = None, *, check_views: int = 6) -> CaptureImages:
+def capture_images(cloud: GaussianCloud, images, height: int | None = None, *, check_views: int = 6,
+                   before_loading=None) -> CaptureImages:
     """The capture's images for fitting `cloud` (numpy): `images` a dataset path (a NeRF-Synthetic
     folder or COLMAP capture, `capture.load_capture_images`) or `Views` already loaded at the
-    training resolution; `height` the training image height if known. Raises DatasetError (files)
-    or ImageMismatchError / ValueError (content) naming the dataset."""
+    training resolution; `height` the training image height if known. `before_loading(count,
+    height, width)`: called once the images' number and size are known, before they are read (a
+    memory check). Raises DatasetError (files) or ImageMismatchError / ValueError (content) naming
+    the dataset."""
     name = "the images given" if isinstance(images, Views) else str(images)
     cams = images.cameras if isinstance(images, Views) else load_capture_cameras(images)
     if height is not None and int(height) <= 0:
@@ -92,6 +95,9 @@ def capture_images(cloud: GaussianCloud, images, height: int | None = None, *, c
         source = f"{height} px, from the cloud's anti-aliasing size against the capture's cameras"
     else:
         source = "the images' own size (the cloud carries no anti-aliasing size)"
+    if before_loading is not None:
+        size = cams[0] if height is None else cams[0].scaled(height)
+        before_loading(len(cams), size.height, size.width)
     if isinstance(images, Views):
         views = images if height is None else images.at_resolution(height)
     else:
