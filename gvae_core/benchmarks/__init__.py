@@ -13,6 +13,7 @@ BENCHMARKS = (
     "antialias",
     "blender",
     "refine",
+    "superres",
     "quality",
     "scenes",
     "train",

@@ -1,0 +1,117 @@
+"""Refine from the capture's images (`refine(images=...)`, `gvae_core.superres`) at capture scale:
+seconds for one octave of the default fit, seconds per step, peak memory against the estimate, and
+the error of the same run (PSNR of the averaged-down 2x render against the training images before
+and after the fit; the training picture kept: its largest change at 1x).
+
+The capture is synthetic, so that any size can be made: `example_cloud(N)` (SH 3) as the scene,
+its renders at twice the image height averaged down as the training images (from cameras on a ring
+around it, looking at it), and the same cloud with every Gaussian 25% larger, carrying the cameras'
+anti-aliasing size, as the trained cloud. Each size runs in a fresh process (its peak memory is its
+own). Quality is measured on the benchmark scenes (`make report`), not here."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..antialias import with_dilation_3d
+from ..camera import Camera
+from ..datasets import Views
+from ..examples import example_cloud
+from ..refinement import refine
+from ..rendering import render
+from ..resources import estimate_image_fit_memory
+from ..superres import SuperResConfig
+
+#: The capture sizes the benchmark runs: (Gaussians, images, image height); the first is issue 33's
+#: speed goal (100k Gaussians, 60 views of 400 px, one octave within 3 minutes on 2 cores).
+SIZES = ((100_000, 60, 400), (1_000_000, 40, 540))
+
+
+def synthetic_capture(n: int, views: int, height: int, seed: int = 1):
+    """(trained cloud, training images) of the synthetic capture (module docstring)."""
+    truth = example_cloud(n, seed=seed)
+    width = int(round(height * 4 / 3))
+    cams = []
+    for i in range(views):
+        a = 2 * math.pi * i / views
+        eye = (3.2 * math.cos(a), 3.2 * math.sin(a), 0.6 + 1.2 * ((i * 0.618) % 1.0))
+        cams.append(Camera.look_at(eye, (0, 0, 0), width=width, height=height, fov_x=math.radians(50)))
+    big = [c.scaled(2 * height) for c in cams]
+    sharp = with_dilation_3d(truth, big)
+    images = np.empty((views, height, width, 3), np.float32)
+    with torch.no_grad():
+        for i, c in enumerate(big):
+            img = render(sharp, c, background=(1.0, 1.0, 1.0)).image
+            images[i] = F.avg_pool2d(img.permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0).clamp(0, 1).numpy()
+    trained = with_dilation_3d(truth.replace(scales=truth.scales + np.float32(math.log(1.25))), cams)
+    return trained, Views(cams, images)
+
+
+def one(n: int, views: int, height: int, steps: int | None = None) -> dict:
+    """The child process: make the capture, refine one octave from its images; times and checks."""
+    t0 = time.perf_counter()
+    trained, images = synthetic_capture(n, views, height)
+    made = time.perf_counter() - t0
+    config = {} if steps is None else {"steps": steps}
+    c0 = resource.getrusage(resource.RUSAGE_SELF)
+    t0 = time.perf_counter()
+    r = refine(trained, images=images, fit=config)
+    seconds = time.perf_counter() - t0
+    c1 = resource.getrusage(resource.RUSAGE_SELF)
+    fit = r.fit
+    cam = images.cameras[0]
+    with torch.no_grad():  # the training picture: the refined cloud's 1x render against the input's
+        kept = float((render(r.cloud, cam).image - render(trained, cam).image).abs().max())
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * (1 if sys.platform == "darwin" else 1024)
+    conf = SuperResConfig(**config)
+    estimate = estimate_image_fit_memory(n, trained.sh_degree, images=views, height=height, width=cam.width,
+                                         extra_values=len(trained.extra),
+                                         children=conf.max_children if conf.children is not None else 0.0)
+    return {"n": n, "views": views, "height": height, "width": cam.width, "made_s": made, "seconds": seconds,
+            "fit_s": r.timings.get("fit", float("nan")), "steps": len(fit.losses),
+            "cpu": c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime, "before": fit.psnr_before,
+            "after": fit.psnr_after, "added": len(r.added), "kept_1x": kept, "peak": peak, "estimate": estimate,
+            "nonfinite": len(r.cloud.nonfinite_rows()), "timings": r.timings}
+
+
+def run(args) -> None:
+    quick = bool(getattr(args, "quick", False))
+    sizes = ((20_000, 12, 200),) if quick else SIZES
+    threads = os.environ.get("OMP_NUM_THREADS") or torch.get_num_threads()
+    print(f"Refine from the capture's images, one octave, the default fit ({SuperResConfig()}), synthetic captures "
+          f"(module docstring), torch threads {threads}; each size in a fresh process:")
+    print("\n| Gaussians | images | refine s (fit s; s/step) | process CPU s | PSNR on the images, 2x averaged down: "
+          "before -> after | added | 1x largest change | peak RSS (estimate) | non-finite rows | load |")
+    print("|---:|---|---|---:|---|---:|---:|---|---:|---|")
+    for n, views, height in sizes:
+        load0 = os.getloadavg()[0]
+        proc = subprocess.run([sys.executable, "-m", "gvae_core.benchmarks.superres", "--one", str(n), str(views),
+                               str(height)], capture_output=True, text=True, timeout=6 * 3600)
+        if proc.returncode != 0:
+            why = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else proc.returncode
+            print(f"| {n:,} | {views} x {height} px | failed: {why} |")
+            continue
+        r = json.loads(proc.stdout.strip().splitlines()[-1])
+        print(f"| {n:,} | {views} x {r['width']}x{height} px | **{r['seconds']:.1f}** ({r['fit_s']:.1f}; "
+              f"{r['fit_s'] / max(r['steps'], 1):.3f}) | {r['cpu']:.1f} | {r['before']:.2f} -> {r['after']:.2f} dB | "
+              f"{r['added']:,} | {r['kept_1x']:.1e} | {r['peak'] / 2 ** 30:.2f} GiB ({r['estimate'] / 2 ** 30:.2f}) | "
+              f"{r['nonfinite']} | {load0:.1f}-{os.getloadavg()[0]:.1f} |", flush=True)
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--one", nargs=3, type=int, metavar=("N", "VIEWS", "HEIGHT"), required=True)
+    parser.add_argument("--steps", type=int, default=None)
+    a = parser.parse_args()
+    print(json.dumps(one(*a.one, steps=a.steps)))
