@@ -96,6 +96,29 @@ class RefineResult:
                 f"{times}")
 
 
+@dataclass(frozen=True)
+class RefineInput:
+    """A refine's input, converted and measured once at its entry (`refine` makes it and hands it to
+    the method): the cloud as numpy arrays, refused if any row is not finite, and its normalisation
+    (`GaussianCloud.normalization`: the frame of Hessian positions, of lineages without history and
+    of the placed views)."""
+
+    cloud: GaussianCloud
+    normalization: tuple[np.ndarray, float]
+
+    @classmethod
+    def of(cls, cloud: GaussianCloud | RefineInput) -> RefineInput:
+        if isinstance(cloud, RefineInput):
+            return cloud
+        src = cloud.numpy()
+        bad = src.nonfinite_rows()
+        if len(bad):
+            rows = ", ".join(str(int(r)) for r in bad[:5])
+            raise ValueError(f"refine: the cloud has non-finite values in {len(bad)} row(s) "
+                             f"[{rows}{', ...' if len(bad) > 5 else ''}]; sanitize it first")
+        return cls(src, src.normalization())
+
+
 def _initial_history(cloud: GaussianCloud, lineage: Lineage | None, selected: np.ndarray, normalization):
     """Node features (M,T,11), (M,T,50) of the selected rows, and the normalisation's scale. The
     last node is always the input Gaussian itself; earlier nodes come from the lineage when given
@@ -208,13 +231,15 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = None, method: 
         raise ValueError(f"refine: images are fitted by the detail method (changes per octave), not by {method!r}")
     if images is None and (image_height is not None or fit is not None):
         raise ValueError("refine: image_height and fit need images")
+    _check_steps(steps)
     with reuse_freed_memory():  # one scope over all the parts: memory is handed back once, at the end
+        src = RefineInput.of(cloud)
         if images is not None:
-            return refine_images(cloud, images, steps=steps, image_height=image_height, config=fit, model=model,
+            return refine_images(src, images, steps=steps, image_height=image_height, config=fit, model=model,
                                  lineage=lineage, stage=stage, progress=progress, check_memory=check_memory)
         if method == "detail":
-            return refine_detail(cloud, **common)
-        (result,) = refine_steps(cloud, seed=seed, every_step=False, carry_appearance=carry_appearance, **common)
+            return refine_detail(src, **common)
+        (result,) = refine_steps(src, seed=seed, every_step=False, carry_appearance=carry_appearance, **common)
     return result
 
 
@@ -235,10 +260,9 @@ def _check_steps(steps) -> None:
         raise ValueError(f"refine: steps must be an integer >= 1, got {steps!r}")
 
 
-def _check_input(src: GaussianCloud, budget, options: dict, steps: int, scoring: bool, check_memory: bool,
-                 method: str = "vae") -> None:
-    """Refuse what refine cannot take before any work: too large for the memory free now, or
-    non-finite rows."""
+def _check_memory(src: GaussianCloud, budget, options: dict, steps: int, scoring: bool, check_memory: bool,
+                  method: str = "vae") -> None:
+    """Refuse a cloud too large for the memory free now before any work."""
     n = len(src)
     if check_memory:
         extra = sum(int(np.prod(np.shape(v)[1:], dtype=np.int64)) for v in src.extra.values())
@@ -254,11 +278,6 @@ def _check_input(src: GaussianCloud, budget, options: dict, steps: int, scoring:
         check_refine_memory(n, src.sh_degree, extra_values=extra, views=options.get("views", DEFAULT_VIEWS),
                             resolution=options.get("resolution", DEFAULT_RESOLUTION), selected=selected_bound,
                             steps=steps, scoring=scoring, method=method)
-    bad = src.nonfinite_rows()
-    if len(bad):
-        rows = ", ".join(str(int(r)) for r in bad[:5])
-        raise ValueError(f"refine: the cloud has non-finite values in {len(bad)} row(s) "
-                         f"[{rows}{', ...' if len(bad) > 5 else ''}]; sanitize it first")
 
 
 def _scores(src: GaussianCloud, cameras, scores, budget, options: dict, normalization, frames, say, h0, h1):
@@ -297,7 +316,7 @@ NOT_FOR_FILTERED = ("the cloud carries a 3D filter (filter_3D, Mip-Splatting); t
                     "BENCHMARKS.md), so nothing was changed")
 
 
-def refine_detail(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "all", model: Any = None,
+def refine_detail(cloud: GaussianCloud | RefineInput, *, steps: int = 1, budget: Any = "all", model: Any = None,
                   cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, stage: int | None = None,
                   progress: Callable[[float, str], None] | None = None, hessian_options: dict | None = None,
                   scores: Any = None, check_memory: bool = True,
@@ -310,11 +329,12 @@ def refine_detail(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "all", 
     timings: dict[str, float] = {}
     say = progress or (lambda fraction, message: None)
     _check_steps(steps)
-    src = cloud.numpy()
+    inp = RefineInput.of(cloud)
+    src, normalization = inp.cloud, inp.normalization
     n = len(src)
     options = dict(hessian_options or {})
     scoring = scores is None and budget != "all"
-    _check_input(src, budget, options, steps, scoring, check_memory, method="detail")
+    _check_memory(src, budget, options, steps, scoring, check_memory, method="detail")
     empty = np.zeros(0, np.int64)
     if FILTER_KEY in src.extra:
         say(1.0, f"not refined: {NOT_FOR_FILTERED}")
@@ -330,7 +350,6 @@ def refine_detail(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "all", 
 
     h0, h1 = (0.02, 0.75) if scoring else (0.02, 0.05)
     say(h0, "scoring Gaussians (Hessian)" if scoring else "reading the cloud")
-    normalization = src.normalization()
     src, rate_source = with_training_rate(src, cameras, options, normalization)
     frames: list | None = [] if fidelity is not None else None
     t0 = time.perf_counter()
@@ -361,7 +380,7 @@ def refine_detail(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "all", 
     return result
 
 
-def refine_images(cloud: GaussianCloud, images: Any, *, steps: int = 1, image_height: int | None = None,
+def refine_images(cloud: GaussianCloud | RefineInput, images: Any, *, steps: int = 1, image_height: int | None = None,
                   config: SuperResConfig | dict | None = None, model: Any = None, lineage: Lineage | None = None,
                   stage: int | None = None, progress: Callable[[float, str], None] | None = None,
                   check_memory: bool = True) -> RefineResult:
@@ -377,9 +396,10 @@ def refine_images(cloud: GaussianCloud, images: Any, *, steps: int = 1, image_he
     say = progress or (lambda fraction, message: None)
     _check_steps(steps)
     config = SuperResConfig(**config) if isinstance(config, dict) else config or SuperResConfig()
-    src = cloud.numpy()
+    inp = RefineInput.of(cloud)
+    src = inp.cloud
     n = len(src)
-    _check_input(src, "all", {}, steps, False, check_memory, method="detail")
+    _check_memory(src, "all", {}, steps, False, check_memory, method="detail")
     timings: dict[str, float] = {}
     say(0.01, "reading the capture's images")
     t0 = time.perf_counter()
@@ -397,8 +417,8 @@ def refine_images(cloud: GaussianCloud, images: Any, *, steps: int = 1, image_he
     if config.start == "detail" and FILTER_KEY not in src.extra:  # the model is not for filter-trained clouds
         say(0.03, "detail model")
         t0 = time.perf_counter()
-        start = octave_fields(refine_detail(src, steps=steps, model=model, lineage=lineage, stage=stage,
-                                            fidelity=None, check_memory=False).cloud)
+        start = octave_fields(refine_detail(RefineInput(src, inp.normalization), steps=steps, model=model,
+                                            lineage=lineage, stage=stage, fidelity=None, check_memory=False).cloud)
         timings["detail"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     fitted = fit_octaves(src, views, steps, config, start=start, background=capture.match.background,
@@ -423,7 +443,7 @@ def refine_images(cloud: GaussianCloud, images: Any, *, steps: int = 1, image_he
     return result
 
 
-def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", model: Any = None,
+def refine_steps(cloud: GaussianCloud | RefineInput, *, steps: int = 1, budget: Any = "auto", model: Any = None,
                  cameras: Sequence[Camera] | None = None, lineage: Lineage | None = None, stage: int | None = None,
                  seed: int = 0, progress: Callable[[float, str], None] | None = None,
                  hessian_options: dict | None = None, scores: Any = None, every_step: bool = True,
@@ -436,10 +456,11 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
     timings: dict[str, float] = {}
     say = progress or (lambda fraction, message: None)
     _check_steps(steps)
-    src = cloud.numpy()
+    inp = RefineInput.of(cloud)
+    src, normalization = inp.cloud, inp.normalization
     options = dict(hessian_options or {})
     scoring = scores is None and budget != "all"
-    _check_input(src, budget, options, steps, scoring, check_memory)
+    _check_memory(src, budget, options, steps, scoring, check_memory)
     used_stage = None
     if lineage is not None:
         lineage, used_stage = _lineage_for(src, lineage, stage)
@@ -455,7 +476,6 @@ def refine_steps(cloud: GaussianCloud, *, steps: int = 1, budget: Any = "auto", 
     h0, h1 = (0.02, 0.75) if scoring else (0.02, 0.05)
     say(h0, "scoring Gaussians (Hessian)")
     t0 = time.perf_counter()
-    normalization = src.normalization()  # the frame of Hessian positions and of lineages without history
     # the input as the Hessian's views composited it, for the fidelity check
     frames: list | None = [] if fidelity is not None else None
     scores = _scores(src, cameras, scores, budget, options, normalization, frames, say, h0, h1)
