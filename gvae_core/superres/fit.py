@@ -58,7 +58,8 @@ class SuperResConfig:
     """steps: optimiser steps per octave; patch: edge of the square image patch a step fits, in
     pixels at the images' resolution (0: whole images; at octave k the render is 2^k times larger,
     so octaves above the first fit patches 2^(k-1) times smaller); fields: what changes per octave;
-    lr: times the reference 3DGS learning rate of each field; pose / exposure: the penalty weight
+    lr: times the reference 3DGS learning rate of each field, decaying exponentially to `lr_final`
+    times that by the last step (the reference's schedule for positions); pose / exposure: the penalty weight
     of the per-image guard (`guards`), None: off; children: the view-space gradient (NDC, the
     reference's units) at which a Gaussian densifies, None: no children; densify_at: when, as
     fractions of the steps; max_children: at most this many children per input Gaussian; start:
@@ -69,6 +70,7 @@ class SuperResConfig:
     patch: int = 96
     fields: tuple[str, ...] = DEFAULT_FIELDS
     lr: float = 1.0
+    lr_final: float = 1.0
     lambda_dssim: float = 0.2
     pose: float | None = None
     exposure: float | None = None
@@ -348,7 +350,12 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     height, width = views.cameras[0].height, views.cameras[0].width
     t0 = time.perf_counter()
     octave_list = [k for k in range(1, octaves + 1) if 2 ** k >= images_scale]
+    initial = [g["lr"] for g in model.opt.param_groups]
     for step in range(total):
+        if config.lr_final != 1.0:
+            decay = config.lr_final ** (step / max(total - 1, 1))
+            for g, lr in zip(model.opt.param_groups, initial):
+                g["lr"] = lr * decay
         octave = octave_list[step % len(octave_list)]
         scale = 2 ** octave // images_scale  # render size over image size
         if not order:
