@@ -59,13 +59,13 @@ def _psnr_at(cloud, cams, truth_images):
 
 def test_the_fit_sharpens_the_higher_resolution_picture_and_keeps_the_training_one():
     truth, trained, views = _capture()
-    fit = fit_octaves(trained, views, 1, SuperResConfig(steps=60, patch=0, start="zero", lr=3.0))
+    fit = fit_octaves(trained, views, 1, SuperResConfig(steps=15, patch=0, start="zero", lr=3.0))
     refined = with_octaves(trained, fit.changes, 1.0)
-    assert fit.psnr_after > fit.psnr_before + 0.5  # the averaged-down 2x render reproduces the images better
+    assert fit.psnr_after > fit.psnr_before + 2.0  # the averaged-down 2x render reproduces the images better
     big = [c.scaled(2 * H) for c in views.cameras]
     sharp = with_dilation_3d(truth, big)
     truth_2x = [render(sharp, c, background=(1.0, 1.0, 1.0)).image.numpy() for c in big]
-    assert _psnr_at(refined, big, truth_2x) > _psnr_at(trained, big, truth_2x) + 0.5
+    assert _psnr_at(refined, big, truth_2x) > _psnr_at(trained, big, truth_2x) + 2.0
     for cam in views.cameras:  # at the training resolution nothing is drawn changed
         assert torch.equal(render(refined, cam).image, render(trained, cam).image)
     assert all(np.isfinite(v).all() for v in fit.changes.values())
