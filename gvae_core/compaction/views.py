@@ -1,0 +1,99 @@
+"""The views compaction looks from, and what they see.
+
+A Gaussian is dropped as unseen only when every view misses it: every camera of the capture when
+its cameras are given, else views all around (`capture.placed_views`: outside an object, inside
+and outside a scene that surrounds its centre). The scores come from a few of them (`scoring`);
+the others (`others`) only say what they see (one forward sweep each, `sight`). The summary's
+PSNR comes from the scoring views and, where they miss Gaussians that were removed, from the
+other views that see the most of those (`report_views`). (`sight`: what the other views see of
+what the scoring views do not.)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import Camera
+from ..capture import DEFAULT_VIEWS, placed_views, scoring_views
+from ..cloud import GaussianCloud
+from ..rendering import RenderSettings
+from .removal import PICTURE_SCORES
+from .scoring import UNSEEN, pixel_hits
+
+
+@dataclass
+class CompactionViews:
+    """`scoring`: the views the scores and the summary's PSNR come from; `others`: the views that
+    only say what they see (the capture's other cameras, a placed scene's extra views), at most
+    the scoring resolution; `placed`: whether they were placed (no capture cameras)."""
+
+    scoring: list[Camera]
+    others: list[Camera]
+    placed: bool
+
+
+def compaction_views(src: GaussianCloud, cameras: Sequence[Camera] | None, views: int, resolution: int,
+                     normalization=None) -> CompactionViews:
+    """With the capture's `cameras`: `views` of them to score from (`capture.scoring_views`; all
+    when 0), the rest, scaled to at most `resolution` px high, as others. Without: the views
+    `capture.placed_views` places (`views` of them to score from, DEFAULT_VIEWS when 0)."""
+    if cameras is not None:
+        cameras = list(cameras)
+        scoring = scoring_views(cameras, views, resolution, src)
+        chosen = [c.world_to_cam for c in scoring]
+        others = [c.scaled(resolution) if c.height > resolution else c for c in cameras
+                  if not any(np.array_equal(c.world_to_cam, w) for w in chosen)]
+        return CompactionViews(scoring, others, False)
+    placed = placed_views(src, views or DEFAULT_VIEWS, resolution, normalization=normalization)
+    return CompactionViews(placed.scoring, placed.extra, True)
+
+
+@dataclass
+class Sight:
+    """What the views see of a cloud: `unscored` (K,), the rows the scoring views do not see (score
+    at most UNSEEN); `by_other` (len(others), K) bool, which other view sees each of them; `seen`
+    (N,) bool, the rows some view sees."""
+
+    unscored: np.ndarray
+    by_other: np.ndarray
+    seen: np.ndarray
+
+
+def sight(cloud: GaussianCloud, scores: np.ndarray, score: str, others: Sequence[Camera],
+          settings: RenderSettings | None = None) -> Sight:
+    """`Sight` of `cloud` scored with `scores` (a score of the picture; for the others every row
+    counts as seen by the scoring views): the other views are swept (`scoring.pixel_hits`) only
+    when the scoring views miss some rows."""
+    n = len(cloud)
+    unscored = np.flatnonzero(np.asarray(scores) <= UNSEEN) if score in PICTURE_SCORES else np.zeros(0, np.int64)
+    by_other = np.zeros((len(others), len(unscored)), bool)
+    if len(unscored):
+        for v, cam in enumerate(others):
+            by_other[v] = pixel_hits(cloud, [cam], settings)[unscored] > 0
+    seen = np.ones(n, bool)
+    seen[unscored] = by_other.any(0)
+    return Sight(unscored, by_other, seen)
+
+
+def report_views(scoring: Sequence[Camera], others: Sequence[Camera], sight: np.ndarray, removed: np.ndarray,
+                 limit: int) -> tuple[list[Camera], np.ndarray]:
+    """The views the summary's PSNR comes from: the scoring views and, one at a time, the other view
+    that sees the most removed Gaussians no chosen view sees yet (at most `limit` of them).
+    `sight` (len(others), K): what each other view sees of K Gaussians the scoring views do not
+    see, `removed` (K,) which of those were removed. Returns the views and which of the K removed
+    ones they still miss."""
+    chosen = list(scoring)
+    missed = np.asarray(removed, bool).copy()
+    for _ in range(max(int(limit), 0)):
+        if not missed.any() or len(others) == 0:
+            break
+        gain = (sight & missed).sum(1)
+        best = int(np.argmax(gain))
+        if gain[best] == 0:
+            break
+        chosen.append(others[best])
+        missed &= ~sight[best]
+    return chosen, missed
