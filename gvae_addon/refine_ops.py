@@ -228,7 +228,8 @@ class CompactJob(CoreJob):
 
     def _info(self) -> dict:
         r = self.result
-        return {"after": len(r.cloud), "psnr": float(r.psnr), "timings": dict(r.timings)}
+        return {"after": len(r.cloud), "psnr": float(r.psnr), "timings": dict(r.timings),
+                "warnings": list(getattr(r, "warnings", ()))}
 
 
 #: Jobs running now, by object name (the panel shows their progress; one job per object).
@@ -264,6 +265,12 @@ class JobOperator:
     def _report_text(self, info: dict) -> str:
         raise NotImplementedError
 
+    def _report_done(self, info: dict) -> None:
+        """What the job did (INFO), then each of its warnings (WARNING: the status bar shows it)."""
+        self.report({"INFO"}, self._report_text(info))
+        for warning in info.get("warnings", ()):
+            self.report({"WARNING"}, f"{self.bl_label}: {warning}")
+
     def execute(self, context):
         """Blocking: scripts and batch runs (`blender -b`)."""
         wm = context.window_manager
@@ -288,7 +295,7 @@ class JobOperator:
         finally:
             RUNNING.pop(job.obj_name, None)
             wm.progress_end()
-        self.report({"INFO"}, self._report_text(info))
+        self._report_done(info)
         return {"FINISHED"}
 
     def invoke(self, context, event):
@@ -342,7 +349,7 @@ class JobOperator:
         except Exception as exc:
             self.report({"ERROR"}, f"{job.label} failed: {exc}")
             return {"CANCELLED"}
-        self.report({"INFO"}, self._report_text(info))
+        self._report_done(info)
         return {"FINISHED"}
 
     def cancel(self, context):  # Blender closes the window or the file while the job runs

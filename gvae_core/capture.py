@@ -166,10 +166,11 @@ SURROUND_CELLS = 64
 #: least as finely as anything inside it. A closed shell without that evidence is an object. ...
 SURROUND_COARSER = 1.5
 SURROUND_COARSER_SIZES = 2.0
-#: ... and its shell (the Gaussians coarser than midway, in log size, between the two) covers at
-#: least this share of the directions around the centre (SURROUND_CELLS cells) ...
+#: ... and its Gaussians cover at least this share of the directions around the centre
+#: (SURROUND_CELLS cells) ...
 SURROUND_ENCLOSED = 0.8
-#: ... and what the shell surrounds (the finer ones) is at least this share of the cloud.
+#: ... and what its shell (the Gaussians coarser than midway, in log size, between the two)
+#: surrounds (the finer ones) is at least this share of the cloud.
 SURROUND_CONTENT = 0.1
 #: Field of view of views placed inside a scene, and of views placed around an object.
 INSIDE_FOV = math.radians(70.0)
@@ -180,7 +181,7 @@ OUTSIDE_FOV = math.radians(50.0)
 class Surround:
     """A scene that surrounds its centre (`surround`): the radius within which what it surrounds
     lies (`inner`: 95% of it) and where the shell begins (`outer`: beyond 5% of it), the evidence
-    (`enclosed`: share of the directions around the centre the farthest quarter covers; `coarser`:
+    (`enclosed`: share of the directions around the centre the Gaussians cover; `coarser`:
     how much coarser it is than the nearest half; `content`: share of the Gaussians the shell
     surrounds), and where cameras can stand (`positions` (K, 3), world frame, one per direction
     with free space: nearest the distance that frames what the shell surrounds)."""
@@ -217,8 +218,8 @@ def surround(cloud: GaussianCloud, normalization=None, *, sample: int = 200_000)
     """Whether `cloud` is a scene around its robust centre, seen from inside (a capture with its
     background, a room), and where cameras can stand in it; None for an object. A scene when the
     farthest quarter of the Gaussians from the centre is SURROUND_COARSER coarser than the nearest
-    half (`_pixel_sizes`), the coarser ones (its shell) cover SURROUND_ENCLOSED of the directions
-    around the centre, and the finer ones (what it surrounds) are SURROUND_CONTENT of the cloud. A
+    half (`_pixel_sizes`), the Gaussians cover SURROUND_ENCLOSED of the directions around the
+    centre, and the finer ones (what the coarser shell surrounds) are SURROUND_CONTENT of them. A
     closed shell without that evidence (a head with a few floaters inside, a box) is an object. At
     most `sample` Gaussians are looked at (a subsample decides as well)."""
     src = cloud.numpy()
@@ -241,7 +242,7 @@ def surround(cloud: GaussianCloud, normalization=None, *, sample: int = 200_000)
         return None
     content = size < math.sqrt(fine * coarse)
     lattice = _lattice(SURROUND_CELLS)
-    enclosed = len(np.unique(np.argmax(rel[~content] @ lattice.T, axis=1))) / SURROUND_CELLS
+    enclosed = len(np.unique(np.argmax(rel @ lattice.T, axis=1))) / SURROUND_CELLS
     if enclosed < SURROUND_ENCLOSED or content.mean() < SURROUND_CONTENT:
         return None
     inner, outer = float(np.percentile(r[content], 95.0)), float(np.percentile(r[~content], 5.0))
@@ -260,27 +261,35 @@ def _free_positions(cloud: GaussianCloud, center: np.ndarray, lattice: np.ndarra
     """Where cameras can stand inside a scene, one per direction from the centre that has room:
     the point along direction k, short of where its shell begins (`reach[k]`), nearest the distance
     from which what the shell surrounds fills a view of INSIDE_FOV (1.2 times its radius `inner`
-    across), whose nearest Gaussian is farther than its own largest standard deviation and 1% of
-    the scene's size; the freest first."""
+    across), that is free (its nearest Gaussian farther than its own largest standard deviation,
+    than 1% of the scene's size and than a tenth of the way to the centre) and sees the centre over
+    free space for the first half of the way; the freest first."""
     from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy is slow to import
 
     p = np.asarray(cloud.means, np.float64)
     size = np.exp(np.clip(np.asarray(cloud.scales, np.float64), *LOG_SCALE_RANGE).max(1))
     tree = cKDTree(p)
-    frame = 1.2 * inner / math.sin(0.5 * INSIDE_FOV)
     margin = 0.01 * float(np.linalg.norm(np.ptp(p, axis=0)))
+
+    def free(points: np.ndarray, room) -> tuple[np.ndarray, np.ndarray]:
+        dist, nearest = tree.query(points)
+        return (dist > size[nearest]) & (dist > room), dist
+
+    frame = 1.2 * inner / math.sin(0.5 * INSIDE_FOV)
+    way = np.linspace(0.0, 0.5, 8)  # the first half of the way to the centre
     found, clearance = [], []
     for d, limit in zip(lattice, reach):
         if limit <= 0:
             continue
         radii = np.geomspace(0.05, 0.9, 32) * limit
         radii = radii[np.argsort(np.abs(np.log(radii / frame)), kind="stable")]  # nearest the framing distance first
-        candidates = center + radii[:, None] * d
-        dist, nearest = tree.query(candidates)
-        good = np.flatnonzero((dist > size[nearest]) & (dist > margin))
-        if len(good):
-            found.append(candidates[good[0]])
-            clearance.append(dist[good[0]])
+        ok, dist = free(center + radii[:, None] * d, np.maximum(0.1 * radii, margin))
+        for i in np.flatnonzero(ok):
+            sight = center + (radii[i] * (1.0 - way))[:, None] * d
+            if free(sight, 0.0)[0].all():
+                found.append(center + radii[i] * d)
+                clearance.append(dist[i])
+                break
     if not found:
         return np.zeros((0, 3))
     return np.asarray(found)[np.argsort(clearance, kind="stable")[::-1]]

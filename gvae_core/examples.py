@@ -139,9 +139,9 @@ def shape_cloud(kind: str, n: int = 6000, *, seed: int = 0) -> GaussianCloud:
       few faint floaters inside (8%), as training leaves them;
     - "underside": a plate on a stem whose fine detail (small bumps) is all on its underside;
     - "one-sided": an upright plaque with fine relief on one face only;
-    - "room": floor, walls and ceiling of a 6 x 6 x 3 room around a table, chairs and a lamp
-      standing on the floor (we are inside: the walls' Gaussians are coarser, as a capture made
-      from inside trains them);
+    - "room": floor, walls and ceiling (two layers: opaque) of a 6 x 6 x 3 room around a table,
+      chairs, a lamp and a shelf standing on the floor (we are inside: the walls' Gaussians are
+      coarser, as a capture made from inside trains them);
     - "unbounded": an object (the torus of `example_cloud`) inside a coarse background shell
       ten times its size (a capture of an object with its surroundings)."""
     if kind not in SHAPES:
@@ -201,8 +201,9 @@ def shape_cloud(kind: str, n: int = 6000, *, seed: int = 0) -> GaussianCloud:
         parts.append(_discs(p, nrm, _spacing(4.0, relief), rng))
     elif kind == "room":
         walls, things = int(0.45 * n), n - int(0.45 * n)
-        p, nrm = _box(walls, (-3.0, -3.0, 0.0), (3.0, 3.0, 3.0), rng)
-        parts.append(_discs(p, -nrm, 3 * _spacing(108.0, walls), rng))  # coarse, facing in
+        for grow in (0.0, 0.1):  # two layers: no light passes the walls
+            p, nrm = _box(walls // 2, (-3.0 - grow, -3.0 - grow, -grow), (3.0 + grow, 3.0 + grow, 3.0 + grow), rng)
+            parts.append(_discs(p, -nrm, _spacing(108.0, walls // 2), rng))  # coarser than the things, facing in
         pieces = [((-0.8, -0.5, 0.0), (0.8, 0.5, 0.75)), ((-0.4, 0.8, 0.0), (0.1, 1.3, 0.9)),
                   ((0.3, -1.4, 0.0), (0.8, -0.9, 0.9)), ((1.8, 1.6, 0.0), (2.1, 1.9, 1.7)),
                   ((-2.6, -1.0, 0.0), (-2.0, 1.0, 0.8))]
@@ -219,7 +220,7 @@ def shape_cloud(kind: str, n: int = 6000, *, seed: int = 0) -> GaussianCloud:
         d = rng.normal(size=(k, 3))
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         radius = 12.0 * (1.0 + 0.3 * rng.random(k))[:, None]
-        parts.append(_discs(d * radius, -d, 4 * _spacing(4 * np.pi * 144.0, k), rng, jitter=1.0))
+        parts.append(_discs(d * radius, -d, _spacing(4 * np.pi * 144.0, k), rng, jitter=3.0))
     cat = {key: np.concatenate([part[key] for part in parts]) for key in parts[0]}
     m = len(cat["means"])
     return GaussianCloud(means=cat["means"].astype(np.float32), scales=cat["scales"].astype(np.float32),

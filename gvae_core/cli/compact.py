@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -30,8 +31,9 @@ def register(subparsers) -> None:
                         help="keep as few as hold the picture at the training resolution, seen from the scoring views, "
                         "at or above DB of PSNR against the input's own render (for example 40)")
     c.add_argument("--cameras", type=Path, default=None, metavar="PATH",
-                   help="the capture's cameras to score from: a transforms*.json file or a COLMAP sparse model; "
-                   "default: views placed around the cloud")
+                   help="the capture's cameras: a transforms*.json file or a COLMAP sparse model (--views of them "
+                   "score; none of what any of them sees is dropped as unseen); default: views placed around the "
+                   "cloud, all around an object, inside a scene that surrounds its centre")
     c.add_argument("--views", type=int, default=DEFAULT_VIEWS,
                    help="scoring views (of the capture's cameras, spread out; 0: all of them) (default: %(default)s)")
     c.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION,
@@ -137,6 +139,8 @@ def run_compact(args: argparse.Namespace) -> int:
     print(f"Gaussians {len(result.groups):,} -> {len(result.cloud):,}; file {_size(size_in)} -> {_size(size_out)} "
           f"({size_out / max(size_in, 1):.1%}); PSNR against the input's render {result.psnr:.2f} dB; "
           f"wrote {args.output} in {t_write:.2f} s")
+    for warning in result.warnings:
+        print(f"gvae compact: warning: {warning}", file=sys.stderr)
     return 0
 
 

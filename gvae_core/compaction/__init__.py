@@ -190,9 +190,8 @@ def _compact(src: GaussianCloud, target: int | None, tolerance, cameras, looks: 
                                progress=lambda f, msg: say(0.6 * f, msg))
     timings["score"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    seen = sight(src, scores, how["score"], looks.others, settings)
-    if len(looks.others):
-        timings["other views"] = time.perf_counter() - t0
+    seen = sight(src, scores, how["score"], frames, looks.others, settings)
+    timings["sight"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     reference = input_images(src, cams, settings, frames)
     del frames
@@ -209,7 +208,7 @@ def _compact(src: GaussianCloud, target: int | None, tolerance, cameras, looks: 
     t0 = time.perf_counter()
     say(0.92, "comparing the pictures")
     result = CompactResult(out, rows, groups, scores, 0.0, timings, tolerance=tolerance)
-    psnr_cams, missed = report_views(cams, looks.others, seen.by_other, result.removed[seen.unscored], len(cams))
+    psnr_cams, missed = report_views(cams, looks.others, seen.by_other, result.removed[seen.hidden], len(cams))
     reference += input_images(src, psnr_cams[len(cams):], settings)
     result.psnr = report_psnr(reference, out, psnr_cams, settings)
     result.psnr_views, result.missed = len(psnr_cams), int(missed.sum())

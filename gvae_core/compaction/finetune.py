@@ -80,8 +80,10 @@ def compact_with_images(src: GaussianCloud, target: int, images, how: dict, roun
         base = 0.9 * r / rounds
         t0 = time.perf_counter()
         say(base, f"round {r + 1}/{rounds}: scoring {len(cur):,} Gaussians ({how['score']})")
-        scores = compaction_scores(cur, how["score"], cams, settings=settings, seed=seed + r)
-        seen = sight(cur, scores, how["score"], others, settings)
+        frames: list = []
+        scores = compaction_scores(cur, how["score"], cams, settings=settings, seed=seed + r, frames=frames)
+        seen = sight(cur, scores, how["score"], frames, others, settings)
+        del frames
         if first is None:
             first = (scores, seen)
         step = removal_groups(cur, scores, count, **how, seen=seen.seen)
@@ -103,7 +105,7 @@ def compact_with_images(src: GaussianCloud, target: int, images, how: dict, roun
     t0 = time.perf_counter()
     result = CompactResult(cur, rows, groups, first[0], 0.0, timings, records)
     report = first[1]  # what the first round's views saw of the input
-    psnr_cams, missed = report_views(cams, others, report.by_other, result.removed[report.unscored], views)
+    psnr_cams, missed = report_views(cams, others, report.by_other, result.removed[report.hidden], views)
     reference += input_images(src, psnr_cams[len(cams):], settings)
     result.psnr = report_psnr(reference, cur, psnr_cams, settings)
     result.psnr_views, result.missed = len(psnr_cams), int(missed.sum())

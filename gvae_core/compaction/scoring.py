@@ -10,6 +10,7 @@ per-pixel loop the tests hold it to).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -19,6 +20,7 @@ from ..cloud import GaussianCloud
 from ..conventions import LOG_SCALE_RANGE
 from ..hessian import hessian_scores
 from ..rendering import RenderSettings, prepare_view
+from ..rendering.frames import Frame
 from ..rendering.rasterize import (T_MIN, _alpha_and_transmittance, _pixel_monomials, _tile_centres, _weights,
                                    live_blocks, pair_table, tile_groups)
 
@@ -40,35 +42,66 @@ def pixel_hits(cloud: GaussianCloud, cameras: Sequence[Camera], settings: Render
     with torch.no_grad():
         for cam in cameras:
             _, binning, table = prepare_view(cloud, cam, settings)
-            if binning.num_pairs == 0:
-                continue
-            pairs = pair_table(table, binning)
-            ids_of_pairs = torch.cat([binning.gaussian_ids, binning.gaussian_ids.new_full((1,), len(cloud))])
-            ts = binning.tile_size
-            p = ts * ts
-            local = torch.arange(p)
-            mono = _pixel_monomials(ts, pairs.dtype, pairs.device)
-            for tiles, kmax in tile_groups(binning, settings.block, settings.budget):
-                b = tiles.shape[0]
-                cx, cy = _tile_centres(tiles, binning, pairs.dtype)
-                inside = (((tiles % binning.tiles_x)[:, None] * ts + local % ts < cam.width)
-                          & ((tiles // binning.tiles_x)[:, None] * ts + local // ts < cam.height))
-                start, count = binning.offsets[tiles], binning.counts[tiles]
-                trans = torch.ones((b, p), dtype=pairs.dtype)
-                done = torch.zeros((b, p), dtype=torch.bool)
-                for active, k0, kb, ids in live_blocks(start, count, done, kmax, settings.block, pairs.shape[0] - 1):
-                    gd = pairs.index_select(0, ids.reshape(-1)).reshape(kb, -1, pairs.shape[1])
-                    was_done = done[active]
-                    t_prev = trans[active]
-                    t0 = torch.where(was_done, torch.zeros_like(t_prev), t_prev)
-                    _, tr, _, _ = _alpha_and_transmittance(gd, cx[active], cy[active], mono, t0)
-                    w, kept = _weights(tr)
-                    if k0 + settings.block < kmax:
-                        trans[active] = torch.where(was_done, t_prev, torch.minimum(t0, kept.amin(0)))
-                        done[active] = was_done | (tr[-1] < T_MIN)
-                    count_k = ((w > 0) & inside[active]).sum(-1).reshape(-1)
-                    hits.index_add_(0, ids_of_pairs.index_select(0, ids.reshape(-1)), count_k)
+            hits += _table_hits(table, binning, settings, cam)
     return hits[:-1].numpy()
+
+
+def frame_hits(frame: Frame, n: int, rows: np.ndarray) -> np.ndarray:
+    """(len(rows),) int64: `pixel_hits` of the cloud rows `rows` (of a cloud of `n`) in a view whose
+    frame was made already (`rendering.frames.Frame`: the Hessian's), sweeping only the tiles
+    that draw one of them."""
+    rows = np.asarray(rows, np.int64)
+    if len(rows) == 0 or frame.binning.num_pairs == 0:
+        return np.zeros(len(rows), np.int64)
+    wanted = torch.zeros(n + 1, dtype=torch.bool)
+    wanted[torch.from_numpy(rows)] = True
+    drawn = frame.rows.to("cpu").clamp(min=-1)
+    of_table = torch.cat([wanted[drawn.where(drawn >= 0, torch.full_like(drawn, n))], torch.zeros(1, dtype=torch.bool)])
+    b = frame.binning
+    tiles = torch.repeat_interleave(torch.arange(b.tiles_x * b.tiles_y), b.counts.cpu(), output_size=b.num_pairs)
+    keep = torch.zeros(b.tiles_x * b.tiles_y, dtype=torch.bool)
+    keep[tiles[of_table[b.gaussian_ids.cpu()]]] = True
+    with torch.no_grad():
+        hits = _table_hits(frame.table, replace(b, counts=torch.where(keep, b.counts, 0)), frame.settings, frame.camera)
+    by_row = torch.zeros(n + 1, dtype=torch.int64)
+    by_row[drawn.where(drawn >= 0, torch.full_like(drawn, n))] = hits[:-1]
+    return by_row[torch.from_numpy(rows)].numpy()
+
+
+def _table_hits(table: torch.Tensor, binning, settings: RenderSettings, cam: Camera) -> torch.Tensor:
+    """(R+1,) int64 hits of each row of a packed table (the last, the dummy's, 0), over the tiles
+    `binning` lists."""
+    hits = torch.zeros(table.shape[0], dtype=torch.int64)
+    if binning.num_pairs == 0:
+        return hits
+    pairs = pair_table(table, binning)
+    ids_of_pairs = torch.cat([binning.gaussian_ids, binning.gaussian_ids.new_full((1,), table.shape[0] - 1)])
+    ts = binning.tile_size
+    p = ts * ts
+    local = torch.arange(p)
+    mono = _pixel_monomials(ts, pairs.dtype, pairs.device)
+    for tiles, kmax in tile_groups(binning, settings.block, settings.budget):
+        b = tiles.shape[0]
+        cx, cy = _tile_centres(tiles, binning, pairs.dtype)
+        inside = (((tiles % binning.tiles_x)[:, None] * ts + local % ts < cam.width)
+                  & ((tiles // binning.tiles_x)[:, None] * ts + local // ts < cam.height))
+        start, count = binning.offsets[tiles], binning.counts[tiles]
+        trans = torch.ones((b, p), dtype=pairs.dtype)
+        done = torch.zeros((b, p), dtype=torch.bool)
+        for active, k0, kb, ids in live_blocks(start, count, done, kmax, settings.block, pairs.shape[0] - 1):
+            gd = pairs.index_select(0, ids.reshape(-1)).reshape(kb, -1, pairs.shape[1])
+            was_done = done[active]
+            t_prev = trans[active]
+            t0 = torch.where(was_done, torch.zeros_like(t_prev), t_prev)
+            _, tr, _, _ = _alpha_and_transmittance(gd, cx[active], cy[active], mono, t0)
+            w, kept = _weights(tr)
+            if k0 + settings.block < kmax:
+                trans[active] = torch.where(was_done, t_prev, torch.minimum(t0, kept.amin(0)))
+                done[active] = was_done | (tr[-1] < T_MIN)
+            count_k = ((w > 0) & inside[active]).sum(-1).reshape(-1)
+            hits.index_add_(0, ids_of_pairs.index_select(0, ids.reshape(-1)), count_k)
+    hits[-1] = 0
+    return hits
 
 
 def pixel_hits_reference(cloud: GaussianCloud, cameras: Sequence[Camera], antialias: str = "auto") -> np.ndarray:

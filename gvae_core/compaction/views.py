@@ -20,8 +20,9 @@ from ..camera import Camera
 from ..capture import DEFAULT_VIEWS, placed_views, scoring_views
 from ..cloud import GaussianCloud
 from ..rendering import RenderSettings
+from ..rendering.frames import Frame
 from .removal import PICTURE_SCORES
-from .scoring import UNSEEN, pixel_hits
+from .scoring import UNSEEN, frame_hits, pixel_hits
 
 
 @dataclass
@@ -53,29 +54,36 @@ def compaction_views(src: GaussianCloud, cameras: Sequence[Camera] | None, views
 
 @dataclass
 class Sight:
-    """What the views see of a cloud: `unscored` (K,), the rows the scoring views do not see (score
-    at most UNSEEN); `by_other` (len(others), K) bool, which other view sees each of them; `seen`
-    (N,) bool, the rows some view sees."""
+    """What the views see of a cloud: `hidden` (K,), the rows the scoring views draw into no pixel;
+    `by_other` (len(others), K) bool, which other view draws each of them; `seen` (N,) bool, the
+    rows some view draws."""
 
-    unscored: np.ndarray
+    hidden: np.ndarray
     by_other: np.ndarray
     seen: np.ndarray
 
 
-def sight(cloud: GaussianCloud, scores: np.ndarray, score: str, others: Sequence[Camera],
+def sight(cloud: GaussianCloud, scores: np.ndarray, score: str, frames: Sequence[Frame], others: Sequence[Camera],
           settings: RenderSettings | None = None) -> Sight:
-    """`Sight` of `cloud` scored with `scores` (a score of the picture; for the others every row
-    counts as seen by the scoring views): the other views are swept (`scoring.pixel_hits`) only
-    when the scoring views miss some rows."""
+    """`Sight` of `cloud` scored with `scores` (for a score that is not of the picture, every row
+    counts as drawn by the scoring views). A row whose score is above UNSEEN is drawn; the others
+    (a Gaussian so large and even that moving or scaling it changes no pixel has no score, yet it is
+    drawn) are looked for in the scoring views' `frames` (the Hessian's: only the tiles that draw
+    them are swept, `scoring.frame_hits`), then in the other views (one sweep each,
+    `scoring.pixel_hits`)."""
     n = len(cloud)
-    unscored = np.flatnonzero(np.asarray(scores) <= UNSEEN) if score in PICTURE_SCORES else np.zeros(0, np.int64)
-    by_other = np.zeros((len(others), len(unscored)), bool)
-    if len(unscored):
+    hidden = np.flatnonzero(np.asarray(scores) <= UNSEEN) if score in PICTURE_SCORES else np.zeros(0, np.int64)
+    drawn = np.zeros(len(hidden), bool)
+    for frame in frames:
+        drawn |= frame_hits(frame, n, hidden) > 0
+    hidden = hidden[~drawn]
+    by_other = np.zeros((len(others), len(hidden)), bool)
+    if len(hidden):
         for v, cam in enumerate(others):
-            by_other[v] = pixel_hits(cloud, [cam], settings)[unscored] > 0
+            by_other[v] = pixel_hits(cloud, [cam], settings)[hidden] > 0
     seen = np.ones(n, bool)
-    seen[unscored] = by_other.any(0)
-    return Sight(unscored, by_other, seen)
+    seen[hidden] = by_other.any(0)
+    return Sight(hidden, by_other, seen)
 
 
 def report_views(scoring: Sequence[Camera], others: Sequence[Camera], sight: np.ndarray, removed: np.ndarray,
@@ -83,7 +91,7 @@ def report_views(scoring: Sequence[Camera], others: Sequence[Camera], sight: np.
     """The views the summary's PSNR comes from: the scoring views and, one at a time, the other view
     that sees the most removed Gaussians no chosen view sees yet (at most `limit` of them).
     `sight` (len(others), K): what each other view sees of K Gaussians the scoring views do not
-    see, `removed` (K,) which of those were removed. Returns the views and which of the K removed
+    draw (`Sight.by_other`), `removed` (K,) which of those were removed. Returns the views and which of the K removed
     ones they still miss."""
     chosen = list(scoring)
     missed = np.asarray(removed, bool).copy()

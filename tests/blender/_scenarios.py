@@ -770,7 +770,7 @@ def scenario_compact_job(bpy, args: dict) -> dict:
     while not job.wait(0.05):
         messages.add(job.poll()[2].split(" ")[0])
     res["last_message"] = job.poll()[2]
-    res["info"] = {k: v for k, v in job.finish().items() if k in ("before", "after", "psnr")}
+    res["info"] = {k: v for k, v in job.finish().items() if k in ("before", "after", "psnr", "warnings")}
     res["messages"] = sorted(messages)
     np.savez(args["out"] + ".job.npz", **attributes(bpy.data.objects[name]))
     res["batch"] = sorted(bpy.ops.gvae.compact(keep=0.5, distill=1))  # (fine-tuned: a glimpse of the plumbing)
