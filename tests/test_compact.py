@@ -88,7 +88,7 @@ def test_pixel_hits_match_a_loop_over_pixels():
 def test_compact_keeps_sh_extras_and_untouched_rows():
     cloud = _cloud(300)
     before = cloud.copy()
-    r = compact(cloud, keep=0.5)
+    r = compact(cloud, keep=0.5, distill=0)
     out = r.cloud
     assert len(out) == 150 and out.sh_degree == cloud.sh_degree
     assert set(out.extra) == set(cloud.extra)
@@ -111,7 +111,7 @@ def test_merging_keeps_the_picture_better_than_pruning():
             for a in (0.3, 2.4, 4.5)]
     psnr = {}
     for score, removal in (("hessian", "merge"), ("hessian", "prune"), ("random", "prune")):
-        psnr[score, removal] = compact(cloud, keep=0.5, cameras=cams, resolution=48, score=score,
+        psnr[score, removal] = compact(cloud, keep=0.5, cameras=cams, resolution=48, score=score, distill=0,
                                        removal=removal).psnr
     assert psnr["hessian", "merge"] > max(psnr["hessian", "prune"], psnr["random", "prune"]) + 5.0
 
@@ -152,14 +152,14 @@ def test_what_any_capture_camera_sees_is_never_dropped_as_unseen():
     cloud, front, back = _walled()
     scores = compaction_scores(cloud, "hessian", [front])
     assert scores[33:].max() <= 1e-6 < scores[3:33].min()
-    r = compact(cloud, keep=0.5, cameras=[front, back], views=1, resolution=40)
+    r = compact(cloud, keep=0.5, cameras=[front, back], views=1, resolution=40, distill=0)
     assert (r.groups[33:] >= 0).all() and r.dropped < 33 - 3  # the back ones kept (merged); drops in front
     # the front wall, as large and even as the view, has no score, yet the front camera draws it
     assert r.groups[0] >= 0 and r.groups[2] >= 0
     assert r.unseen == 1 and r.groups[1] < 0  # the wall between the two others: no camera sees it
     assert r.missed == 1 and r.psnr_views == 2 and r.warnings == []
     assert "from 2 views; 1 removed Gaussians not seen by those views" in r.summary()
-    alone = compact(cloud, keep=0.5, cameras=[front], views=1, resolution=40)  # the front camera is all there is
+    alone = compact(cloud, keep=0.5, cameras=[front], views=1, resolution=40, distill=0)  # the front camera only
     assert (alone.groups[33:] < 0).all() and alone.unseen == 31 and alone.psnr_views == 1  # (one wall kept: 32 asked)
     assert alone.warnings and "seen by none of the capture's cameras" in alone.warnings[0]
     assert "31 of them seen by no view" in alone.summary()
@@ -173,19 +173,19 @@ def test_a_closed_head_compacts_from_outside_and_warns_when_the_views_stand_insi
     import json  # noqa: PLC0415
 
     head = shape_cloud("head", 800)
-    r = compact(head, keep=0.5, resolution=32)
+    r = compact(head, keep=0.5, resolution=32, distill=0)
     assert r.unseen <= 0.01 * len(head) and r.warnings == [] and r.psnr < PSNR_CAP
     center = head.normalization()[0]
     inside = [Camera.look_at(center + 0.35 * d, center + d, width=32, height=32, fov_x=1.2)
               for d in np.concatenate([np.eye(3), -np.eye(3)])]
-    blind = compact(head, keep=0.5, cameras=inside, views=2, resolution=32)
+    blind = compact(head, keep=0.5, cameras=inside, views=2, resolution=32, distill=0)
     assert blind.unseen > 0.1 * len(head) and "seen by none" in blind.warnings[0]
     frames = [{"file_path": f"r_{i}", "transform_matrix": c.to_blender_c2w().tolist(), "w": 32, "h": 32}
               for i, c in enumerate(inside)]
     (tmp_path / "transforms.json").write_text(json.dumps({"camera_angle_x": 1.2, "frames": frames}))
     src = write_ply(head, tmp_path / "head.ply")
     assert main(["compact", str(src), str(tmp_path / "out.ply"), "--keep", "0.5", "--cameras",
-                 str(tmp_path / "transforms.json"), "--views", "2", "--resolution", "32"]) == 0
+                 str(tmp_path / "transforms.json"), "--views", "2", "--resolution", "32", "--distill", "0"]) == 0
     captured = capsys.readouterr()
     assert "gvae compact: warning:" in captured.err and "seen by none of the capture's cameras" in captured.err
     assert "seen by no view" in captured.out
@@ -240,7 +240,7 @@ def test_degenerate_gaussians_compact_to_finite_values():
     c.scales[7] = [-30.0, -30.0, 0.0]  # flat to a line
     for keep in (0.5, 0.1):
         for removal in ("merge", "prune"):
-            r = compact(c, keep=keep, removal=removal, resolution=48)
+            r = compact(c, keep=keep, removal=removal, resolution=48, distill=0)
             assert len(r.cloud) == round(keep * 120)
             assert not len(r.cloud.nonfinite_rows()) and math.isfinite(r.psnr)
 
@@ -277,7 +277,7 @@ def test_fine_tuning_rounds_with_images_recover_the_picture():
 def test_distilling_against_the_inputs_own_renders_keeps_the_picture_closer():
     """Without images: fine-tuned against the input's renders from views placed around it."""
     cloud = _cloud(200, extras=False)  # (no anti-aliasing size: the views stay at 32 px)
-    merged = compact(cloud, keep=0.3, resolution=32)
+    merged = compact(cloud, keep=0.3, resolution=32, distill=0)
     distilled = compact(cloud, keep=0.3, resolution=32, distill=25, rounds=1)
     assert len(distilled.cloud) == 60 and len(distilled.rounds) == 1
     assert distilled.psnr > merged.psnr
@@ -287,10 +287,30 @@ def test_distilling_against_the_inputs_own_renders_keeps_the_picture_closer():
         compact(cloud, keep=0.3, distill=-1)
 
 
+def test_small_clouds_are_fine_tuned_against_their_own_renders_by_default(monkeypatch):
+    """distill="auto" (the default): AUTO_DISTILL iterations in one round for a cloud of up to
+    AUTO_DISTILL_MAX Gaussians without images or a tolerance; none above, or with a tolerance."""
+    assert compaction.distill_iterations("auto", 100, None, None) == compaction.AUTO_DISTILL
+    assert compaction.distill_iterations("auto", compaction.AUTO_DISTILL_MAX + 1, None, None) == 0
+    assert compaction.distill_iterations("auto", 100, None, 40.0) == 0
+    assert compaction.distill_iterations(7, 10 ** 7, None, None) == 7
+    with pytest.raises(ValueError, match="distill"):
+        compaction.distill_iterations("often", 100, None, None)
+    from gvae_core.cli import compact as cli  # noqa: PLC0415 - (its copy, for --help without torch)
+
+    assert (cli.AUTO_DISTILL, cli.AUTO_DISTILL_MAX) == (compaction.AUTO_DISTILL, compaction.AUTO_DISTILL_MAX)
+    monkeypatch.setattr(compaction, "AUTO_DISTILL", 3)
+    cloud = _cloud(80, extras=False)
+    r = compact(cloud, keep=0.5, resolution=24)
+    assert len(r.rounds) == 1 and len(r.cloud) == 40
+    monkeypatch.setattr(compaction, "AUTO_DISTILL_MAX", 79)
+    assert compact(cloud, keep=0.5, resolution=24).rounds == []
+
+
 def test_cli_compacts_a_file_and_refuses_bad_requests(tmp_path, capsys, monkeypatch):
     src = write_ply(_cloud(200), tmp_path / "in.ply")
     out = tmp_path / "out.ply"
-    assert main(["compact", str(src), str(out), "--keep", "30%", "--resolution", "48"]) == 0
+    assert main(["compact", str(src), str(out), "--keep", "30%", "--resolution", "48", "--distill", "0"]) == 0
     text = capsys.readouterr().out
     assert len(read_ply(out)) == 60 and "200 -> 60" in text and "PSNR" in text and "KB" in text
     for args, message in ((["--count", "5000"], "count"), (["--keep", "0"], "keep"), (["--keep", "abc"], "keep"),

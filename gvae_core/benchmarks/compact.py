@@ -237,6 +237,40 @@ def plot(rows: list[dict], out: Path) -> Path:
     return path
 
 
+def views_coverage(n: int = 6000, resolution: int = 256, seeds=(0, 1), ring: int = 64) -> list[dict]:
+    """Placed views (`capture.placed_views`, 4 to score) on the shapes that fool a placement
+    (`examples.shape_cloud`): what they are taken for, where the views stand, and the share of the
+    Gaussians that `ring` views all around from outside see that the scoring views see (and, for a
+    scene, the scoring and extra views together), at `resolution` px; one row per shape and seed."""
+    from ..capture import outside_views, placed_views  # noqa: PLC0415
+    from ..compaction import pixel_hits  # noqa: PLC0415
+    from ..examples import SHAPES, shape_cloud  # noqa: PLC0415
+
+    print(f"\n| shape | seed | taken for | views' distance from the centre (half-extents) | seen by {ring} views "
+          f"outside | of those, seen by the 4 scoring views | with the extra views | placing (s) |")
+    print("|---|---|---|---|---|---|---|---|")
+    rows = []
+    for kind in SHAPES:
+        for seed in seeds:
+            cloud = shape_cloud(kind, n, seed=seed)
+            t0 = time.perf_counter()
+            placed = placed_views(cloud, 4, resolution)
+            seconds = time.perf_counter() - t0
+            center, half = cloud.normalization()
+            outside = pixel_hits(cloud, outside_views(cloud, ring, resolution)) > 0
+            seen = pixel_hits(cloud, placed.scoring) > 0
+            both = seen | (pixel_hits(cloud, placed.extra) > 0) if placed.extra else seen
+            dist = [float(np.linalg.norm(c.center - center)) / half for c in placed.scoring]
+            row = {"shape": kind, "seed": seed, "scene": placed.surround is not None, "outside": float(outside.mean()),
+                   "scoring": float((seen & outside).sum() / max(outside.sum(), 1)),
+                   "with_extra": float((both & outside).sum() / max(outside.sum(), 1)), "seconds": seconds}
+            rows.append(row)
+            print(f"| {kind} | {seed} | {'scene, from inside' if row['scene'] else 'object'} | "
+                  f"{min(dist):.2f}-{max(dist):.2f} | {row['outside']:.1%} | {row['scoring']:.2%} | "
+                  f"{row['with_extra']:.2%} | {seconds:.2f} |", flush=True)
+    return rows
+
+
 def _speed(counts, fractions=(0.5, 0.1), repeats: int = 3) -> None:
     """Seconds and peak memory of `compact` without images on example_cloud(N) (SH 3, default
     views), each size in a fresh process; `uptime` beside."""

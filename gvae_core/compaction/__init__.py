@@ -51,7 +51,8 @@ from ..cloud import GaussianCloud
 from ..hessian import scoring_settings
 from ..rendering import RenderSettings
 from ..resources import check_compact_memory, reuse_freed_memory
-from .finetune import DEFAULT_ITERATIONS, DISTILL_VIEWS, compact_with_images, own_renders
+from .finetune import (AUTO_DISTILL, AUTO_DISTILL_MAX, DEFAULT_ITERATIONS, DISTILL_VIEWS, compact_with_images,
+                       own_renders)
 from .graph import NEIGHBOURS, owner_root
 from .merge import merge_groups, merge_groups_reference, ordered
 from .moments import COLOUR_WEIGHT
@@ -62,9 +63,10 @@ from .tolerance import tolerance_count
 from .views import CompactionViews, compaction_views, report_views, sight
 
 __all__ = ["SCORES", "REMOVALS", "CompactResult", "CompactionViews", "compact", "compaction_scores",
-           "compaction_views", "merge_groups", "merge_groups_reference", "own_renders", "owner_root", "pixel_hits",
-           "pixel_hits_reference", "removal_groups", "target_count", "COLOUR_WEIGHT", "DEFAULT_ITERATIONS",
-           "DISTILL_VIEWS", "NEIGHBOURS", "PRUNE_FRACTION", "PSNR_CAP", "UNSEEN", "UNSEEN_WARNING"]
+           "compaction_views", "distill_iterations", "merge_groups", "merge_groups_reference", "own_renders",
+           "owner_root", "pixel_hits", "pixel_hits_reference", "removal_groups", "target_count", "AUTO_DISTILL",
+           "AUTO_DISTILL_MAX", "COLOUR_WEIGHT", "DEFAULT_ITERATIONS", "DISTILL_VIEWS", "NEIGHBOURS", "PRUNE_FRACTION",
+           "PSNR_CAP", "UNSEEN", "UNSEEN_WARNING"]
 
 
 # ------------------------------------------------------------------------------ checks
@@ -92,16 +94,27 @@ def _whole(value, name: str, low: int) -> int:
     return int(value)
 
 
-def _check_arguments(n: int, keep, count, tolerance, images, distill, rounds, iterations) -> int | None:
+def distill_iterations(distill, n: int, images, tolerance) -> int:
+    """The fine-tuning iterations against the input's own renders that `distill` asks for: a whole
+    number as it is; "auto" (the default): AUTO_DISTILL for a cloud of at most AUTO_DISTILL_MAX
+    Gaussians compacted to a fraction or a count without images, else none."""
+    if isinstance(distill, str):
+        if distill != "auto":
+            raise ValueError(f"compact: distill must be 'auto' or a whole number of iterations, got {distill!r}")
+        return AUTO_DISTILL if images is None and tolerance is None and n <= AUTO_DISTILL_MAX else 0
+    _whole(distill, "distill (iterations)", 0)
+    if distill and (images is not None or tolerance is not None):
+        raise ValueError("compact: distill fine-tunes against the input's own renders: without images or a "
+                         "tolerance")
+    return int(distill)
+
+
+def _check_arguments(n: int, keep, count, tolerance, images, distill: int, rounds, iterations) -> int | None:
     """The target count (None: found from the tolerance), or ValueError for arguments that do not
     go together or are out of range."""
-    if distill:
-        _whole(distill, "distill (iterations)", 0)
-        if images is not None or tolerance is not None:
-            raise ValueError("compact: distill fine-tunes against the input's own renders: without images or a "
-                             "tolerance")
     if images is not None or distill:
-        _whole(rounds, "rounds", 1)
+        if rounds is not None:
+            _whole(rounds, "rounds", 1)
         _whole(iterations, "iterations", 0)
         if images is not None and len(images) == 0:
             raise ValueError("compact: no images")
@@ -123,7 +136,8 @@ def _check_arguments(n: int, keep, count, tolerance, images, distill, rounds, it
 def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | None = None,
             tolerance: float | None = None, cameras: Sequence[Camera] | None = None, views: int = DEFAULT_VIEWS,
             resolution: int = DEFAULT_RESOLUTION, score: str = "hessian", removal: str = "merge",
-            images=None, rounds: int = 2, iterations: int = DEFAULT_ITERATIONS, distill: int = 0, seed: int = 0,
+            images=None, rounds: int | None = None, iterations: int = DEFAULT_ITERATIONS, distill: int | str = "auto",
+            seed: int = 0,
             neighbours: int = NEIGHBOURS, prune: float = PRUNE_FRACTION,
             render_settings: RenderSettings | None = None,
             progress: Callable[[float, str], None] | None = None, check_memory: bool = True) -> CompactResult:
@@ -137,11 +151,14 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     "merge" (default) or "prune"; `prune`: the fraction of the input that merging drops first,
     the lowest scores (`removal_groups`; 0: merge all that is seen); `neighbours`: of each Gaussian
     in the merge graph. `images`: the capture's training images (`datasets.Views`, in the cloud's
-    frame, at the resolution to fine-tune at): `rounds` rounds of removal and `iterations` of
-    fine-tuning each (`train.fine_tune`), the scores then come from `images`' cameras. `distill`:
-    without images, fine-tune as with them, `distill` iterations a round, against the input's own
-    renders (`own_renders`: DISTILL_VIEWS views, of `cameras` or placed around the cloud, at the
-    training sampling rate); 0: prune and merge only. `seed`: the random score and the fine-tuning.
+    frame, at the resolution to fine-tune at): `rounds` rounds (default 2) of removal and
+    `iterations` of fine-tuning each (`train.fine_tune`), the scores then come from `images`'
+    cameras. `distill`: without images, fine-tune as with them, `distill` iterations a round
+    (`rounds`, default 1), against the input's own renders (`own_renders`: DISTILL_VIEWS views, of
+    `cameras` or placed around the cloud, at the training sampling rate); "auto" (the default):
+    AUTO_DISTILL iterations for a cloud of up to AUTO_DISTILL_MAX Gaussians, none for a larger one
+    (`distill_iterations`); 0: score, drop and merge only. `seed`: the random score and the
+    fine-tuning.
     `progress(fraction, message)` as the work goes on (an exception it raises stops the work:
     how the Blender job cancels). `check_memory`: refuse a cloud whose estimated peak memory
     exceeds what is free (`resources.NotEnoughMemoryError`). Every check on the arguments and the
@@ -151,6 +168,7 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     src = cloud.numpy()
     _check_input(src, score, removal, prune)
     n = len(src)
+    distill = distill_iterations(distill, n, images, tolerance)
     target = _check_arguments(n, keep, count, tolerance, images, distill, rounds, iterations)
     if check_memory:
         extra = sum(int(np.prod(np.shape(v)[1:], dtype=np.int64)) for v in src.extra.values())
@@ -166,10 +184,11 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
         if distill:
             say(0.0, "rendering the input for the fine-tuning")
             images, iterations = own_renders(src, cameras, resolution, settings), distill
+            rounds = 1 if rounds is None else rounds
         if images is not None:  # (distilled: every capture camera, or a placed scene's extra views, also looks)
             extra = [] if looks is None else looks.others if looks.placed else looks.scoring + looks.others
-            result = compact_with_images(src, target, images, how, rounds, iterations, seed, views, resolution,
-                                         settings, say, timings, extra)
+            result = compact_with_images(src, target, images, how, 2 if rounds is None else rounds, iterations,
+                                         seed, views, resolution, settings, say, timings, extra)
         else:
             result = _compact(src, target, tolerance, cameras, looks, how, seed, settings, say, timings)
     result.warnings = unseen_warning(n, result.unseen, looks is not None and looks.placed)
