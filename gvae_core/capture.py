@@ -44,8 +44,8 @@ from .conventions import LOG_SCALE_RANGE
 from .datasets import DatasetError, Views, load_nerf_synthetic, read_transforms, resize_area
 
 __all__ = ["load_cameras", "load_capture_images", "read_colmap_cameras", "COLMAP_MODELS", "scoring_views",
-           "default_views", "placed_views", "PlacedViews", "outside_views", "surround", "surround_radius", "Surround",
-           "DEFAULT_VIEWS", "DEFAULT_RESOLUTION"]
+           "default_views", "placed_views", "PlacedViews", "outside_views", "inside_views", "surround",
+           "surround_radius", "Surround", "DEFAULT_VIEWS", "DEFAULT_RESOLUTION"]
 
 #: COLMAP camera models: id -> (name, number of parameters).
 COLMAP_MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5),
@@ -166,11 +166,12 @@ SURROUND_CELLS = 64
 #: least as finely as anything inside it. A closed shell without that evidence is an object. ...
 SURROUND_COARSER = 1.5
 SURROUND_COARSER_SIZES = 2.0
-#: ... and its Gaussians cover at least this share of the directions around the centre
-#: (SURROUND_CELLS cells) ...
-SURROUND_ENCLOSED = 0.8
-#: ... and what its shell (the Gaussians coarser than midway, in log size, between the two)
-#: surrounds (the finer ones) is at least this share of the cloud.
+#: ... and its shell (the Gaussians coarser than midway, in log size, between the two) lies in at
+#: least this share of the directions (SURROUND_CELLS cells) around what it surrounds (the finer
+#: ones, from their median point: an object whose coarse parts are on one side, a plate with its
+#: fine detail underneath, measures 0.55-0.58, a room 0.78-1.0) ...
+SURROUND_ENCLOSED = 0.7
+#: ... and what it surrounds is at least this share of the cloud.
 SURROUND_CONTENT = 0.1
 #: Field of view of views placed inside a scene, and of views placed around an object.
 INSIDE_FOV = math.radians(70.0)
@@ -181,7 +182,7 @@ OUTSIDE_FOV = math.radians(50.0)
 class Surround:
     """A scene that surrounds its centre (`surround`): the radius within which what it surrounds
     lies (`inner`: 95% of it) and where the shell begins (`outer`: beyond 5% of it), the evidence
-    (`enclosed`: share of the directions around the centre the Gaussians cover; `coarser`:
+    (`enclosed`: share of the directions around what it surrounds its shell lies in; `coarser`:
     how much coarser it is than the nearest half; `content`: share of the Gaussians the shell
     surrounds), and where cameras can stand (`positions` (K, 3), world frame, one per direction
     with free space: nearest the distance that frames what the shell surrounds)."""
@@ -218,8 +219,8 @@ def surround(cloud: GaussianCloud, normalization=None, *, sample: int = 200_000)
     """Whether `cloud` is a scene around its robust centre, seen from inside (a capture with its
     background, a room), and where cameras can stand in it; None for an object. A scene when the
     farthest quarter of the Gaussians from the centre is SURROUND_COARSER coarser than the nearest
-    half (`_pixel_sizes`), the Gaussians cover SURROUND_ENCLOSED of the directions around the
-    centre, and the finer ones (what the coarser shell surrounds) are SURROUND_CONTENT of them. A
+    half (`_pixel_sizes`), the finer ones (what the coarser shell surrounds) are SURROUND_CONTENT
+    of them, and the coarser ones lie in SURROUND_ENCLOSED of the directions around them. A
     closed shell without that evidence (a head with a few floaters inside, a box) is an object. At
     most `sample` Gaussians are looked at (a subsample decides as well)."""
     src = cloud.numpy()
@@ -241,9 +242,12 @@ def surround(cloud: GaussianCloud, normalization=None, *, sample: int = 200_000)
     if not coarser >= threshold:
         return None
     content = size < math.sqrt(fine * coarse)
+    if content.mean() < SURROUND_CONTENT:
+        return None
     lattice = _lattice(SURROUND_CELLS)
-    enclosed = len(np.unique(np.argmax(rel @ lattice.T, axis=1))) / SURROUND_CELLS
-    if enclosed < SURROUND_ENCLOSED or content.mean() < SURROUND_CONTENT:
+    around = p[~content] - np.median(p[content], axis=0)
+    enclosed = len(np.unique(np.argmax(around @ lattice.T, axis=1))) / SURROUND_CELLS
+    if enclosed < SURROUND_ENCLOSED:
         return None
     inner, outer = float(np.percentile(r[content], 95.0)), float(np.percentile(r[~content], 5.0))
     shell_cell = np.argmax(rel[~content] @ lattice.T, axis=1)
@@ -349,15 +353,49 @@ def placed_views(cloud: GaussianCloud, views: int = DEFAULT_VIEWS, resolution: i
     found = surround(cloud, normalization)
     if found is None:
         return PlacedViews(outside_views(cloud, views, resolution, fov_x, normalization), [], None)
-    center = normalization[0]
-    rel = found.positions - center
-    directions = rel / np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-30)
-    inside = [Camera.look_at(found.positions[i], center, (0.0, 0.0, 1.0), width=resolution, height=resolution,
-                             fov_x=max(fov_x, INSIDE_FOV)) for i in _spread(directions, max(int(views), 1))]
+    inside = _looking_at(found.positions, normalization[0], views, resolution)
     eye = found.positions[0]
     cube = [Camera.look_at(eye, eye + d, (0.0, 0.0, 1.0), width=resolution, height=resolution,
                            fov_x=math.radians(90.0)) for d in np.concatenate([np.eye(3), -np.eye(3)])]
     return PlacedViews(inside, cube + outside_views(cloud, views, resolution, normalization=normalization), found)
+
+
+def inside_views(cloud: GaussianCloud, views: int = DEFAULT_VIEWS, resolution: int = DEFAULT_RESOLUTION,
+                 normalization=None, *, sample: int = 200_000) -> list[Camera]:
+    """Up to `views` cameras in the free space inside a cloud, whatever it was taken for, looking at
+    its robust centre with a field of view of INSIDE_FOV, each along another direction from it
+    (`_free_positions`, short of the far side of the cloud in that direction, framing its nearer
+    half): what views from outside cannot see of a scene taken for an object (a room whose far
+    walls its training sampled hardly more coarsely than its furniture). None where there is no
+    free space."""
+    src = cloud.numpy()
+    center, _ = normalization or src.normalization()
+    p = np.asarray(src.means, np.float64)
+    ok = np.flatnonzero(np.isfinite(p).all(1))
+    if len(ok) > sample:
+        ok = np.sort(np.random.default_rng(0).choice(ok, sample, replace=False))
+    if len(ok) < 64:
+        return []
+    rel = p[ok] - center
+    r = np.linalg.norm(rel, axis=1)
+    lattice = _lattice(SURROUND_CELLS)
+    cell = np.argmax(rel @ lattice.T, axis=1)
+    reach = np.zeros(SURROUND_CELLS)  # per direction, the far side of the cloud
+    for k in np.unique(cell):
+        reach[k] = np.percentile(r[cell == k], 95.0)
+    positions = _free_positions(src.select(ok), center, lattice, reach, float(np.median(r)))
+    if len(positions) == 0:
+        return []
+    return _looking_at(positions, center, views, resolution)
+
+
+def _looking_at(positions: np.ndarray, center: np.ndarray, views: int, resolution: int) -> list[Camera]:
+    """`views` cameras at `positions` (the first, then spread out over their directions from
+    `center`), looking at `center` with a field of view of INSIDE_FOV."""
+    rel = positions - center
+    directions = rel / np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-30)
+    return [Camera.look_at(positions[i], center, (0.0, 0.0, 1.0), width=resolution, height=resolution,
+                           fov_x=INSIDE_FOV) for i in _spread(directions, max(int(views), 1))]
 
 
 def default_views(cloud: GaussianCloud, views: int = DEFAULT_VIEWS, resolution: int = DEFAULT_RESOLUTION,

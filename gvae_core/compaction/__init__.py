@@ -188,7 +188,8 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
         if images is not None:  # (distilled: every capture camera, or a placed scene's extra views, also looks)
             extra = [] if looks is None else looks.others if looks.placed else looks.scoring + looks.others
             result = compact_with_images(src, target, images, how, 2 if rounds is None else rounds, iterations,
-                                         seed, views, resolution, settings, say, timings, extra)
+                                         seed, views, resolution, settings, say, timings, extra,
+                                         None if looks is None else looks.inside)
         else:
             result = _compact(src, target, tolerance, cameras, looks, how, seed, settings, say, timings)
     result.warnings = unseen_warning(n, result.unseen, looks is not None and looks.placed)
@@ -209,7 +210,7 @@ def _compact(src: GaussianCloud, target: int | None, tolerance, cameras, looks: 
                                progress=lambda f, msg: say(0.6 * f, msg))
     timings["score"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    seen = sight(src, scores, how["score"], frames, looks.others, settings)
+    seen = sight(src, scores, how["score"], frames, looks.others, settings, inside=looks.inside)
     timings["sight"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     reference = input_images(src, cams, settings, frames)
@@ -227,7 +228,7 @@ def _compact(src: GaussianCloud, target: int | None, tolerance, cameras, looks: 
     t0 = time.perf_counter()
     say(0.92, "comparing the pictures")
     result = CompactResult(out, rows, groups, scores, 0.0, timings, tolerance=tolerance)
-    psnr_cams, missed = report_views(cams, looks.others, seen.by_other, result.removed[seen.hidden], len(cams))
+    psnr_cams, missed = report_views(cams, seen.others, seen.by_other, result.removed[seen.hidden], len(cams))
     reference += input_images(src, psnr_cams[len(cams):], settings)
     result.psnr = report_psnr(reference, out, psnr_cams, settings)
     result.psnr_views, result.missed = len(psnr_cams), int(missed.sum())

@@ -69,10 +69,11 @@ def own_renders(cloud: GaussianCloud, cameras=None, resolution: int = DEFAULT_RE
 
 def compact_with_images(src: GaussianCloud, target: int, images, how: dict, rounds: int, iterations: int, seed: int,
                         views: int, resolution: int, settings: RenderSettings, say, timings: dict,
-                        extra: Sequence[Camera] = ()) -> CompactResult:
+                        extra: Sequence[Camera] = (), inside=None) -> CompactResult:
     """PUP 3D-GS's rounds: remove part of the way (the fraction kept per round the same), fine-tune.
     Each round scores from `views` of the images' cameras (`capture.scoring_views`); what none of
-    the images' cameras (nor the `extra` views) sees is dropped as unseen."""
+    the images' cameras (nor the `extra` views, nor those `inside` gives, `views.sight`) sees is
+    dropped as unseen."""
     from ..train import TrainConfig, fine_tune  # noqa: PLC0415 - training loads only with images
 
     n = len(src)
@@ -93,7 +94,7 @@ def compact_with_images(src: GaussianCloud, target: int, images, how: dict, roun
         say(base, f"round {r + 1}/{rounds}: scoring {len(cur):,} Gaussians ({how['score']})")
         frames: list = []
         scores = compaction_scores(cur, how["score"], cams, settings=settings, seed=seed + r, frames=frames)
-        seen = sight(cur, scores, how["score"], frames, others, settings)
+        seen = sight(cur, scores, how["score"], frames, others, settings, inside)
         del frames
         if first is None:
             first = (scores, seen)
@@ -116,7 +117,7 @@ def compact_with_images(src: GaussianCloud, target: int, images, how: dict, roun
     t0 = time.perf_counter()
     result = CompactResult(cur, rows, groups, first[0], 0.0, timings, records)
     report = first[1]  # what the first round's views saw of the input
-    psnr_cams, missed = report_views(cams, others, report.by_other, result.removed[report.hidden], views)
+    psnr_cams, missed = report_views(cams, report.others, report.by_other, result.removed[report.hidden], views)
     reference += input_images(src, psnr_cams[len(cams):], settings)
     result.psnr = report_psnr(reference, cur, psnr_cams, settings)
     result.psnr_views, result.missed = len(psnr_cams), int(missed.sum())
