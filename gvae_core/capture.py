@@ -215,6 +215,17 @@ def _pixel_sizes(cloud: GaussianCloud) -> tuple[np.ndarray, float]:
     return np.exp(0.5 * (log_scales[:, 1] + log_scales[:, 2])), SURROUND_COARSER_SIZES
 
 
+def _around(src: GaussianCloud, center: np.ndarray, sample: int):
+    """(rows, centres, centres - `center`, their distances): of at most `sample` finite Gaussians of
+    `src` (a fixed random subsample decides as well as all of them)."""
+    p = np.asarray(src.means, np.float64)
+    ok = np.flatnonzero(np.isfinite(p).all(1))
+    if len(ok) > sample:
+        ok = np.sort(np.random.default_rng(0).choice(ok, sample, replace=False))
+    rel = p[ok] - center
+    return ok, p[ok], rel, np.linalg.norm(rel, axis=1)
+
+
 def surround(cloud: GaussianCloud, normalization=None, *, sample: int = 200_000) -> Surround | None:
     """Whether `cloud` is a scene around its robust centre, seen from inside (a capture with its
     background, a room), and where cameras can stand in it; None for an object. A scene when the
@@ -224,16 +235,10 @@ def surround(cloud: GaussianCloud, normalization=None, *, sample: int = 200_000)
     closed shell without that evidence (a head with a few floaters inside, a box) is an object. At
     most `sample` Gaussians are looked at (a subsample decides as well)."""
     src = cloud.numpy()
-    center, half = normalization or src.normalization()
-    p = np.asarray(src.means, np.float64)
-    ok = np.flatnonzero(np.isfinite(p).all(1))
-    if len(ok) > sample:
-        ok = np.sort(np.random.default_rng(0).choice(ok, sample, replace=False))
+    center, _ = normalization or src.normalization()
+    ok, p, rel, r = _around(src, center, sample)
     if len(ok) < 64:
         return None
-    p = p[ok]
-    rel = p - center
-    r = np.linalg.norm(rel, axis=1)
     near_half, far_quarter = r <= np.median(r), r >= np.percentile(r, 75.0)
     size, threshold = _pixel_sizes(src)
     size = np.maximum(size[ok], 1e-30)
@@ -370,14 +375,9 @@ def inside_views(cloud: GaussianCloud, views: int = DEFAULT_VIEWS, resolution: i
     free space."""
     src = cloud.numpy()
     center, _ = normalization or src.normalization()
-    p = np.asarray(src.means, np.float64)
-    ok = np.flatnonzero(np.isfinite(p).all(1))
-    if len(ok) > sample:
-        ok = np.sort(np.random.default_rng(0).choice(ok, sample, replace=False))
+    ok, _, rel, r = _around(src, center, sample)
     if len(ok) < 64:
         return []
-    rel = p[ok] - center
-    r = np.linalg.norm(rel, axis=1)
     lattice = _lattice(SURROUND_CELLS)
     cell = np.argmax(rel @ lattice.T, axis=1)
     reach = np.zeros(SURROUND_CELLS)  # per direction, the far side of the cloud

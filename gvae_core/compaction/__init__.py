@@ -57,10 +57,10 @@ from .graph import NEIGHBOURS, owner_root
 from .merge import merge_groups, merge_groups_reference, ordered
 from .moments import COLOUR_WEIGHT
 from .removal import PRUNE_FRACTION, REMOVALS, removal_groups, target_count
-from .report import PSNR_CAP, UNSEEN_WARNING, CompactResult, input_images, report_psnr, unseen_warning
+from .report import PSNR_CAP, UNSEEN_WARNING, CompactResult, input_images, unseen_warning
 from .scoring import SCORES, UNSEEN, compaction_scores, pixel_hits, pixel_hits_reference
 from .tolerance import tolerance_count
-from .views import CompactionViews, compaction_views, report_views, sight
+from .views import CompactionViews, compaction_views, compare, sight
 
 __all__ = ["SCORES", "REMOVALS", "CompactResult", "CompactionViews", "compact", "compaction_scores",
            "compaction_views", "distill_iterations", "merge_groups", "merge_groups_reference", "own_renders",
@@ -227,11 +227,7 @@ def _compact(src: GaussianCloud, target: int | None, tolerance, cameras, looks: 
     timings["remove"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     say(0.92, "comparing the pictures")
-    result = CompactResult(out, rows, groups, scores, 0.0, timings, tolerance=tolerance)
-    psnr_cams, missed = report_views(cams, seen.others, seen.by_other, result.removed[seen.hidden], len(cams))
-    reference += input_images(src, psnr_cams[len(cams):], settings)
-    result.psnr = report_psnr(reference, out, psnr_cams, settings)
-    result.psnr_views, result.missed = len(psnr_cams), int(missed.sum())
-    result.unseen = int((~seen.seen & (groups < 0)).sum())
+    result = compare(CompactResult(out, rows, groups, scores, 0.0, timings, tolerance=tolerance), src, reference,
+                     cams, seen, settings, len(cams))
     timings["report"] = time.perf_counter() - t0
     return result

@@ -20,9 +20,9 @@ from ..rendering import RenderSettings
 from .merge import merge_groups, ordered, representatives
 from .moments import moments
 from .removal import removal_groups
-from .report import CompactResult, input_images, report_psnr
+from .report import CompactResult, input_images
 from .scoring import compaction_scores
-from .views import report_views, sight
+from .views import compare, sight
 
 #: Fine-tuning iterations per round with images (PUP 3D-GS fine-tunes 5,000 after each pruning).
 DEFAULT_ITERATIONS = 5000
@@ -115,13 +115,9 @@ def compact_with_images(src: GaussianCloud, target: int, images, how: dict, roun
     rows = representatives(groups, idx, moments(src.select(idx), np.zeros(len(idx))).mass)
     groups, rows, cur = ordered(groups, rows, cur)
     t0 = time.perf_counter()
-    result = CompactResult(cur, rows, groups, first[0], 0.0, timings, records)
-    report = first[1]  # what the first round's views saw of the input
-    psnr_cams, missed = report_views(cams, report.others, report.by_other, result.removed[report.hidden], views)
-    reference += input_images(src, psnr_cams[len(cams):], settings)
-    result.psnr = report_psnr(reference, cur, psnr_cams, settings)
-    result.psnr_views, result.missed = len(psnr_cams), int(missed.sum())
-    result.unseen = int((~report.seen & (groups < 0)).sum())
+    # (what the first round's views saw of the input)
+    result = compare(CompactResult(cur, rows, groups, first[0], 0.0, timings, records), src, reference, cams,
+                     first[1], settings, len(cams))
     timings["report"] = time.perf_counter() - t0
     return result
 

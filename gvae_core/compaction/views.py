@@ -22,7 +22,7 @@ from ..cloud import GaussianCloud
 from ..rendering import RenderSettings
 from ..rendering.frames import Frame
 from .removal import PICTURE_SCORES
-from .report import UNSEEN_WARNING
+from .report import UNSEEN_WARNING, CompactResult, input_images, report_psnr
 from .scoring import UNSEEN, frame_hits, pixel_hits
 
 
@@ -128,3 +128,17 @@ def report_views(scoring: Sequence[Camera], others: Sequence[Camera], sight: np.
         chosen.append(others[best])
         missed &= ~sight[best]
     return chosen, missed
+
+
+def compare(result: CompactResult, src: GaussianCloud, reference: list, cams: Sequence[Camera], seen: Sight,
+            settings: RenderSettings, limit: int) -> CompactResult:
+    """Fill in `result`'s PSNR against the input's renders (`reference`, from the scoring views
+    `cams`) from `report_views` (the scoring views and up to `limit` other views that see what was
+    removed), how many removed Gaussians those did not see, and how many were dropped as seen by no
+    view at all (`seen`: what the views saw of `src`)."""
+    psnr_cams, missed = report_views(cams, seen.others, seen.by_other, result.removed[seen.hidden], limit)
+    reference = list(reference) + input_images(src, psnr_cams[len(cams):], settings)
+    result.psnr = report_psnr(reference, result.cloud, psnr_cams, settings)
+    result.psnr_views, result.missed = len(psnr_cams), int(missed.sum())
+    result.unseen = int((~seen.seen & (result.groups < 0)).sum())
+    return result
