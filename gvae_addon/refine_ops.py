@@ -220,7 +220,7 @@ class CompactJob(CoreJob):
     label, participle = "Compact", "compacted"
 
     def __init__(self, obj, *, keep: float | None = 0.5, count: int | None = None, removal: str = "merge",
-                 distill: int = 0, seed: int = 0, compact=None):
+                 distill: int | str = "auto", seed: int = 0, compact=None):
         super().__init__(obj, compact)
         self.keep, self.count, self.removal, self.distill, self.seed = keep, count, removal, distill, seed
 
@@ -238,7 +238,8 @@ class CompactJob(CoreJob):
 
     def _info(self) -> dict:
         r = self.result
-        return {"after": len(r.cloud), "psnr": float(r.psnr), "timings": dict(r.timings)}
+        return {"after": len(r.cloud), "psnr": float(r.psnr), "timings": dict(r.timings),
+                "warnings": list(getattr(r, "warnings", ()))}
 
 
 #: Jobs running now, by object name (the panel shows their progress; one job per object).
@@ -299,6 +300,8 @@ class JobOperator:
             RUNNING.pop(job.obj_name, None)
             wm.progress_end()
         self.report({"INFO"}, self._report_text(info))
+        for warning in info.get("warnings", ()):  # (Compact's: its views missed part of the object)
+            self.report({"WARNING"}, f"{self.bl_label}: {warning}")
         return {"FINISHED"}
 
     def invoke(self, context, event):
@@ -353,6 +356,8 @@ class JobOperator:
             self.report({"ERROR"}, f"{job.label} failed: {exc}")
             return {"CANCELLED"}
         self.report({"INFO"}, self._report_text(info))
+        for warning in info.get("warnings", ()):  # (Compact's: its views missed part of the object)
+            self.report({"WARNING"}, f"{self.bl_label}: {warning}")
         return {"FINISHED"}
 
     def cancel(self, context):  # Blender closes the window or the file while the job runs
@@ -431,8 +436,9 @@ class GVAE_OT_refine(JobOperator, Operator):
 #: Compact's removal choices and what its fine-tuning does (the operator and the panel's settings).
 REMOVAL_ITEMS = (("MERGE", "Merge", "Merge Gaussians into their neighbours (moments kept)"),
                  ("PRUNE", "Prune", "Drop the Gaussians with the lowest scores"))
-DISTILL_DESCRIPTION = ("Fine-tune the result against the object's own renders for this many iterations a round "
-                       "(0: merge only; slower, keeps the picture closer)")
+DISTILL_DESCRIPTION = ("Fine-tune the result against the object's own renders for this many iterations "
+                       "(-1: automatic, 100 for objects of up to 50,000 Gaussians, none for larger ones; 0: drop and "
+                       "merge only; slower, keeps the picture closer)")
 
 
 class GVAE_OT_compact(JobOperator, Operator):
@@ -449,12 +455,13 @@ class GVAE_OT_compact(JobOperator, Operator):
     count: IntProperty(name="Count", default=0, min=0,
                        description="Number of Gaussians to keep (0: use Keep)")
     removal: EnumProperty(name="Removal", default="MERGE", items=REMOVAL_ITEMS)
-    distill: IntProperty(name="Fine-Tune Iterations", default=0, min=0, description=DISTILL_DESCRIPTION)
+    distill: IntProperty(name="Fine-Tune Iterations", default=-1, min=-1, description=DISTILL_DESCRIPTION)
     seed: IntProperty(name="Seed", default=0, min=0, description="Random seed (repeatable runs)")
 
     def _job(self, context) -> CompactJob:
         return CompactJob(context.active_object, keep=None if self.count else self.keep, count=self.count or None,
-                          removal=self.removal.lower(), distill=self.distill, seed=self.seed)
+                          removal=self.removal.lower(), distill="auto" if self.distill < 0 else self.distill,
+                          seed=self.seed)
 
     def _report_text(self, info: dict) -> str:
         return (f"Compact: {info['before']} -> {info['after']} Gaussians ({info['after'] / max(info['before'], 1):.0%})"

@@ -35,7 +35,7 @@ class GVAE_Settings(PropertyGroup):
     compact_keep: FloatProperty(name="Keep", default=0.5, min=0.001, max=1.0, subtype="FACTOR",
                                 description="Fraction of the Gaussians Compact keeps")
     compact_removal: EnumProperty(name="Removal", default="MERGE", items=refine_ops.REMOVAL_ITEMS)
-    compact_distill: IntProperty(name="Fine-Tune Iterations", default=0, min=0,
+    compact_distill: IntProperty(name="Fine-Tune Iterations", default=-1, min=-1,
                                  description=refine_ops.DISTILL_DESCRIPTION)
 
 
@@ -140,9 +140,11 @@ COMPACT_NOTE = (
     "Drops what no view sees and the tenth the",
     "picture needs least (by the Hessian), merges",
     "the rest pairwise; scored from views placed",
-    "around the object. With Fine-Tune Iterations,",
-    "then fine-tunes against the object's own",
-    "renders (README: Compaction).",
+    "all around the object (inside a scene), then",
+    "fine-tunes against the object's own renders",
+    "(-1: 100 iterations up to 50,000 Gaussians).",
+    "Warns when the views miss part of it",
+    "(README: Compaction).",
 )
 
 

@@ -12,10 +12,10 @@ import gvae_core.resources as resources
 from gvae_core import Camera, GaussianCloud
 from gvae_core.antialias import DILATION_KEY, FILTER_KEY
 from gvae_core.cli import main
-from gvae_core.compaction import (compact, compaction_scores, merge_groups, merge_groups_reference, pixel_hits,
-                                  pixel_hits_reference, removal_groups)
+from gvae_core.compaction import (PSNR_CAP, compact, compaction_scores, merge_groups, merge_groups_reference,
+                                  pixel_hits, pixel_hits_reference, removal_groups)
 from gvae_core.datasets import Views
-from gvae_core.examples import example_cloud
+from gvae_core.examples import example_cloud, shape_cloud
 from gvae_core.ply import read_ply, write_ply
 from gvae_core.rendering import RenderSettings, render
 from gvae_core.resources import NotEnoughMemoryError
@@ -88,7 +88,7 @@ def test_pixel_hits_match_a_loop_over_pixels():
 def test_compact_keeps_sh_extras_and_untouched_rows():
     cloud = _cloud(300)
     before = cloud.copy()
-    r = compact(cloud, keep=0.5)
+    r = compact(cloud, keep=0.5, distill=0)
     out = r.cloud
     assert len(out) == 150 and out.sh_degree == cloud.sh_degree
     assert set(out.extra) == set(cloud.extra)
@@ -111,7 +111,7 @@ def test_merging_keeps_the_picture_better_than_pruning():
             for a in (0.3, 2.4, 4.5)]
     psnr = {}
     for score, removal in (("hessian", "merge"), ("hessian", "prune"), ("random", "prune")):
-        psnr[score, removal] = compact(cloud, keep=0.5, cameras=cams, resolution=48, score=score,
+        psnr[score, removal] = compact(cloud, keep=0.5, cameras=cams, resolution=48, score=score, distill=0,
                                        removal=removal).psnr
     assert psnr["hessian", "merge"] > max(psnr["hessian", "prune"], psnr["random", "prune"]) + 5.0
 
@@ -119,8 +119,18 @@ def test_merging_keeps_the_picture_better_than_pruning():
 def test_unseen_gaussians_go_first():
     """Gaussians behind three opaque walls change no pixel: their score is 0 and they are dropped
     first, before any visible one is merged."""
-    rng = np.random.default_rng(4)
     n = 30
+    cloud, cam, _ = _walled(n)  # rows 3..32 in front of the walls, 33..62 behind
+    scores = compaction_scores(cloud, "hessian", [cam])
+    assert scores[3 + n:].max() <= 1e-6 < scores[3:3 + n].min()
+    groups = removal_groups(cloud, scores, len(cloud) - n)
+    assert (groups[3 + n:] < 0).all() and (groups[:3 + n] >= 0).all()
+
+
+def _walled(n=30, seed=4):
+    """Three opaque walls at z = 0.4-0.5 between n small Gaussians in front (z = 1, rows 3..n+2) and
+    n behind (z = -0.5), and a camera on each side; the back one only sees those behind."""
+    rng = np.random.default_rng(seed)
     walls = GaussianCloud(means=np.float32([[0, 0, 0.5], [0, 0, 0.45], [0, 0, 0.4]]),
                           scales=np.tile(np.float32([math.log(20.0), math.log(20.0), -7.0]), (3, 1)),
                           quats=np.tile(np.float32([1, 0, 0, 0]), (3, 1)), opacities=np.full(3, 10.0, np.float32),
@@ -130,12 +140,55 @@ def test_unseen_gaussians_go_first():
                           scales=np.full((2 * n, 3), -3.0, np.float32),
                           quats=np.tile(np.float32([1, 0, 0, 0]), (2 * n, 1)),
                           opacities=np.zeros(2 * n, np.float32), sh_dc=rng.normal(0, 1, (2 * n, 3)).astype(np.float32))
-    cloud = GaussianCloud.concat([walls, small])  # rows 3..32 in front of the walls, 33..62 behind
-    cam = Camera.look_at((0.0, 0.01, 3.0), (0, 0, 0), up=(0, 1, 0), width=40, height=40, fov_x=0.7)
-    scores = compaction_scores(cloud, "hessian", [cam])
-    assert scores[3 + n:].max() <= 1e-6 < scores[3:3 + n].min()
-    groups = removal_groups(cloud, scores, len(cloud) - n)
-    assert (groups[3 + n:] < 0).all() and (groups[:3 + n] >= 0).all()
+    front = Camera.look_at((0.0, 0.01, 3.0), (0, 0, 0), up=(0, 1, 0), width=40, height=40, fov_x=0.7)
+    back = Camera.look_at((0.0, 0.01, -2.0), (0, 0, 0), up=(0, 1, 0), width=40, height=40, fov_x=1.3)
+    return GaussianCloud.concat([walls, small]), front, back
+
+
+def test_what_any_capture_camera_sees_is_never_dropped_as_unseen():
+    """Scored from the front camera only (views=1), the Gaussians behind the walls have no score;
+    the back camera sees them: they are merged, not dropped, and the summary's PSNR also comes
+    from the back camera, which sees them go."""
+    cloud, front, back = _walled()
+    scores = compaction_scores(cloud, "hessian", [front])
+    assert scores[33:].max() <= 1e-6 < scores[3:33].min()
+    r = compact(cloud, keep=0.5, cameras=[front, back], views=1, resolution=40, distill=0)
+    assert (r.groups[33:] >= 0).all() and r.dropped < 33 - 3  # the back ones kept (merged); drops in front
+    # the front wall, as large and even as the view, has no score, yet the front camera draws it
+    assert r.groups[0] >= 0 and r.groups[2] >= 0
+    assert r.unseen == 1 and r.groups[1] < 0  # the wall between the two others: no camera sees it
+    assert r.missed == 1 and r.psnr_views == 2 and r.warnings == []
+    assert "from 2 views; 1 removed Gaussians not seen by those views" in r.summary()
+    alone = compact(cloud, keep=0.5, cameras=[front], views=1, resolution=40, distill=0)  # the front camera only
+    assert (alone.groups[33:] < 0).all() and alone.unseen == 31 and alone.psnr_views == 1  # (one wall kept: 32 asked)
+    assert alone.warnings and "seen by none of the capture's cameras" in alone.warnings[0]
+    assert "31 of them seen by no view" in alone.summary()
+
+
+def test_a_closed_head_compacts_from_outside_and_warns_when_the_views_stand_inside(tmp_path, capsys):
+    """The issue that made the placed views right: a closed head scored from views inside it
+    dropped half of it as unseen and reported a perfect picture. Placed views now see it all; given
+    cameras inside it, the compaction still does what the cameras say, and warns (`gvae compact`
+    too)."""
+    import json  # noqa: PLC0415
+
+    head = shape_cloud("head", 800)
+    r = compact(head, keep=0.5, resolution=32, distill=0)
+    assert r.unseen <= 0.01 * len(head) and r.warnings == [] and r.psnr < PSNR_CAP
+    center = head.normalization()[0]
+    inside = [Camera.look_at(center + 0.35 * d, center + d, width=32, height=32, fov_x=1.2)
+              for d in np.concatenate([np.eye(3), -np.eye(3)])]
+    blind = compact(head, keep=0.5, cameras=inside, views=2, resolution=32, distill=0)
+    assert blind.unseen > 0.1 * len(head) and "seen by none" in blind.warnings[0]
+    frames = [{"file_path": f"r_{i}", "transform_matrix": c.to_blender_c2w().tolist(), "w": 32, "h": 32}
+              for i, c in enumerate(inside)]
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_angle_x": 1.2, "frames": frames}))
+    src = write_ply(head, tmp_path / "head.ply")
+    assert main(["compact", str(src), str(tmp_path / "out.ply"), "--keep", "0.5", "--cameras",
+                 str(tmp_path / "transforms.json"), "--views", "2", "--resolution", "32", "--distill", "0"]) == 0
+    captured = capsys.readouterr()
+    assert "gvae compact: warning:" in captured.err and "seen by none of the capture's cameras" in captured.err
+    assert "seen by no view" in captured.out
 
 
 def test_merging_drops_the_lowest_scores_first():
@@ -187,7 +240,7 @@ def test_degenerate_gaussians_compact_to_finite_values():
     c.scales[7] = [-30.0, -30.0, 0.0]  # flat to a line
     for keep in (0.5, 0.1):
         for removal in ("merge", "prune"):
-            r = compact(c, keep=keep, removal=removal, resolution=48)
+            r = compact(c, keep=keep, removal=removal, resolution=48, distill=0)
             assert len(r.cloud) == round(keep * 120)
             assert not len(r.cloud.nonfinite_rows()) and math.isfinite(r.psnr)
 
@@ -224,7 +277,7 @@ def test_fine_tuning_rounds_with_images_recover_the_picture():
 def test_distilling_against_the_inputs_own_renders_keeps_the_picture_closer():
     """Without images: fine-tuned against the input's renders from views placed around it."""
     cloud = _cloud(200, extras=False)  # (no anti-aliasing size: the views stay at 32 px)
-    merged = compact(cloud, keep=0.3, resolution=32)
+    merged = compact(cloud, keep=0.3, resolution=32, distill=0)
     distilled = compact(cloud, keep=0.3, resolution=32, distill=25, rounds=1)
     assert len(distilled.cloud) == 60 and len(distilled.rounds) == 1
     assert distilled.psnr > merged.psnr
@@ -234,10 +287,30 @@ def test_distilling_against_the_inputs_own_renders_keeps_the_picture_closer():
         compact(cloud, keep=0.3, distill=-1)
 
 
+def test_small_clouds_are_fine_tuned_against_their_own_renders_by_default(monkeypatch):
+    """distill="auto" (the default): AUTO_DISTILL iterations in one round for a cloud of up to
+    AUTO_DISTILL_MAX Gaussians without images or a tolerance; none above, or with a tolerance."""
+    assert compaction.distill_iterations("auto", 100, None, None) == compaction.AUTO_DISTILL
+    assert compaction.distill_iterations("auto", compaction.AUTO_DISTILL_MAX + 1, None, None) == 0
+    assert compaction.distill_iterations("auto", 100, None, 40.0) == 0
+    assert compaction.distill_iterations(7, 10 ** 7, None, None) == 7
+    with pytest.raises(ValueError, match="distill"):
+        compaction.distill_iterations("often", 100, None, None)
+    from gvae_core.cli import compact as cli  # noqa: PLC0415 - (its copy, for --help without torch)
+
+    assert (cli.AUTO_DISTILL, cli.AUTO_DISTILL_MAX) == (compaction.AUTO_DISTILL, compaction.AUTO_DISTILL_MAX)
+    monkeypatch.setattr(compaction, "AUTO_DISTILL", 3)
+    cloud = _cloud(80, extras=False)
+    r = compact(cloud, keep=0.5, resolution=24)
+    assert len(r.rounds) == 1 and len(r.cloud) == 40
+    monkeypatch.setattr(compaction, "AUTO_DISTILL_MAX", 79)
+    assert compact(cloud, keep=0.5, resolution=24).rounds == []
+
+
 def test_cli_compacts_a_file_and_refuses_bad_requests(tmp_path, capsys, monkeypatch):
     src = write_ply(_cloud(200), tmp_path / "in.ply")
     out = tmp_path / "out.ply"
-    assert main(["compact", str(src), str(out), "--keep", "30%", "--resolution", "48"]) == 0
+    assert main(["compact", str(src), str(out), "--keep", "30%", "--resolution", "48", "--distill", "0"]) == 0
     text = capsys.readouterr().out
     assert len(read_ply(out)) == 60 and "200 -> 60" in text and "PSNR" in text and "KB" in text
     for args, message in ((["--count", "5000"], "count"), (["--keep", "0"], "keep"), (["--keep", "abc"], "keep"),

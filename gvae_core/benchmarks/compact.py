@@ -1,24 +1,27 @@
 """Compaction: PSNR against the kept fraction for every way of removing Gaussians, on the quick
 protocol's 3DGS runs (the runs `make report` trains; test split by default), splat-transform's
-two decimations included, and the speed of a compaction at capture scale.
+two decimations included; what views placed without cameras see of the shapes that fool a
+placement (`views_coverage`); and the speed of a compaction at capture scale.
 
-Per (scene, seed): the 100 px stage (the training resolution, its `gvae_dilation_3D`), scored
-with four of its training cameras (what `gvae compact --cameras transforms_train.json` does),
-compacted to each fraction by: Ours (`compact`: the lowest-scoring tenth dropped, the rest merged),
-ours merging everything that is seen (`prune=0`), the same merging with no score (`random`
-weights: NanoGS-style, what splat-transform does), Hessian pruning (PUP 3D-GS
-without fine-tuning), LightGaussian's global significance, opacity and random pruning, and
-splat-transform 3.7.0's `--decimate` and `--decimate-adaptive` (`benchmarks.splat_transform`:
-installed from npm into the cache on first use; skipped, with the reason, where `node`/`npm` are
-missing). PSNR at 1x against
-the ground-truth test views (the protocol's 8, `matched` render), minus the input's. With the
-training images (`--images`): two rounds of removal and fine-tuning (the protocol's last-stage
-iterations each) for the Hessian and for LightGaussian's score.
+Per (scene, seed): the 100 px stage (the training resolution, its `gvae_dilation_3D`) compacted
+to each fraction by: ours (`compact` as it is by default: the lowest-scoring tenth dropped, the
+rest merged, then fine-tuned against its own renders, these scenes being small), scored from four
+of its training cameras (what `gvae compact --cameras transforms_train.json` does) and from
+placed views (what `gvae compact` does without cameras), each also not fine-tuned
+(`distill=0`); ours merging everything that is seen (`prune=0`), the same merging with no score
+(`random` weights: NanoGS-style, what splat-transform does), Hessian pruning (PUP 3D-GS without
+fine-tuning), LightGaussian's global significance, opacity and random pruning (none of these
+fine-tuned), and splat-transform 3.7.0's `--decimate` and `--decimate-adaptive`
+(`benchmarks.splat_transform`: installed from npm into the cache on first use; skipped, with the
+reason, where `node`/`npm` are missing). PSNR at 1x against the ground-truth test views (the
+protocol's 8, `matched` render), minus the input's. With the training images (`--images`): two
+rounds of removal and fine-tuning (the protocol's last-stage iterations each) for the Hessian and
+for LightGaussian's score.
 
 `python -m gvae_core.benchmarks compact` (environment: GVAE_COMPACT_SPLIT=test|validation,
 GVAE_COMPACT_SEEDS=0,1,2, GVAE_COMPACT_OUT=folder for results.json and the plot;
-GVAE_COMPACT_SPEED=0 skips the speed rows); `--quick`: one validation scene, one seed, the speed
-at 100k only.
+GVAE_COMPACT_SPEED=0 skips the speed rows, GVAE_COMPACT_VIEWS=0 the placed views' table);
+`--quick`: one validation scene, one seed, the speed at 100k only.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -48,21 +52,44 @@ from .splat_transform import PACKAGE
 from .splat_transform import command as splat_transform_command
 
 FRACTIONS = (0.7, 0.5, 0.3, 0.2, 0.1, 0.05)
+OURS, NOT_TUNED, PLACED, PLACED_NOT_TUNED = ("ours", "ours, not fine-tuned", "ours, placed views",
+                                             "ours, placed views, not fine-tuned")
 MERGING_ONLY = "ours, merging only"
-#: (label, score, removal, prune) of `compact` rows; splat-transform's rows come after these.
-#: "ours, merging only" merges all that is seen (no lowest-scoring tenth dropped first).
-METHODS = (("ours", "hessian", "merge", PRUNE_FRACTION), (MERGING_ONLY, "hessian", "merge", 0.0),
-           ("merge, no score", "random", "merge", PRUNE_FRACTION),
-           ("Hessian prune", "hessian", "prune", PRUNE_FRACTION),
-           ("LightGaussian", "lightgaussian", "prune", PRUNE_FRACTION),
-           ("opacity", "opacity", "prune", PRUNE_FRACTION), ("random", "random", "prune", PRUNE_FRACTION))
+
+
+@dataclass(frozen=True)
+class Method:
+    """A `compact` row: its label, score, removal, the fraction dropped before merging, the
+    fine-tuning against the input's own renders (`compact(distill=)`: "auto", the default, or
+    iterations) and whether it is scored from VIEWS of the training cameras (else from placed
+    views, as without cameras)."""
+
+    label: str
+    score: str = "hessian"
+    removal: str = "merge"
+    prune: float = PRUNE_FRACTION
+    distill: int | str = 0
+    cameras: bool = True
+
+
+#: The `compact` rows; splat-transform's come after these. "ours" is the default (fine-tuned
+#: against its own renders, `AUTO_DISTILL` iterations, the scenes being small); "merging only"
+#: merges all that is seen (no lowest-scoring tenth dropped first); the baselines are not
+#: fine-tuned.
+METHODS = (Method(OURS, distill="auto"), Method(NOT_TUNED), Method(PLACED, distill="auto", cameras=False),
+           Method(PLACED_NOT_TUNED, cameras=False), Method(MERGING_ONLY, prune=0.0),
+           Method("merge, no score", score="random"), Method("Hessian prune", removal="prune"),
+           Method("LightGaussian", score="lightgaussian", removal="prune"),
+           Method("opacity", score="opacity", removal="prune"), Method("random", score="random", removal="prune"))
 ST_MODES = ("decimate", "decimate-adaptive")
-#: Scoring views of every `compact` row: this many of the training cameras.
+#: Scoring views of every `compact` row scored from the training cameras: this many of them.
 VIEWS = 4
-#: Ours fine-tuned against the input's own renders (`--distill`, no images), at these fractions.
-DISTILLED = "ours + distill (no images)"
+#: Ours fine-tuned longer against the input's own renders (two rounds of the protocol's last-stage
+#: iterations, placed views: the earlier default of `--distill`), at these fractions.
+DISTILLED = "ours + distill 2 x 200 (no images)"
 DISTILL_FRACTIONS = (0.5, 0.3, 0.1)
-#: Fractions compacted with fine-tuning (`--images`) and the scores compared there.
+#: The rows the per-scene table shows, beside splat-transform's better mode.
+PER_SCENE = (OURS, NOT_TUNED, PLACED, PLACED_NOT_TUNED)
 IMAGE_FRACTIONS = (0.1,)
 IMAGE_METHODS = (("ours + fine-tune", "hessian", "merge"), ("Hessian prune + fine-tune", "hessian", "prune"),
                  ("LightGaussian + fine-tune", "lightgaussian", "prune"))
@@ -124,11 +151,12 @@ def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, methods=METHODS
             f"({value - base_psnr:+.2f}) {seconds:6.2f} s")
 
     for fraction in fractions:
-        for label, score_name, removal, prune in methods:
+        for m in methods:
             t0 = time.perf_counter()
-            r = compact(base, keep=fraction, cameras=train.cameras, views=VIEWS, score=score_name, removal=removal,
-                        seed=seed, prune=prune)
-            add(label, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr)
+            r = compact(base, keep=fraction, cameras=train.cameras if m.cameras else None, views=VIEWS, score=m.score,
+                        removal=m.removal, seed=seed, prune=m.prune, distill=m.distill)
+            add(m.label, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr, unseen=r.unseen,
+                rounds=len(r.rounds))
     if distill:
         distilled_rows(base, p.iterations[k], seed, add)
     command, note = splat_transform() if splat else (None, None)
@@ -157,11 +185,11 @@ def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, methods=METHODS
 
 
 def distilled_rows(base, iterations: int, seed: int, add) -> None:
-    """`add` the rows of ours with `compact(distill=iterations)` (views placed around the cloud) at
-    DISTILL_FRACTIONS."""
+    """`add` the rows of ours with `compact(distill=iterations, rounds=2)` (views placed around the
+    cloud) at DISTILL_FRACTIONS."""
     for fraction in DISTILL_FRACTIONS:
         t0 = time.perf_counter()
-        r = compact(base, keep=fraction, distill=iterations, seed=seed)
+        r = compact(base, keep=fraction, distill=iterations, rounds=2, seed=seed)
         add(DISTILLED, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr, iterations=iterations)
 
 
@@ -177,8 +205,8 @@ def _mean_ci(values) -> str:
 
 def tables(rows: list[dict]) -> list[str]:
     """Markdown: mean change of PSNR against the input (± 95% interval over scenes x seeds) per
-    method and fraction; then per scene, the change at 50/30/10% of ours, ours merging only, ours
-    distilled and splat-transform's better mode."""
+    method and fraction; then per scene, the change at 50/30/10% of PER_SCENE and splat-transform's
+    better mode."""
     scored = [r for r in rows if "drop" in r]
     methods = list(dict.fromkeys(r["method"] for r in scored))
     fractions = sorted({r["fraction"] for r in scored}, reverse=True)
@@ -187,18 +215,19 @@ def tables(rows: list[dict]) -> list[str]:
     for m in methods:
         cells = [_mean_ci([-r["drop"] for r in scored if r["method"] == m and r["fraction"] == f]) for f in fractions]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
-    lines += ["", "| scene | seed | input PSNR | " + " | ".join(
-        f"{f:.0%}: ours / merging only / distilled / best splat-transform" for f in (0.5, 0.3, 0.1)) + " |",
-        "|---|---|---|---|---|---|"]
+    shown = [f for f in (0.5, 0.3, 0.1) if f in fractions]
+    names = " / ".join(PER_SCENE) + " / best splat-transform"
+    lines += ["", "| scene | seed | input PSNR | " + " | ".join(f"{f:.0%}: {names}" for f in shown) + " |",
+              "|---|---|---|" + "---|" * len(shown)]
     pairs = sorted({(r["scene"], r["seed"]) for r in scored})
     for scene, seed in pairs:
         mine = {(r["method"], r["fraction"]): r for r in scored if r["scene"] == scene and r["seed"] == seed}
         base = next(r["psnr"] for r in rows if r["scene"] == scene and r["seed"] == seed and r["method"] == "input")
         cells = []
-        for f in (0.5, 0.3, 0.1):
+        for f in shown:
             change = {m: -r["drop"] for (m, fr), r in mine.items() if fr == f}
             st = [change[f"splat-transform --{m}"] for m in ST_MODES if f"splat-transform --{m}" in change]
-            values = [change.get("ours"), change.get(MERGING_ONLY), change.get(DISTILLED), max(st) if st else None]
+            values = [change.get(m) for m in PER_SCENE] + [max(st) if st else None]
             cells.append(" / ".join("-" if v is None else f"{v:+.2f}" for v in values))
         lines.append(f"| {scene} | {seed} | {base:.2f} | " + " | ".join(cells) + " |")
     return lines
@@ -219,7 +248,7 @@ def plot(rows: list[dict], out: Path) -> Path:
         for m in methods:
             fr = sorted({r["fraction"] for r in scored if r["method"] == m})
             ys = [np.mean([-r["drop"] for r in scored if r["method"] == m and r["fraction"] == f]) for f in fr]
-            style = "-o" if m == "ours" else "--s" if m.startswith("splat") else "^" if "fine-tune" in m else ":."
+            style = "-o" if m == "ours" else "--s" if m.startswith("splat") else "^" if "+ fine-tune" in m else ":."
             ax.plot(fr, ys, style, label=m, color=colours[m], lw=2.2 if m == "ours" else 1.2,
                     ms=8 if "fine-tune" in m else 5)
         ax.set_xscale("log")
@@ -235,6 +264,40 @@ def plot(rows: list[dict], out: Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def views_coverage(n: int = 6000, resolution: int = 256, seeds=(0, 1), ring: int = 64) -> list[dict]:
+    """Placed views (`capture.placed_views`, 4 to score) on the shapes that fool a placement
+    (`examples.shape_cloud`): what they are taken for, where the views stand, and the share of the
+    Gaussians that `ring` views all around from outside see that the scoring views see (and, for a
+    scene, the scoring and extra views together), at `resolution` px; one row per shape and seed."""
+    from ..capture import outside_views, placed_views  # noqa: PLC0415
+    from ..compaction import pixel_hits  # noqa: PLC0415
+    from ..examples import SHAPES, shape_cloud  # noqa: PLC0415
+
+    print(f"\n| shape | seed | taken for | views' distance from the centre (half-extents) | seen by {ring} views "
+          f"outside | of those, seen by the 4 scoring views | with the extra views | placing (s) |")
+    print("|---|---|---|---|---|---|---|---|")
+    rows = []
+    for kind in SHAPES:
+        for seed in seeds:
+            cloud = shape_cloud(kind, n, seed=seed)
+            t0 = time.perf_counter()
+            placed = placed_views(cloud, 4, resolution)
+            seconds = time.perf_counter() - t0
+            center, half = cloud.normalization()
+            outside = pixel_hits(cloud, outside_views(cloud, ring, resolution)) > 0
+            seen = pixel_hits(cloud, placed.scoring) > 0
+            both = seen | (pixel_hits(cloud, placed.extra) > 0) if placed.extra else seen
+            dist = [float(np.linalg.norm(c.center - center)) / half for c in placed.scoring]
+            row = {"shape": kind, "seed": seed, "scene": placed.surround is not None, "outside": float(outside.mean()),
+                   "scoring": float((seen & outside).sum() / max(outside.sum(), 1)),
+                   "with_extra": float((both & outside).sum() / max(outside.sum(), 1)), "seconds": seconds}
+            rows.append(row)
+            print(f"| {kind} | {seed} | {'scene, from inside' if row['scene'] else 'object'} | "
+                  f"{min(dist):.2f}-{max(dist):.2f} | {row['outside']:.1%} | {row['scoring']:.2%} | "
+                  f"{row['with_extra']:.2%} | {seconds:.2f} |", flush=True)
+    return rows
 
 
 def _speed(counts, fractions=(0.5, 0.1), repeats: int = 3) -> None:
@@ -291,5 +354,7 @@ def run(args) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / f"results_{split}.json").write_text(json.dumps(rows, indent=1))
     print(f"\nplot: {plot(rows, out)}; rows: {out / f'results_{split}.json'}")
+    if os.environ.get("GVAE_COMPACT_VIEWS", "1") != "0":
+        views_coverage(2000, 128, seeds=(0,)) if quick else views_coverage()
     if os.environ.get("GVAE_COMPACT_SPEED", "1") != "0":
         _speed((100_000,) if quick else (100_000, 1_000_000))

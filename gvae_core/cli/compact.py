@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
 from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS
 from . import progress_lines
+
+#: (`compaction.AUTO_DISTILL` and `AUTO_DISTILL_MAX`, without importing torch for --help.)
+AUTO_DISTILL, AUTO_DISTILL_MAX = 100, 50_000
 
 
 def register(subparsers) -> None:
@@ -31,8 +35,9 @@ def register(subparsers) -> None:
                         help="keep as few as hold the picture at the training resolution, seen from the scoring views, "
                         "at or above DB of PSNR against the input's own render (for example 40)")
     c.add_argument("--cameras", type=Path, default=None, metavar="PATH",
-                   help="the capture's cameras to score from: a transforms*.json file or a COLMAP sparse model; "
-                   "default: views placed around the cloud")
+                   help="the capture's cameras: a transforms*.json file or a COLMAP sparse model (--views of them "
+                   "score; none of what any of them sees is dropped as unseen); default: views placed around the "
+                   "cloud, all around an object, inside a scene that surrounds its centre")
     c.add_argument("--views", type=int, default=DEFAULT_VIEWS,
                    help="scoring views (of the capture's cameras, spread out; 0: all of them) (default: %(default)s)")
     c.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION,
@@ -45,12 +50,13 @@ def register(subparsers) -> None:
     c.add_argument("--images", type=Path, default=None, metavar="DATASET",
                    help="the capture's training images (a NeRF-Synthetic folder with transforms_train.json, or a "
                    "COLMAP capture: sparse model and images/): compact in rounds, fine-tuning after each")
-    c.add_argument("--distill", type=int, default=0, metavar="ITERATIONS",
+    c.add_argument("--distill", type=_distill, default="auto", metavar="ITERATIONS",
                    help="without images: fine-tune this many iterations a round against the input's own renders "
-                   "(32 views of --cameras, else placed around the cloud, at the training resolution); slower, "
-                   "keeps the picture closer (default: 0, merge only)")
-    c.add_argument("--rounds", type=int, default=2,
-                   help="removal and fine-tuning rounds with --images or --distill (default: 2)")
+                   "(32 views of --cameras, else placed around the cloud, at the training resolution); 0: score, drop "
+                   f"and merge only (default: auto, {AUTO_DISTILL} iterations for a cloud of up to "
+                   f"{AUTO_DISTILL_MAX:,} Gaussians, none for a larger one)")
+    c.add_argument("--rounds", type=int, default=None,
+                   help="removal and fine-tuning rounds with --images (default: 2) or --distill (default: 1)")
     c.add_argument("--iterations", type=int, default=None,
                    help="fine-tuning iterations per round with --images (default: 5000, as PUP 3D-GS)")
     c.add_argument("--image-height", type=int, default=None, metavar="H",
@@ -59,6 +65,19 @@ def register(subparsers) -> None:
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--sanitize", action="store_true", help="drop non-finite Gaussians of IN first")
     c.set_defaults(func=run_compact)
+
+
+def _distill(text: str):
+    """--distill: "auto" or a whole number of iterations >= 0."""
+    if str(text).strip().lower() == "auto":
+        return "auto"
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 'auto' or a whole number of iterations >= 0, got {text!r}")
+    return value
 
 
 def parse_keep(text: str) -> float:
@@ -92,7 +111,7 @@ def _image_height(cloud, images_path: Path) -> int | None:
 
 def run_compact(args: argparse.Namespace) -> int:
     from ..capture import load_cameras, load_capture_images  # noqa: PLC0415 - torch-free, but only here
-    from ..compaction import DEFAULT_ITERATIONS, compact  # noqa: PLC0415 - imports torch
+    from ..compaction import DEFAULT_ITERATIONS, compact, distill_iterations  # noqa: PLC0415 - imports torch
     from ..formats import output_format, read_splat_file, write_splat_file  # noqa: PLC0415
 
     output_format(args.output)  # a name it cannot write is refused before any work
@@ -114,7 +133,8 @@ def run_compact(args: argparse.Namespace) -> int:
                      resolution=args.resolution, score=args.score, removal=args.removal, images=images,
                      rounds=args.rounds, iterations=DEFAULT_ITERATIONS if args.iterations is None else args.iterations,
                      distill=args.distill, seed=args.seed,
-                     progress=progress if images is not None or args.distill else None)
+                     progress=progress if images is not None or distill_iterations(args.distill, len(cloud), images,
+                                                                                   args.tolerance) else None)
     t0 = time.perf_counter()
     write_splat_file(result.cloud, args.output)
     t_write = time.perf_counter() - t0
@@ -131,6 +151,8 @@ def run_compact(args: argparse.Namespace) -> int:
     print(f"Gaussians {len(result.groups):,} -> {len(result.cloud):,}; file {_size(size_in)} -> {_size(size_out)} "
           f"({size_out / max(size_in, 1):.1%}); PSNR against the input's render {result.psnr:.2f} dB; "
           f"wrote {args.output} in {t_write:.2f} s")
+    for warning in result.warnings:
+        print(f"gvae compact: warning: {warning}", file=sys.stderr)
     return 0
 
 

@@ -75,6 +75,7 @@ def test_compact_job_batch_button_and_undo(extension_zip, tmp_path):
     assert res["cancel"]["error"] == "Compact cancelled" and res["cancel_same"]
     assert "count must be between 1 and the input's 60" in res["bad"]["error"] and res["bad_same"]
     assert res["info"]["before"] == n and res["info"]["after"] == n // 2 and res["info"]["psnr"] > 10
+    assert res["info"]["warnings"] == []  # (the views see it all; the operator reports each warning there is)
     # progress while it ran (which parts a 50 ms poll catches depends on the machine), the summary last
     assert res["messages"] and set(res["messages"]) <= {"starting", "scoring", "Hessian", "removing", "merging:",
                                                         "comparing"}, res["messages"]
