@@ -44,7 +44,7 @@ PYTHON313 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.13*/bin/python3.13
 py313 = $(filter-out 4.% 5.0.%,$(1))
 build/bpy-%/.installed:
 	test -x build/bpy-$*/bin/python || $(if $(call py313,$*),$(PYTHON313),$(PYTHON311)) -m venv build/bpy-$*
-	build/bpy-$*/bin/python -m pip install -q "bpy==$*" safetensors==0.8.0 scipy pillow tqdm \
+	build/bpy-$*/bin/python -m pip install -q "bpy==$*" safetensors==0.8.0 numba==0.68.1 scipy pillow tqdm \
 		$(if $(call py313,$*),"numpy==2.3.*","numpy==1.26.*" torch==2.13.0)
 	touch $@
 

@@ -45,7 +45,8 @@ class Frame:
     def image(self, background=(0.0, 0.0, 0.0)) -> torch.Tensor:
         """(H, W, 3) the view over `background`, as `render(...).image`."""
         if self.pixels is None:
-            acc = composite(self.table, self.binning, block=self.settings.block, budget=self.settings.budget)
+            acc = composite(self.table, self.binning, block=self.settings.block, budget=self.settings.budget,
+                            kernels=self.settings.kernels)
             self.pixels = tiles_to_image(acc, self.binning, self.camera.height, self.camera.width)
         bg = torch.as_tensor(background, dtype=self.pixels.dtype, device=self.pixels.device).reshape(3)
         return self.pixels[..., :3] + (1.0 - self.pixels[..., 4:5]) * bg
