@@ -110,12 +110,13 @@ def renderer_rows(sizes, threads_list=(2, 1), repeats: int = 7, torch_repeats: i
             pix = np.stack([rng.integers(0, height, samples), rng.integers(0, height, samples)], 1)
             ref, _, _ = render_reference(cloud, cam, background=BG, pixels=pix)
             med = {k: statistics.median(v) if v else float("nan") for k, v in t.items()}
-            grad_err = max(float((grads[k] - torch_grads[k]).abs().max() / torch_grads[k].abs().max().clamp(min=1e-30))
-                           for k in FIELDS)
+            grad_err = max(float((grads[k] - torch_grads[k]).abs().max()
+                                 / torch_grads[k].abs().max().clamp(min=1e-30)) for k in FIELDS)
             rows.append(dict(
                 n=n, height=height, threads=threads, load=load, **med,
                 err=float(np.abs(image.numpy()[pix[:, 0], pix[:, 1]] - ref).max()),
-                c_err=float(np.abs(c_image[pix[:, 0], pix[:, 1]] - ref).max()) if cref.lib is not None else float("nan"),
+                c_err=(float(np.abs(c_image[pix[:, 0], pix[:, 1]] - ref).max()) if cref.lib is not None
+                       else float("nan")),
                 vs_torch=float((image - torch_image).abs().max()), grad_err=grad_err))
     torch.set_num_threads(threads_list[0])
     return rows, cref
@@ -133,8 +134,8 @@ def print_renderer(rows, cref) -> None:
     for r in rows:
         ms = {k: 1000 * v if isinstance(v, float) else v for k, v in r.items()}
         c = r["c"]
-        print(f"| {r['n']:,} | {r['height']}x{r['height']} | {r['threads']} | {ms['c_project']:.1f} / {ms['c_bin']:.1f} / "
-              f"{ms['c_composite']:.1f} = **{ms['c']:.1f}** | {ms['project']:.1f} / {ms['bin']:.1f} / "
+        print(f"| {r['n']:,} | {r['height']}x{r['height']} | {r['threads']} | {ms['c_project']:.1f} / "
+              f"{ms['c_bin']:.1f} / {ms['c_composite']:.1f} = **{ms['c']:.1f}** | {ms['project']:.1f} / {ms['bin']:.1f} / "
               f"{ms['composite']:.1f} | **{ms['fwd']:.1f}** ({r['fwd'] / c:.2f}x) | **{ms['both']:.1f}** "
               f"({r['both'] / c:.2f}x) | {ms['torch_fwd']:.1f} | {ms['torch_both']:.1f} | {r['err']:.1g} / "
               f"{r['c_err']:.1g} | {r['vs_torch']:.1g} | {r['grad_err']:.1g} | {r['load']} |", flush=True)
@@ -208,8 +209,8 @@ def print_first_call(rows) -> None:
     print("| cache | process s | importing the kernels s | compiling or loading them s | load |")
     print("|---|---|---|---|---|")
     for r in rows:
-        print(f"| {'filled (loaded)' if r['cached'] else 'empty (compiled)'} | {r['process']:.1f} | {r['imports']:.2f} | "
-              f"**{r['ready']:.1f}** | {r['load']} |")
+        state = "filled (loaded)" if r["cached"] else "empty (compiled)"
+        print(f"| {state} | {r['process']:.1f} | {r['imports']:.2f} | **{r['ready']:.1f}** | {r['load']} |")
 
 
 def run(args) -> None:
