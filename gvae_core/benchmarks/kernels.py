@@ -128,15 +128,15 @@ def print_renderer(rows, cref) -> None:
     else:
         print(f"C reference built with: {cref.command}")
     print("| Gaussians | image | threads | C: project / bin / composite = forward ms | compiled: project / bin / "
-          "composite ms | compiled forward ms (x C) | compiled fwd+bwd ms (x C) | torch forward ms | torch fwd+bwd ms | "
-          "max err vs float64 (compiled / C) | compiled - torch image | grad rel. diff | load |")
+          "composite ms | compiled forward ms (x C) | compiled fwd+bwd ms (x C) | torch forward ms | torch fwd+bwd "
+          "ms | max err vs float64 (compiled / C) | compiled - torch image | grad rel. diff | load |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         ms = {k: 1000 * v if isinstance(v, float) else v for k, v in r.items()}
         c = r["c"]
         print(f"| {r['n']:,} | {r['height']}x{r['height']} | {r['threads']} | {ms['c_project']:.1f} / "
-              f"{ms['c_bin']:.1f} / {ms['c_composite']:.1f} = **{ms['c']:.1f}** | {ms['project']:.1f} / {ms['bin']:.1f} / "
-              f"{ms['composite']:.1f} | **{ms['fwd']:.1f}** ({r['fwd'] / c:.2f}x) | **{ms['both']:.1f}** "
+              f"{ms['c_bin']:.1f} / {ms['c_composite']:.1f} = **{ms['c']:.1f}** | {ms['project']:.1f} / "
+              f"{ms['bin']:.1f} / {ms['composite']:.1f} | **{ms['fwd']:.1f}** ({r['fwd'] / c:.2f}x) | **{ms['both']:.1f}** "
               f"({r['both'] / c:.2f}x) | {ms['torch_fwd']:.1f} | {ms['torch_both']:.1f} | {r['err']:.1g} / "
               f"{r['c_err']:.1g} | {r['vs_torch']:.1g} | {r['grad_err']:.1g} | {r['load']} |", flush=True)
 
