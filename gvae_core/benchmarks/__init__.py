@@ -9,6 +9,7 @@ BENCHMARKS = (
     "ply",
     "sog",
     "render",
+    "kernels",
     "antialias",
     "blender",
     "refine",
