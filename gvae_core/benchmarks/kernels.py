@@ -134,11 +134,13 @@ def print_renderer(rows, cref) -> None:
     for r in rows:
         ms = {k: 1000 * v if isinstance(v, float) else v for k, v in r.items()}
         c = r["c"]
-        print(f"| {r['n']:,} | {r['height']}x{r['height']} | {r['threads']} | {ms['c_project']:.1f} / "
-              f"{ms['c_bin']:.1f} / {ms['c_composite']:.1f} = **{ms['c']:.1f}** | {ms['project']:.1f} / "
-              f"{ms['bin']:.1f} / {ms['composite']:.1f} | **{ms['fwd']:.1f}** ({r['fwd'] / c:.2f}x) | "
-              f"**{ms['both']:.1f}** ({r['both'] / c:.2f}x) | {ms['torch_fwd']:.1f} | {ms['torch_both']:.1f} | "
-              f"{r['err']:.1g} / {r['c_err']:.1g} | {r['vs_torch']:.1g} | {r['grad_err']:.1g} | {r['load']} |", flush=True)
+        cells = [f"{r['n']:,}", f"{r['height']}x{r['height']}", str(r["threads"]),
+                 f"{ms['c_project']:.1f} / {ms['c_bin']:.1f} / {ms['c_composite']:.1f} = **{ms['c']:.1f}**",
+                 f"{ms['project']:.1f} / {ms['bin']:.1f} / {ms['composite']:.1f}",
+                 f"**{ms['fwd']:.1f}** ({r['fwd'] / c:.2f}x)", f"**{ms['both']:.1f}** ({r['both'] / c:.2f}x)",
+                 f"{ms['torch_fwd']:.1f}", f"{ms['torch_both']:.1f}", f"{r['err']:.1g} / {r['c_err']:.1g}",
+                 f"{r['vs_torch']:.1g}", f"{r['grad_err']:.1g}", r["load"]]
+        print("| " + " | ".join(cells) + " |", flush=True)
 
 
 def hessian_rows(sizes=(1_000_000,), repeats: int = 3, with_torch: bool = True) -> list[dict]:
