@@ -130,8 +130,8 @@ def prepare_view(cloud: GaussianCloud, camera: Camera, settings: RenderSettings,
                                        dilation_3d=dilation_3d)
         binning = compiled.bin_gaussians(table, proj.footprint, proj.visible, camera.width, camera.height,
                                          settings.tile_size, exact=settings.exact_tiles)
-        if table.requires_grad:  # packed again from its views, so that gradients reach means2d
-            table = pack(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
+        if table.requires_grad:  # the centres as a view of their own, so that gradients reach means2d
+            table = torch.cat([torch.cat([proj.means2d, proj.means2d.new_zeros(1, 2)]), table[:, 2:]], 1)
         return proj, binning, table
     proj = project(*fields, camera, degree, dtype=settings.dtype, filter_3d=filter_3d, mip_2d=mode == "mip",
                    dilation_3d=dilation_3d)

@@ -75,6 +75,8 @@ def redraw(frame: Frame, cloud: GaussianCloud, rows) -> Frame:
     rows = torch.unique(torch.as_tensor(rows).reshape(-1).to("cpu", torch.int64))
     if len(rows) and (int(rows[0]) < 0 or int(rows[-1]) >= len(cloud)):
         raise ValueError(f"redraw: rows must be rows of the cloud (0..{len(cloud) - 1})")
+    if len(rows) == len(cloud):  # every row changed: nothing of the frame to keep
+        return make_frame(cloud, cam, s, device=dev)
     with torch.no_grad():
         # table rows that drew the changed Gaussians are dropped from the tile lists
         where = torch.full((max(len(cloud), int(frame.rows.max()) + 1 if len(frame.rows) else 0),), -1,
