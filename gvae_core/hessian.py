@@ -480,7 +480,7 @@ def _accumulate_view_compiled(inp: compiled.Inputs, camera: Camera, degree: int,
                               work: np.ndarray | None = None, frames: list | None = None,
                               rows: torch.Tensor | None = None) -> np.ndarray | None:
     """`_accumulate_view` by the compiled kernels (`rendering.compiled`): the blocks added into
-    `out` (N, 21) float64; `work` the (N, 34) moment buffer."""
+    `out` (N, 21) float64; `work` the (N, 34) float32 moment buffer."""
     clock = _Clock(timings)
     with torch.no_grad():
         table_np, foot, radii, visible = compiled.project_arrays(inp, camera, degree)
@@ -497,8 +497,8 @@ def _accumulate_view_compiled(inp: compiled.Inputs, camera: Camera, degree: int,
         clock("composite")
         if binning.num_pairs == 0:
             return work
-        if work is None or work.shape != (len(inp), _NMOM):
-            work = np.zeros((len(inp), _NMOM), np.float64)
+        if work is None or work.shape != (len(inp), _NMOM):  # float32: a few pairs a Gaussian are summed
+            work = np.zeros((len(inp), _NMOM), np.float32)
         else:
             work.fill(0.0)
         compiled.gauss_newton_moments(table, binning, acc, camera.width, camera.height, work)

@@ -298,7 +298,7 @@ def composite_backward(table: torch.Tensor, binning: Binning, acc: torch.Tensor,
 def gauss_newton_moments(table: torch.Tensor, binning: Binning, acc: torch.Tensor, width: int, height: int,
                          out: np.ndarray) -> None:
     """Add each Gaussian's moments of its pixel derivatives (`kernels.gauss_newton_moments`) into
-    out (N, 34) float64, view by view (`hessian._gauss_newton_sweep` by the kernels)."""
+    out (N, 34) float32 (`hessian._gauss_newton_sweep` by the kernels)."""
     k = kernels()
     tab, ids, offsets = _arrays(table, binning)
     acc_np = np.ascontiguousarray(acc.numpy(), np.float32)

@@ -989,7 +989,7 @@ def gauss_newton_moments(table, ids, offsets, t_lo, t_hi, tiles_x, ts, width, he
 
 @kernel
 def add_moments(moments, ids, base, out):
-    """out[ids[base + r]] += moments[r] (float64) for the rows r with some weight (w² > 0)."""
+    """out[ids[base + r]] += moments[r] for the rows r with some weight (w² > 0)."""
     for r in range(moments.shape[0]):
         if moments[r, NMOM - 1] > _ZERO:
             g = ids[base + r]
