@@ -23,9 +23,12 @@ lint: install
 	$(PY) -m ruff check .
 
 # The Blender tests run beside the rest (they mostly wait on Blender subprocesses; together they
-# share the 2 cores well), each suite in its own temporary folder; the Blender log follows.
+# share the 2 cores well), each suite in its own temporary folder; the Blender log follows. The
+# compiled CPU kernels are made ready first (compiled once per machine, ~20 s; then loaded), so that
+# the Blender subprocesses load them instead of each compiling its own.
 test: install
 	@mkdir -p build
+	@$(PY) -c "from gvae_core.rendering.compiled import main; main()"
 	@$(PY) -m pytest -q --basetemp=build/pytest-blender tests/blender > build/test-blender.log 2>&1 & bg=$$!; \
 	$(PY) -m pytest -q --basetemp=build/pytest-core --ignore=tests/blender; core=$$?; \
 	wait $$bg; blender=$$?; echo "--- tests/blender (ran beside the above):"; cat build/test-blender.log; \

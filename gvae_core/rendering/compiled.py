@@ -362,3 +362,13 @@ def compile_kernels(progress: Callable[[float, str], None] | None = None) -> flo
     render(drawn, cam, settings=RenderSettings(kernels="compiled")).image.sum().backward()
     hessian_blocks(cloud, [cam], render_settings=RenderSettings(kernels="compiled", tile_size=4))
     return time.perf_counter() - t0
+
+
+
+def main() -> None:
+    """Make the kernels ready and say where they are kept (`make test` runs this first)."""
+    if numba_missing():
+        print(f"compiled kernels: {numba_missing()}; the torch code renders")
+        return
+    seconds = compile_kernels(lambda _, message: print(message, flush=True))
+    print(f"compiled kernels ready in {seconds:.1f} s ({kernels().kernel_cache_dir()})")
