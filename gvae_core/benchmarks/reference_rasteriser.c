@@ -7,8 +7,8 @@
  *              field of view), SH colour (degree <= 3) + 0.5 clamped at 0, the opacity-aware
  *              footprint sqrt(2 ln(255 o)) standard deviations;
  *   bin:       the tiles each footprint ellipse reaches (exact per tile row), Gaussians sorted by
- *              depth (LSD radix sort of the float bits), pairs sorted by tile (counting sort,
- *              stable, so each tile's list is front to back);
+ *              depth (LSD radix sort of the float bits), pairs sorted by tile (a counting sort
+ *              over per-thread tile histograms, stable, so each tile's list is front to back);
  *   composite: per tile (OpenMP, dynamic), per pixel front to back: alpha = min(0.99,
  *              o exp(-q/2)), skipped below 1/255, stop before T < 1e-4, tile done when all pixels
  *              are; the pixel loop is written for the compiler's vectoriser (omp simd).
@@ -130,7 +130,7 @@ static int row_span(const float *row, const double *f, int ts, int width, int he
     double x_lo = mx + slope * dl - sqrt(ratio * fmax(k * k - dl * dl / syy, 0.0)) - 1e-3;
     double x0 = fmax(ceil(x_lo - 0.5), 0.0), x1 = fmin(floor(x_hi - 0.5), width - 1.0);
     if (x1 < x0) return 0;
-    *tx0 = (int)x0 / ts; *tx1 = (int)x1 / ts;
+    *tx0 = (int)((x0 + 0.5) / ts); *tx1 = (int)((x1 + 0.5) / ts);  /* (a float division: idiv is slow) */
     return 1;
 }
 
@@ -138,7 +138,7 @@ static void row_range(const float *row, const double *f, int ts, int height, int
     double ey = f[0] * sqrt(f[3]);
     double y0 = fmax(ceil(row[1] - ey - 0.5), 0.0), y1 = fmin(floor(row[1] + ey - 0.5), height - 1.0);
     if (y1 < y0) { *ty0 = 0; *ty1 = -1; return; }
-    *ty0 = (int)y0 / ts; *ty1 = (int)y1 / ts;
+    *ty0 = (int)((y0 + 0.5) / ts); *ty1 = (int)((y1 + 0.5) / ts);
 }
 
 /* LSD radix sort (11-bit digits) of idx by key (positive floats' bits sort as integers). */
@@ -231,43 +231,48 @@ int64_t render(int n, const double *means, const float *log_scales, const float 
     for (int i = 0, j = 0; i < n; i++)
         if (visible[i]) { float z = table[10 * (size_t)i + 9]; memcpy(&key[j], &z, 4); order[j++] = i; }
     radix_sort(key, order, nv);
+    /* pairs by tile, each tile's list front to back: every thread counts the pairs of its share of
+     * the depth-sorted Gaussians per tile, then writes them after the shares before it */
+    int nth = threads > 0 ? threads : 1;
+    int64_t *hist = calloc((size_t)nth * ntiles, sizeof(int64_t));
     int64_t *offsets = calloc((size_t)ntiles + 1, sizeof(int64_t));
-    int32_t *npairs = malloc(sizeof(int32_t) * (size_t)(nv + 1));
-#pragma omp parallel for schedule(dynamic, 1024)
-    for (int j = 0; j < nv; j++) {
-        int i = order[j], ty0, ty1, tx0, tx1, c = 0;
-        row_range(table + 10 * (size_t)i, foot + 4 * (size_t)i, ts, height, &ty0, &ty1);
-        for (int ty = ty0; ty <= ty1; ty++)
-            if (row_span(table + 10 * (size_t)i, foot + 4 * (size_t)i, ts, width, height, ty, &tx0, &tx1))
-                c += tx1 - tx0 + 1;
-        npairs[j] = c;
-    }
-    for (int j = 0; j < nv; j++) {  /* tile counts, then starts (counting sort by tile) */
-        int i = order[j], ty0, ty1, tx0, tx1;
-        if (!npairs[j]) continue;
-        row_range(table + 10 * (size_t)i, foot + 4 * (size_t)i, ts, height, &ty0, &ty1);
-        for (int ty = ty0; ty <= ty1; ty++)
-            if (row_span(table + 10 * (size_t)i, foot + 4 * (size_t)i, ts, width, height, ty, &tx0, &tx1))
-                for (int tx = tx0; tx <= tx1; tx++) offsets[ty * tiles_x + tx + 1]++;
-    }
-    for (int t = 0; t < ntiles; t++) offsets[t + 1] += offsets[t];
-    int64_t m = offsets[ntiles];
-    int32_t *ids = malloc(sizeof(int32_t) * (size_t)(m + 1));
-    int64_t *cursor = malloc(sizeof(int64_t) * (size_t)ntiles);
-    memcpy(cursor, offsets, sizeof(int64_t) * (size_t)ntiles);
-    for (int j = 0; j < nv; j++) {
-        int i = order[j], ty0, ty1, tx0, tx1;
-        if (!npairs[j]) continue;
-        row_range(table + 10 * (size_t)i, foot + 4 * (size_t)i, ts, height, &ty0, &ty1);
-        for (int ty = ty0; ty <= ty1; ty++)
-            if (row_span(table + 10 * (size_t)i, foot + 4 * (size_t)i, ts, width, height, ty, &tx0, &tx1))
-                for (int tx = tx0; tx <= tx1; tx++) ids[cursor[ty * tiles_x + tx]++] = i;
+    int32_t *ids = NULL;
+    int64_t m = 0;
+#pragma omp parallel num_threads(nth)
+    {
+        int tid = omp_get_thread_num(), nt = omp_get_num_threads();
+        int lo = (int)((int64_t)nv * tid / nt), hi = (int)((int64_t)nv * (tid + 1) / nt);
+        int64_t *h = hist + (size_t)tid * ntiles;
+        for (int j = lo; j < hi; j++) {
+            int i = order[j], ty0, ty1, tx0, tx1;
+            row_range(table + 10 * (size_t)i, foot + 4 * (size_t)i, ts, height, &ty0, &ty1);
+            for (int ty = ty0; ty <= ty1; ty++)
+                if (row_span(table + 10 * (size_t)i, foot + 4 * (size_t)i, ts, width, height, ty, &tx0, &tx1))
+                    for (int tx = tx0; tx <= tx1; tx++) h[ty * tiles_x + tx]++;
+        }
+#pragma omp barrier
+#pragma omp single
+        {
+            for (int t = 0; t < ntiles; t++) {
+                int64_t c = offsets[t];
+                for (int k = 0; k < nt; k++) { int64_t n = hist[(size_t)k * ntiles + t]; hist[(size_t)k * ntiles + t] = c; c += n; }
+                offsets[t + 1] = c;
+            }
+            m = offsets[ntiles];
+            ids = malloc(sizeof(int32_t) * (size_t)(m + 1));
+        }
+        for (int j = lo; j < hi; j++) {
+            int i = order[j], ty0, ty1, tx0, tx1;
+            row_range(table + 10 * (size_t)i, foot + 4 * (size_t)i, ts, height, &ty0, &ty1);
+            for (int ty = ty0; ty <= ty1; ty++)
+                if (row_span(table + 10 * (size_t)i, foot + 4 * (size_t)i, ts, width, height, ty, &tx0, &tx1))
+                    for (int tx = tx0; tx <= tx1; tx++) ids[h[ty * tiles_x + tx]++] = i;
+        }
     }
     double t2 = now();
     composite(table, ids, offsets, tiles_x, tiles_y, ts, width, height, bg, image);
     double t3 = now();
     times[0] = t1 - t0; times[1] = t2 - t1; times[2] = t3 - t2;
-    free(table); free(foot); free(visible); free(key); free(order); free(offsets); free(npairs);
-    free(ids); free(cursor);
+    free(table); free(foot); free(visible); free(key); free(order); free(offsets); free(hist); free(ids);
     return m;
 }
