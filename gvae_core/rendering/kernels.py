@@ -38,8 +38,8 @@ f32 = np.float32
 def kernel_cache_dir() -> Path:
     """Where compiled kernels are kept: $GVAE_CACHE_DIR/kernels, else the user's cache directory
     (XDG_CACHE_HOME or ~/.cache on Linux, ~/Library/Caches on macOS, %LOCALAPPDATA% on Windows)
-    /gvae/kernels; one folder per version of this file, so that checkouts and installs of the
-    same kernels share it and different ones never overwrite each other's."""
+    /gvae/kernels; one folder per version of this file, of Numba and of numpy, so that checkouts and
+    installs of the same kernels share it and different ones never overwrite each other's."""
     base = os.environ.get("GVAE_CACHE_DIR")
     if base:
         root = Path(base)
@@ -50,7 +50,8 @@ def kernel_cache_dir() -> Path:
     else:
         root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "gvae"
     digest = hashlib.sha256(Path(__file__).read_bytes()).hexdigest()[:16]
-    return root / "kernels" / f"numba-{numba.__version__}-{digest}"
+    numpy_version = ".".join(np.__version__.split(".")[:2])
+    return root / "kernels" / f"numba-{numba.__version__}-numpy-{numpy_version}-{digest}"
 
 
 class _Locator(_SourceFileBackedLocatorMixin, _CacheLocator):
