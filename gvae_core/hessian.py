@@ -430,6 +430,13 @@ def _project(f: dict, camera: Camera, degree: int, dt, aa: _Antialias, chunk: in
     return Projected(**{fld.name: torch.cat([getattr(p, fld.name) for p in parts]) for fld in fields(Projected)})
 
 
+def _keep_frame(frames: list | None, camera: Camera, settings: RenderSettings, table, binning, rows, acc) -> None:
+    """Append the view's `Frame` (composited) to `frames`, unless None."""
+    if frames is not None:
+        frames.append(Frame(camera, settings, table, binning, rows,
+                            tiles_to_image(acc, binning, camera.height, camera.width)))
+
+
 def _accumulate_view(f: dict, camera: Camera, degree: int, settings: RenderSettings, scale: float,
                      out: torch.Tensor, aa: _Antialias, timings: dict | None = None,
                      work: torch.Tensor | None = None, chunk: int = 1 << 16,
@@ -449,9 +456,7 @@ def _accumulate_view(f: dict, camera: Camera, degree: int, settings: RenderSetti
         del proj
         pairs = pair_table(table, binning)  # (for the compositing and the sweep)
         acc = composite(table, binning, block=settings.block, budget=settings.budget, pairs=pairs, kernels="torch")
-        if frames is not None:
-            frames.append(Frame(camera, settings, table, binning, rows,
-                                tiles_to_image(acc, binning, camera.height, camera.width)))
+        _keep_frame(frames, camera, settings, table, binning, rows, acc)
         clock("composite")
         if binning.num_pairs == 0:
             return work
@@ -491,9 +496,7 @@ def _accumulate_view_compiled(inp: compiled.Inputs, camera: Camera, degree: int,
         clock("bin")
         del foot, radii, visible
         acc = compiled.composite_forward(table, binning)
-        if frames is not None:
-            frames.append(Frame(camera, settings, table, binning, rows,
-                                tiles_to_image(acc, binning, camera.height, camera.width)))
+        _keep_frame(frames, camera, settings, table, binning, rows, acc)
         clock("composite")
         if binning.num_pairs == 0:
             return work
