@@ -531,9 +531,8 @@ def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, view
                     progress: Callable[[float, str], None] | None, timings: dict | None = None,
                     frames: list | None = None) -> torch.Tensor:
     n = len(cloud)
-    out = torch.zeros((len(_TRIU[0]), n), dtype=torch.float64)
     if n == 0:
-        return out
+        return torch.zeros((len(_TRIU[0]), n), dtype=torch.float64)
     normalization = normalization or cloud.normalization()
     cams = (scoring_views(cameras, views, resolution, cloud) if cameras is not None
             else default_views(cloud, views or DEFAULT_VIEWS, resolution, normalization=normalization))
@@ -551,6 +550,8 @@ def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, view
         inp = compiled.Inputs(f["means"], f["scales"], f["quats"], f["opacities"], f["sh_dc"], f["sh_rest"],
                               **aa.project_args())
         rows_out = np.zeros((n, len(_TRIU[0])), np.float64)
+    else:
+        out = torch.zeros((len(_TRIU[0]), n), dtype=torch.float64)
     work = None
     for k, cam in enumerate(cams):
         if progress is not None:
