@@ -179,8 +179,8 @@ def print_hessian(rows) -> None:
         t = r["timings"]
         parts = " / ".join(f"{t.get(k, 0.0):.2f}" for k in ("project", "bin", "composite", "sweep", "blocks", "score"))
         diff = f"{r['diff']:.1g}" if "diff" in r else ""
-        print(f"| {r['n']:,} | {r['kernels']} | **{r['total']:.2f}** ({r['cpu']:.1f}) | {parts} | {diff} | {r['load']} |",
-              flush=True)
+        cells = [f"{r['n']:,}", r["kernels"], f"**{r['total']:.2f}** ({r['cpu']:.1f})", parts, diff, r["load"]]
+        print("| " + " | ".join(cells) + " |", flush=True)
 
 
 _FIRST_CALL = """
