@@ -10,11 +10,12 @@ Work is split into chunks (of Gaussians, of tiles) run in threads: the kernels r
 there is no threading layer of Numba's, and nothing global is set; `torch.get_num_threads()`
 threads, as the torch path uses. The first call of each kernel in a process loads it from the
 on-disk cache (`kernels.kernel_cache_dir`, a user cache directory) or, the first time on a machine,
-compiles it (`compile_kernels` does all of it at once and says so; `KERNELS` lists them).
+compiles it (`compile_kernels` does all of it at once and says so; `kernels.KERNELS` lists them).
 """
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
 import threading
 import time
@@ -37,9 +38,6 @@ _SMALL = 1 << 16
 #: Tile pairs per chunk of the Hessian's sweep (bounds its per-chunk buffer: 136 bytes a pair).
 _SWEEP_CHUNK = 1 << 15
 
-_kernels = None
-
-
 def numba_missing() -> str | None:
     """Why the compiled path cannot run here (None when it can)."""
     if importlib.util.find_spec("numba") is None:
@@ -49,12 +47,7 @@ def numba_missing() -> str | None:
 
 def kernels():
     """The `kernels` module (imports Numba on first use, not when gvae_core is imported)."""
-    global _kernels  # noqa: PLW0603 - the imported module, loaded once (an import, not state)
-    if _kernels is None:
-        from . import kernels as k  # noqa: PLC0415 - Numba is imported only when the compiled path runs
-
-        _kernels = k
-    return _kernels
+    return importlib.import_module(".kernels", __package__)
 
 
 def use_compiled(choice: str, device, dtype) -> bool:
