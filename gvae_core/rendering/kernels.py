@@ -9,7 +9,7 @@ these kernels to.
 
 The innermost loops run over the pixels of one tile with no branches (selects only) so that the
 compiler vectorises them; `_exp` is a polynomial exp that vectorises too (the C library's does not).
-Only float32 and int64 arrays cross into these functions, so each kernel has one signature.
+Each kernel is only ever called with one set of argument types, so each compiles once.
 """
 
 from __future__ import annotations
