@@ -150,6 +150,17 @@ def test_kernel_choice_and_where_it_cannot_run():
         render(random_cloud(3, 0, seed=0), camera(), settings=RenderSettings(kernels="fast"))
 
 
+def test_without_numba_the_torch_code_renders(monkeypatch):
+    """Where Numba is missing or does not load, "auto" renders with the torch code (the same image)
+    and "compiled" says why it cannot."""
+    cloud, cam = random_cloud(40, 1, seed=4), camera()
+    want = render(cloud, cam, background=BG, settings=TORCH).image
+    monkeypatch.setattr(compiled, "numba_missing", lambda: "Numba does not load here: a test")
+    assert torch.equal(render(cloud, cam, background=BG).image, want)
+    with pytest.raises(ValueError, match="does not load here"):
+        render(cloud, cam, settings=FAST)
+
+
 def test_kernels_are_cached_in_the_user_cache_directory(tmp_path, monkeypatch):
     """A compiled kernel goes to $GVAE_CACHE_DIR/kernels (a user cache directory), never beside the
     source, and a dispatcher made afresh (as in a new process) finds it there instead of compiling."""

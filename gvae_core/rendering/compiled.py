@@ -39,9 +39,14 @@ _SMALL = 1 << 16
 _SWEEP_CHUNK = 1 << 15
 
 def numba_missing() -> str | None:
-    """Why the compiled path cannot run here (None when it can)."""
+    """Why the compiled path cannot run here (None when it can): Numba not installed, or not
+    importable (for example a numpy outside the versions it supports); the torch code runs then."""
     if importlib.util.find_spec("numba") is None:
         return "Numba is not installed"
+    try:
+        importlib.import_module("numba")
+    except Exception as exc:  # noqa: BLE001 - any failure to load it means: render with torch
+        return f"Numba does not load here: {exc}"
     return None
 
 
