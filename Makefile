@@ -23,9 +23,12 @@ lint: install
 	$(PY) -m ruff check .
 
 # The Blender tests run beside the rest (they mostly wait on Blender subprocesses; together they
-# share the 2 cores well), each suite in its own temporary folder; the Blender log follows.
+# share the 2 cores well), each suite in its own temporary folder; the Blender log follows. The
+# compiled CPU kernels are made ready first (compiled once per machine, ~20 s; then loaded), so that
+# the Blender subprocesses load them instead of each compiling its own.
 test: install
 	@mkdir -p build
+	@$(PY) -c "from gvae_core.rendering.compiled import main; main()"
 	@$(PY) -m pytest -q --basetemp=build/pytest-blender tests/blender > build/test-blender.log 2>&1 & bg=$$!; \
 	$(PY) -m pytest -q --basetemp=build/pytest-core --ignore=tests/blender; core=$$?; \
 	wait $$bg; blender=$$?; echo "--- tests/blender (ran beside the above):"; cat build/test-blender.log; \
@@ -44,7 +47,7 @@ PYTHON313 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.13*/bin/python3.13
 py313 = $(filter-out 4.% 5.0.%,$(1))
 build/bpy-%/.installed:
 	test -x build/bpy-$*/bin/python || $(if $(call py313,$*),$(PYTHON313),$(PYTHON311)) -m venv build/bpy-$*
-	build/bpy-$*/bin/python -m pip install -q "bpy==$*" safetensors==0.8.0 scipy pillow tqdm \
+	build/bpy-$*/bin/python -m pip install -q "bpy==$*" safetensors==0.8.0 numba==0.68.1 scipy pillow tqdm \
 		$(if $(call py313,$*),"numpy==2.3.*","numpy==1.26.*" torch==2.13.0)
 	touch $@
 

@@ -152,6 +152,8 @@ class CoreJob:
 
     def _work(self, function) -> None:
         try:
+            if self._core is None:  # the real core, not a stand-in: its CPU kernels first (compiled once)
+                runtime.prepare_kernels(self._progress)
             self.result = self._run(function, self.cloud, self._progress)
         except JobCancelled:
             self.result = None

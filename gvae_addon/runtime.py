@@ -19,10 +19,11 @@ import sys
 
 import bpy
 
-#: What Refine needs beyond Blender's own Python, pinned as in pyproject.toml: torch, and
-#: safetensors for the model weights. The preferences button installs both.
+#: What Refine needs beyond Blender's own Python, pinned as in pyproject.toml: torch, safetensors
+#: for the model weights, and numba for the compiled CPU renderer (without it the renderer runs its
+#: torch code, several times slower). The preferences button installs all three.
 TORCH_REQUIREMENT = "torch==2.13.0"
-REFINE_REQUIREMENTS = (TORCH_REQUIREMENT, "safetensors==0.8.0")
+REFINE_REQUIREMENTS = (TORCH_REQUIREMENT, "safetensors==0.8.0", "numba==0.68.1")
 
 #: Root package of the installed extension (e.g. "bl_ext.user_default.gaussian_vae"), or
 #: "gvae_addon" when the add-on is registered straight from a source checkout.
@@ -113,6 +114,14 @@ def _core(module_name: str, function: str, label: str):
     except ImportError as exc:
         raise RuntimeError(f"{label} could not be loaded: {exc}") from exc
     return getattr(module, function)
+
+
+def prepare_kernels(progress) -> None:
+    """Load the renderer's compiled CPU kernels, or compile them the first time (tens of seconds),
+    saying so through progress(fraction, message); nothing without numba (the torch code runs)."""
+    compiled = importlib.import_module("gvae_core.rendering.compiled")
+    if compiled.numba_missing() is None:
+        compiled.compile_kernels(progress)
 
 
 def pip_install_command(target: str, requirements: tuple[str, ...] = REFINE_REQUIREMENTS,

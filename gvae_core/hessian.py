@@ -40,7 +40,7 @@ from .camera import Camera
 from .capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS, default_views, scoring_views
 from .cloud import GaussianCloud
 from .conventions import LOG_SCALE_RANGE, SH_C1 as SH_C1_, SH_C2 as SH_C2_, SH_C3 as SH_C3_
-from .rendering import RenderSettings, render
+from .rendering import RenderSettings, compiled, render
 from .rendering import projection as pj
 from .rendering.projection import Projected, project
 from .rendering.rasterize import (ALPHA_MAX, T_MIN, _alpha_and_transmittance, _tile_centres, _weights, composite,
@@ -430,13 +430,20 @@ def _project(f: dict, camera: Camera, degree: int, dt, aa: _Antialias, chunk: in
     return Projected(**{fld.name: torch.cat([getattr(p, fld.name) for p in parts]) for fld in fields(Projected)})
 
 
+def _keep_frame(frames: list | None, camera: Camera, settings: RenderSettings, table, binning, rows, acc) -> None:
+    """Append the view's `Frame` (composited) to `frames`, unless None."""
+    if frames is not None:
+        frames.append(Frame(camera, settings, table, binning, rows,
+                            tiles_to_image(acc, binning, camera.height, camera.width)))
+
+
 def _accumulate_view(f: dict, camera: Camera, degree: int, settings: RenderSettings, scale: float,
                      out: torch.Tensor, aa: _Antialias, timings: dict | None = None,
                      work: torch.Tensor | None = None, chunk: int = 1 << 16,
                      frames: list | None = None, rows: torch.Tensor | None = None) -> torch.Tensor | None:
-    """Add this view's packed blocks into `out` (21, N) float64. `work`: the (N, 34) float64
-    moment buffer of a previous view, reused (returned for the next). `frames`: a list that gets
-    the view's `Frame`, its table row i drawing cloud row `rows[i]`."""
+    """Add this view's packed blocks into `out` (21, N) float64 (torch code). `work`: the (N, 34)
+    float64 moment buffer of a previous view, reused (returned for the next). `frames`: a list that
+    gets the view's `Frame`, its table row i drawing cloud row `rows[i]`."""
     dt = settings.dtype
     clock = _Clock(timings)
     with torch.no_grad():
@@ -448,10 +455,8 @@ def _accumulate_view(f: dict, camera: Camera, degree: int, settings: RenderSetti
         table = pack(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
         del proj
         pairs = pair_table(table, binning)  # (for the compositing and the sweep)
-        acc = composite(table, binning, block=settings.block, budget=settings.budget, pairs=pairs)
-        if frames is not None:
-            frames.append(Frame(camera, settings, table, binning, rows,
-                                tiles_to_image(acc, binning, camera.height, camera.width)))
+        acc = composite(table, binning, block=settings.block, budget=settings.budget, pairs=pairs, kernels="torch")
+        _keep_frame(frames, camera, settings, table, binning, rows, acc)
         clock("composite")
         if binning.num_pairs == 0:
             return work
@@ -475,6 +480,38 @@ def _accumulate_view(f: dict, camera: Camera, degree: int, settings: RenderSetti
     return work
 
 
+def _accumulate_view_compiled(inp: compiled.Inputs, camera: Camera, degree: int, settings: RenderSettings,
+                              scale: float, out: np.ndarray, timings: dict | None = None,
+                              work: np.ndarray | None = None, frames: list | None = None,
+                              rows: torch.Tensor | None = None) -> np.ndarray | None:
+    """`_accumulate_view` by the compiled kernels (`rendering.compiled`): the blocks added into
+    `out` (N, 21) float64; `work` the (N, 34) float32 moment buffer."""
+    clock = _Clock(timings)
+    with torch.no_grad():
+        table_np, foot, radii, visible = compiled.project_arrays(inp, camera, degree)
+        table = torch.from_numpy(table_np)
+        clock("project")
+        binning = compiled.bin_gaussians(table, torch.from_numpy(foot), torch.from_numpy(visible), camera.width,
+                                         camera.height, settings.tile_size, exact=settings.exact_tiles)
+        clock("bin")
+        del foot, radii, visible
+        acc = compiled.composite_forward(table, binning)
+        _keep_frame(frames, camera, settings, table, binning, rows, acc)
+        clock("composite")
+        if binning.num_pairs == 0:
+            return work
+        if work is None or work.shape != (len(inp), _NMOM):  # float32: a few pairs a Gaussian are summed
+            work = np.zeros((len(inp), _NMOM), np.float32)
+        else:
+            work.fill(0.0)
+        compiled.gauss_newton_moments(table, binning, acc, camera.width, camera.height, work)
+        del acc, binning
+        clock("sweep")
+        compiled.gaussian_blocks(inp, camera, degree, scale, table, work, out)
+        clock("blocks")
+    return work
+
+
 def scoring_settings(render_settings: RenderSettings | None = None) -> RenderSettings:
     """The settings the Hessian renders its views with: the given ones, else the renderer's with
     TILE_SIZE tiles."""
@@ -494,9 +531,8 @@ def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, view
                     progress: Callable[[float, str], None] | None, timings: dict | None = None,
                     frames: list | None = None) -> torch.Tensor:
     n = len(cloud)
-    out = torch.zeros((len(_TRIU[0]), n), dtype=torch.float64)
     if n == 0:
-        return out
+        return torch.zeros((len(_TRIU[0]), n), dtype=torch.float64)
     normalization = normalization or cloud.normalization()
     cams = (scoring_views(cameras, views, resolution, cloud) if cameras is not None
             else default_views(cloud, views or DEFAULT_VIEWS, resolution, normalization=normalization))
@@ -507,13 +543,28 @@ def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, view
     order = torch.from_numpy(_morton_order(cloud.numpy().means))
     f = {k: v.index_select(0, order) for k, v in _fields(cloud, settings.dtype).items()}
     aa = aa.select(order)
+    fast = compiled.use_compiled(settings.kernels, "cpu", settings.dtype)
+    if fast:
+        if progress is not None:
+            compiled.compile_kernels(lambda _, message: progress(0.0, message))
+        inp = compiled.Inputs(f["means"], f["scales"], f["quats"], f["opacities"], f["sh_dc"], f["sh_rest"],
+                              **aa.project_args())
+        rows_out = np.zeros((n, len(_TRIU[0])), np.float64)
+    else:
+        out = torch.zeros((len(_TRIU[0]), n), dtype=torch.float64)
     work = None
     for k, cam in enumerate(cams):
         if progress is not None:
             progress(k / len(cams), f"Hessian view {k + 1}/{len(cams)}")
-        work = _accumulate_view(f, cam, cloud.sh_degree, settings, float(normalization[1]), out, aa, timings, work,
-                                frames=frames, rows=order)
+        if fast:
+            work = _accumulate_view_compiled(inp, cam, cloud.sh_degree, settings, float(normalization[1]), rows_out,
+                                             timings, work, frames=frames, rows=order)
+        else:
+            work = _accumulate_view(f, cam, cloud.sh_degree, settings, float(normalization[1]), out, aa, timings,
+                                    work, frames=frames, rows=order)
     del work, f
+    if fast:
+        out = torch.from_numpy(rows_out).T
     result = torch.empty_like(out)
     result[:, order] = out
     return result

@@ -64,8 +64,9 @@ def test_redraw_draws_what_render_draws_of_the_changed_cloud(tile_size):
     later, more = _changed(after, seed=3)
     both = redraw(again, later, np.concatenate([more, rows[:10]]))
     assert (both.image(WHITE) - render(later, cam, background=WHITE, settings=s).image).abs().max() < 1e-5
-    # nothing changed: the same picture
+    # nothing changed: the same picture; every row changed: the changed cloud's
     assert (redraw(frame, cloud, []).image(WHITE) - frame.image(WHITE)).abs().max() == 0.0
+    assert torch.equal(redraw(frame, after, np.arange(len(after))).image(WHITE), want)
 
 
 def test_redraw_uses_the_changed_clouds_anti_aliasing_and_refuses_unknown_rows():

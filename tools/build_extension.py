@@ -4,8 +4,9 @@ Stages gvae_addon, gvae_core, models/ (when present), the manifest and a root `_
 build/extension/gaussian_vae/, fetches the pinned wheels the manifest lists into its wheels/, then
 builds and validates the zip with Blender's own `blender_ext.py` (from the bpy module).
 
-`--torch-wheels DIR` bundles every wheel in DIR (PyTorch and its dependencies for ONE platform,
-e.g. from `pip download torch==2.13.0 --only-binary=:all: --platform ... --python-version 3.11 -d DIR`)
+`--torch-wheels DIR` bundles every wheel in DIR (PyTorch, numba and their dependencies for ONE platform,
+e.g. from `pip download torch==2.13.0 numba==0.68.1 --only-binary=:all: --platform ... --python-version 3.11
+-d DIR`; a numpy wheel there is left out: Blender ships numpy)
 for offline installs; the zip is then marked for that platform only. DIR may hold the wheels for
 several Pythons (`--python-version 3.11` and `3.13` into the same DIR): Blender installs those for its
 own (from 4.5 on; such a zip is marked for 4.5 and later). The zip's Blender versions are narrowed to
@@ -144,8 +145,14 @@ def stage(out: Path, torch_wheels: Path | None, cache: Path) -> Path:
             raise SystemExit(f"--torch-wheels must hold wheels for one platform, found {sorted(platforms)}")
         pythons = set().union(*(pythons_of(w.name) for w in extra if w.name.startswith("torch-")))
         vmin, vmax = blender_range(pythons, manifest["blender_version_min"], manifest.get("blender_version_max"))
+        # numba depends on numpy, so `pip download` fetches one; Blender ships its own numpy, which a
+        # bundled wheel must not replace
+        skipped = [w for w in extra if w.name.lower().startswith("numpy-")]
         for w in extra:
-            shutil.copy2(w, out / "wheels")
+            if w not in skipped:
+                shutil.copy2(w, out / "wheels")
+        if skipped:
+            print(f"left out {', '.join(w.name for w in skipped)}: Blender ships numpy", file=sys.stderr)
         listed = [f'  "./wheels/{w.name}",' for w in sorted((out / "wheels").glob("*.whl"))]
         manifest_text = re.sub(r"wheels = \[.*?\]", "wheels = [\n" + "\n".join(listed) + "\n]",
                                manifest_text, count=1, flags=re.S)

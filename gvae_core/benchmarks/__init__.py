@@ -10,6 +10,7 @@ BENCHMARKS = (
     "sog",
     "gltf",
     "render",
+    "kernels",
     "antialias",
     "blender",
     "refine",

@@ -5,6 +5,8 @@ is the slow float64 per-pixel loop it is tested against. Stages: `projection` (p
 positions relative to the camera in float64, the rest in the working dtype), `tiles` (exact
 footprint-tile binning, depth order), `rasterize` (blocked compositing, recomputing backward);
 `frames` keeps a view's table and tile lists to redraw it after a few Gaussians changed.
+On the CPU in float32 the stages run as compiled kernels (`compiled`, `kernels`: Numba), which
+the torch code is the reference for; `RenderSettings.kernels` chooses.
 
 On a machine shared with other work, run with OMP_WAIT_POLICY=PASSIVE in the environment (set
 before torch is imported): spinning OpenMP threads otherwise stall each other (measured 20x).
@@ -22,6 +24,7 @@ from ..camera import Camera
 from ..cloud import GaussianCloud
 from ..conventions import is_torch
 from ..octaves import drawn_fields
+from . import compiled
 from .projection import Projected, project
 from .rasterize import composite, pack, tiles_to_image
 from .tiles import Binning, bin_gaussians
@@ -40,7 +43,9 @@ class RenderSettings:
     pairs evaluated at once (bounds memory: about 40 bytes each); backward: "recompute" (custom
     autograd Function, bounded memory) or "autograd" (plain PyTorch ops, stores everything);
     exact_tiles: drop tile pairs the footprint ellipse misses (not just its bounding box);
-    dtype: rasteriser precision (float64 for gradcheck)."""
+    dtype: rasteriser precision (float64 for gradcheck); kernels: "auto" (the compiled kernels for
+    float32 on the CPU, else the torch code), "compiled" (an error where they cannot run), "torch"
+    (the reference path; `block` and `budget` apply to it only)."""
 
     antialias: str = DEFAULT_ANTIALIAS
     tile_size: int = 8
@@ -49,6 +54,7 @@ class RenderSettings:
     backward: str = "recompute"
     exact_tiles: bool = True
     dtype: torch.dtype = torch.float32
+    kernels: str = "auto"
 
 
 @dataclass
@@ -118,8 +124,17 @@ def prepare_view(cloud: GaussianCloud, camera: Camera, settings: RenderSettings,
     dev = f["means"].device
     filter_3d = _size(cloud, FILTER_KEY, dev) if mode == "mip" and FILTER_KEY in cloud.extra else None
     dilation_3d = _size(cloud, DILATION_KEY, dev) if mode == "matched" else None
-    proj = project(f["means"], f["scales"], f["quats"], f["opacities"], f["sh_dc"], f["sh_rest"], camera, degree,
-                   dtype=settings.dtype, filter_3d=filter_3d, mip_2d=mode == "mip", dilation_3d=dilation_3d)
+    fields = (f["means"], f["scales"], f["quats"], f["opacities"], f["sh_dc"], f["sh_rest"])
+    if compiled.use_compiled(settings.kernels, dev, settings.dtype):
+        proj, table = compiled.project(*fields, camera, degree, filter_3d=filter_3d, mip_2d=mode == "mip",
+                                       dilation_3d=dilation_3d)
+        binning = compiled.bin_gaussians(table, proj.footprint, proj.visible, camera.width, camera.height,
+                                         settings.tile_size, exact=settings.exact_tiles)
+        if table.requires_grad:  # the centres as a view of their own, so that gradients reach means2d
+            table = torch.cat([torch.cat([proj.means2d, proj.means2d.new_zeros(1, 2)]), table[:, 2:]], 1)
+        return proj, binning, table
+    proj = project(*fields, camera, degree, dtype=settings.dtype, filter_3d=filter_3d, mip_2d=mode == "mip",
+                   dilation_3d=dilation_3d)
     binning = bin_gaussians(proj.means2d, proj.footprint, proj.depths, proj.visible, camera.width, camera.height,
                             settings.tile_size, exact=settings.exact_tiles)
     return proj, binning, pack(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
@@ -135,7 +150,7 @@ def render(cloud: GaussianCloud, camera: Camera, *, background=(0.0, 0.0, 0.0), 
     proj, binning, table = prepare_view(cloud, camera, s, sh_degree=sh_degree, device=device)
     dev = proj.means2d.device
     h, w = camera.height, camera.width
-    acc = composite(table, binning, block=s.block, budget=s.budget, backward=s.backward)
+    acc = composite(table, binning, block=s.block, budget=s.budget, backward=s.backward, kernels=s.kernels)
     acc = tiles_to_image(acc, binning, h, w)
     bg = torch.as_tensor(background, dtype=s.dtype, device=dev).reshape(3)
     alpha = acc[..., 4]

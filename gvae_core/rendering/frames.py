@@ -45,7 +45,8 @@ class Frame:
     def image(self, background=(0.0, 0.0, 0.0)) -> torch.Tensor:
         """(H, W, 3) the view over `background`, as `render(...).image`."""
         if self.pixels is None:
-            acc = composite(self.table, self.binning, block=self.settings.block, budget=self.settings.budget)
+            acc = composite(self.table, self.binning, block=self.settings.block, budget=self.settings.budget,
+                            kernels=self.settings.kernels)
             self.pixels = tiles_to_image(acc, self.binning, self.camera.height, self.camera.width)
         bg = torch.as_tensor(background, dtype=self.pixels.dtype, device=self.pixels.device).reshape(3)
         return self.pixels[..., :3] + (1.0 - self.pixels[..., 4:5]) * bg
@@ -74,6 +75,8 @@ def redraw(frame: Frame, cloud: GaussianCloud, rows) -> Frame:
     rows = torch.unique(torch.as_tensor(rows).reshape(-1).to("cpu", torch.int64))
     if len(rows) and (int(rows[0]) < 0 or int(rows[-1]) >= len(cloud)):
         raise ValueError(f"redraw: rows must be rows of the cloud (0..{len(cloud) - 1})")
+    if len(rows) == len(cloud):  # every row changed: nothing of the frame to keep
+        return make_frame(cloud, cam, s, device=dev)
     with torch.no_grad():
         # table rows that drew the changed Gaussians are dropped from the tile lists
         where = torch.full((max(len(cloud), int(frame.rows.max()) + 1 if len(frame.rows) else 0),), -1,

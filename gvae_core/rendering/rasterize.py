@@ -15,7 +15,9 @@ pixels stopped, or lists exhausted) drop out (early termination).
 
 `RasterizeFunction` wraps this in a custom autograd Function whose backward recomputes each
 block (nothing of size pixels x Gaussians is stored), so memory stays bounded by the block
-budget. `differentiable_composite` is an independent formulation with plain autograd ops
+budget. On the CPU in float32 the same Function runs the compiled kernels instead
+(`compiled.composite_forward` / `composite_backward`: tile by tile, pixel by pixel), which this
+code is the reference for. `differentiable_composite` is an independent formulation with plain autograd ops
 (it stores everything): a cross-check for the hand-written backward and a fallback.
 """
 
@@ -24,6 +26,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from . import compiled as _compiled
 from .tiles import Binning
 
 ALPHA_MAX = 0.99
@@ -206,12 +209,16 @@ def _run_group(pairs, binning, tiles, kmax, block, gvec=None, grad_pairs=None, a
 
 
 class RasterizeFunction(torch.autograd.Function):
-    """table (N+1,11) -> accumulated features (tiles, 5, P) with a recomputing backward."""
+    """table (N+1,11) -> accumulated features (tiles, 5, P) with a recomputing backward (the
+    compiled kernels' when `compiled`, else the torch blocks')."""
 
     @staticmethod
-    def forward(ctx, table, binning: Binning, block: int, budget: int):
-        acc = _forward_all(table, binning, block, budget)
-        ctx.binning, ctx.block, ctx.budget = binning, block, budget
+    def forward(ctx, table, binning: Binning, block: int, budget: int, compiled: bool = False):
+        if compiled:
+            acc = _compiled.composite_forward(table, binning)
+        else:
+            acc = _forward_all(table, binning, block, budget)
+        ctx.binning, ctx.block, ctx.budget, ctx.compiled = binning, block, budget, compiled
         ctx.save_for_backward(table, acc)
         return acc
 
@@ -219,6 +226,8 @@ class RasterizeFunction(torch.autograd.Function):
     def backward(ctx, g_acc):
         table, acc = ctx.saved_tensors
         binning = ctx.binning
+        if ctx.compiled:
+            return _compiled.composite_backward(table, binning, acc, g_acc), None, None, None, None
         with torch.no_grad():
             pairs = pair_table(table, binning)
             grad_pairs = torch.zeros_like(pairs)
@@ -230,7 +239,7 @@ class RasterizeFunction(torch.autograd.Function):
             o = table[:, OP]
             grad_table[:, OP] = torch.where(o > 0, grad_table[:, OP] / torch.where(o > 0, o, torch.ones_like(o)),
                                             torch.zeros_like(o))
-        return grad_table, None, None, None
+        return grad_table, None, None, None, None
 
 
 def _forward_all(table, binning: Binning, block: int, budget: int, pairs=None) -> torch.Tensor:
@@ -282,16 +291,21 @@ def differentiable_composite(table, binning: Binning, block: int, budget: int) -
 
 
 def composite(table, binning: Binning, *, block: int = 64, budget: int = 1 << 21,
-              backward: str = "recompute", pairs: torch.Tensor | None = None) -> torch.Tensor:
+              backward: str = "recompute", pairs: torch.Tensor | None = None, kernels: str = "auto") -> torch.Tensor:
     """Accumulated features (tiles, 5, P) = Σ w·[r, g, b, depth, 1] per pixel, in tile layout.
-    `pairs`: `pair_table(table, binning)` when the caller made it already (used without autograd)."""
+    `pairs`: `pair_table(table, binning)` when the caller made it already (used without autograd);
+    `kernels`: `RenderSettings.kernels` (the compiled kernels or this module's torch code)."""
     if backward not in ("recompute", "autograd"):
         raise ValueError(f"backward must be 'recompute' or 'autograd', got {backward!r}")
     binning.evaluations = 0
-    if backward == "autograd" and table.requires_grad and torch.is_grad_enabled():
+    grad = table.requires_grad and torch.is_grad_enabled()
+    if backward == "autograd" and grad:
         return differentiable_composite(table, binning, block, budget)
-    if table.requires_grad and torch.is_grad_enabled():
-        return RasterizeFunction.apply(table, binning, block, budget)
+    fast = _compiled.use_compiled(kernels, table.device, table.dtype)
+    if grad:
+        return RasterizeFunction.apply(table, binning, block, budget, fast)
+    if fast:
+        return _compiled.composite_forward(table, binning)
     return _forward_all(table, binning, block, budget, pairs)
 
 

@@ -17,6 +17,11 @@ import sys
 import traceback
 
 
+def user_cache() -> str:
+    """gvae's user cache directory as it is before a scenario changes HOME (`kernels.kernel_cache_dir`)."""
+    return os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "gvae")
+
+
 def setup(args: dict):
     home = args["home"]
     os.makedirs(home, exist_ok=True)
@@ -24,6 +29,8 @@ def setup(args: dict):
         sys.modules["torch"] = None  # as in a Blender without torch: `import torch` fails
     if args.get("block_pillow"):
         sys.modules["PIL"] = None  # as in Blender, which bundles no Pillow
+    # the user cache stays the suite's: a fresh HOME must not mean compiling the CPU kernels again
+    os.environ.setdefault("GVAE_CACHE_DIR", user_cache())
     os.environ["HOME"] = home
     os.environ["BLENDER_USER_RESOURCES"] = os.path.join(home, "blender")
     import bpy

@@ -26,6 +26,7 @@ from gvae_core.conventions import linear_to_srgb
 from gvae_core.ply import read_ply, write_ply
 from gvae_core.quaternions import normalize as normalize_quats
 from gvae_core.quaternions import to_rotmat as quat_to_rotmat
+from tests.blender._scenarios import user_cache
 from tests.blender.conftest import BLENDER_PYTHON, ROOT, blender_ext, blender_versions, run_scenario
 from tests.conftest import requires_bpy
 
@@ -315,8 +316,8 @@ def test_batch_command_line(extension_zip, tmp_path):
     res = run_scenario("install", tmp_path, extension_zip, save_prefs=True,
                        model_dir=str(tmp_path / "untrained_model"))
     assert "bl_ext.user_default.gaussian_vae" in res["addons"]
-    env = {**os.environ, "HOME": str(tmp_path / "home"),
-           "BLENDER_USER_RESOURCES": str(tmp_path / "home" / "blender")}
+    env = {"GVAE_CACHE_DIR": user_cache(), **os.environ, "HOME": str(tmp_path / "home"),
+           "BLENDER_USER_RESOURCES": str(tmp_path / "home" / "blender")}  # (the compiled kernels' cache kept)
     model, what = res["model"], res["what"]
     refine = "" if model is None else f"bpy.ops.gvae.refine(steps=2, model={model!r}); "
     # The bpy module of Blender 4.2.0 crashes in read_userpref (any preferences, with or without
