@@ -24,7 +24,7 @@ from gvae_core.scenes.faults import FAULTS, faulted_scene
 from gvae_core.superres import ImageMismatchError, SuperResConfig, capture_images, fit_octaves
 from gvae_core.detail.fit import crop
 from gvae_core.superres.children import CHILD_LOGIT
-from gvae_core.superres.fit import _reaching
+from gvae_core.superres.fit import _reach, _reaching
 from gvae_core.superres.guards import ExposureCorrection, PoseCorrection, _skew
 
 H = 24  # training height of the synthetic capture
@@ -84,7 +84,7 @@ def test_a_patch_is_drawn_from_the_gaussians_that_reach_it_exactly_as_from_all()
         big = cam.scaled(2 * H)
         for x0, y0, size in ((0, 0, 16), (20, 8, 12), (30, 30, 18)):
             patch = crop(big, x0, y0, size, size)
-            keep = torch.from_numpy(_reaching(rows, tc, 1.0, patch))
+            keep = torch.from_numpy(_reaching(rows.means.double().numpy().T.copy(), _reach(rows, tc, 1.0), patch))
             sub = with_octaves(rows.select(keep), {f: v[keep] for f, v in tc.items()}, 1.0)
             assert torch.equal(render(sub, patch).image, render(full, patch).image)
             kept.append(len(keep) / len(rows))
