@@ -18,7 +18,11 @@ than in training gets more of it than one seen from afar. Only the `matched` and
 know nu; the `classic` render (and any other tool) draws the cloud as it was before refinement.
 `bake` writes the changes into the parameters for one chosen factor of the training resolution:
 a plain PLY for other tools. Fields that can change: log-scales, opacity logit, DC colour,
-positions, quaternions (raw, normalised on use) and the higher SH bands. numpy or torch.
+positions, quaternions (raw, normalised on use) and the higher SH bands; and the anti-aliasing size
+itself (`SIZE`: the change per octave of its logarithm, `gvae_octave_size`, never above 0), so that
+a Gaussian refined from images is drawn at 2^t times its training rate with the anti-aliasing of
+that rate (its size times 2^-t, `REFINED_SIZE_CHANGE`) rather than of the one it was trained at.
+The training rate nu stays the one the stored size says. numpy or torch.
 """
 
 from __future__ import annotations
@@ -32,12 +36,19 @@ from .camera import Camera
 from .cloud import GaussianCloud
 from .conventions import NEAR_PLANE, is_torch
 
-__all__ = ["FIELDS", "LIMIT_KEY", "field_keys", "has_octaves", "stored_keys", "octave_fields", "training_rate",
-           "training_height", "octaves_seen", "with_octaves", "without_octaves", "drawn_fields", "bake"]
+__all__ = ["FIELDS", "SIZE", "REFINED_SIZE_CHANGE", "LIMIT_KEY", "field_keys", "has_octaves", "stored_keys",
+           "octave_fields", "training_rate", "training_height", "octaves_seen", "with_octaves", "without_octaves",
+           "drawn_fields", "bake"]
 
 #: Fields a refinement may change, and the stem of their extra properties (one per column).
 FIELDS = {"scales": "scale", "opacities": "opacity", "sh_dc": "dc", "means": "position", "quats": "rot",
           "sh_rest": "rest"}
+#: The anti-aliasing size (`filter_3D` or `gvae_dilation_3D`, whichever the cloud has) as a field a
+#: refinement may change: its change per octave is of its natural logarithm, one value a Gaussian.
+SIZE = "size"
+_SIZE_KEY = "gvae_octave_size"
+#: The size's change per octave for a Gaussian refined to the rate it is drawn at: halved per octave.
+REFINED_SIZE_CHANGE = -math.log(2.0)
 #: Extra property: how many octaves above its training rate a Gaussian's change runs to.
 LIMIT_KEY = "gvae_octave_limit"
 #: Octaves below this count as none: the stored size is float32, so the training view itself can
@@ -49,13 +60,17 @@ _PREFIX = "gvae_octave_"
 def field_keys(field: str, columns: int) -> list[str]:
     """The extra-property names of a field's change per octave (`columns` values per Gaussian):
     `gvae_octave_opacity`, `gvae_octave_scale_0..2`, `gvae_octave_dc_0..2`, ..."""
+    if field == SIZE:
+        return [_SIZE_KEY]
     if field not in FIELDS:
-        raise ValueError(f"octaves: unknown field {field!r}; known: {', '.join(FIELDS)}")
+        raise ValueError(f"octaves: unknown field {field!r}; known: {', '.join(FIELDS)}, {SIZE}")
     stem = _PREFIX + FIELDS[field]
     return [stem] if field == "opacities" else [f"{stem}_{i}" for i in range(columns)]
 
 
 def _columns(cloud: GaussianCloud, field: str) -> int:
+    if field == SIZE:
+        return 1
     shape = tuple(getattr(cloud, field).shape)
     return int(np.prod(shape[1:], dtype=np.int64)) if len(shape) > 1 else 1
 
@@ -73,11 +88,11 @@ def octave_fields(cloud: GaussianCloud) -> dict:
     """Field -> its change per octave, shaped like the field (numpy or torch, as stored), for the
     fields the cloud carries changes of."""
     out = {}
-    for field in FIELDS:
+    for field in (*FIELDS, SIZE):
         keys = field_keys(field, _columns(cloud, field))
         if keys and all(k in cloud.extra for k in keys):
             cols = [cloud.extra[k] for k in keys]
-            shape = tuple(getattr(cloud, field).shape)
+            shape = (len(cloud),) if field == SIZE else tuple(getattr(cloud, field).shape)
             if is_torch(cols[0]):
                 import torch  # noqa: PLC0415 - numpy-first module
 
@@ -175,8 +190,9 @@ def octaves_seen(means, rate, limit, camera: Camera):
 
 
 def drawn_fields(fields: dict, cloud: GaussianCloud, camera: Camera) -> dict:
-    """`fields` (field -> torch tensor of the cloud's values) as drawn through `camera`: each
-    refined field plus t times its change per octave (gradients reach the stored changes)."""
+    """`fields` (field -> torch tensor of the cloud's values; SIZE: its anti-aliasing size) as drawn
+    through `camera`: each refined field plus t times its change per octave, the size times
+    e^(t times its change) (gradients reach the stored changes)."""
     changes = octave_fields(cloud)
     rate = training_rate(cloud)
     if not changes or rate is None:
@@ -189,11 +205,14 @@ def drawn_fields(fields: dict, cloud: GaussianCloud, camera: Camera) -> dict:
                      limit if is_torch(limit) else torch.from_numpy(np.asarray(limit, np.float32)), camera)
     out = dict(fields)
     for field, change in changes.items():
+        if field not in out:
+            continue
         value = out[field]
         d = change if is_torch(change) else torch.from_numpy(np.ascontiguousarray(change))
         d = d.to(device=value.device, dtype=value.dtype)
         tt = t.to(value.dtype).reshape((-1,) + (1,) * (value.dim() - 1))
-        out[field] = value + tt * torch.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0)
+        step = tt * torch.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0)
+        out[field] = value * torch.exp(step.clamp(max=0.0)) if field == SIZE else value + step
     return out
 
 
@@ -211,8 +230,13 @@ def bake(cloud: GaussianCloud, factor: float = 2.0) -> GaussianCloud:
     limit = np.asarray(c.extra[LIMIT_KEY], np.float64)
     t = np.clip(math.log2(factor), 0.0, limit).astype(np.float32)
     new = {}
+    size = changes.pop(SIZE, None)
     for field, change in changes.items():
         value = getattr(c, field)
         tt = t.reshape((-1,) + (1,) * (value.ndim - 1))
         new[field] = (value + tt * np.nan_to_num(change)).astype(np.float32)
+    if size is not None:  # the baked cloud's anti-aliasing size says the rate it is drawn for
+        key = FILTER_KEY if FILTER_KEY in c.extra else DILATION_KEY
+        shrink = np.exp(np.minimum(t * np.nan_to_num(size), 0.0))
+        new["extra"] = {**out.extra, key: (np.asarray(c.extra[key], np.float32) * shrink).astype(np.float32)}
     return out.replace(**new)

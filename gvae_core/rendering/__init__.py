@@ -23,7 +23,7 @@ from ..antialias import ANTIALIAS_MODES, DEFAULT_ANTIALIAS, DILATION_KEY, FILTER
 from ..camera import Camera
 from ..cloud import GaussianCloud
 from ..conventions import is_torch
-from ..octaves import drawn_fields
+from ..octaves import SIZE, drawn_fields
 from . import compiled
 from .projection import Projected, project
 from .rasterize import composite, pack, tiles_to_image
@@ -119,11 +119,14 @@ def prepare_view(cloud: GaussianCloud, camera: Camera, settings: RenderSettings,
     mode = resolve_antialias(settings.antialias, cloud)
     f = {name: _field(getattr(cloud, name), device) for name in
          ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")}
+    key = FILTER_KEY if mode == "mip" and FILTER_KEY in cloud.extra else DILATION_KEY if mode == "matched" else None
+    if key is not None:
+        f[SIZE] = _size(cloud, key, f["means"].device)
     if mode != "classic":  # a refined cloud's changes, for the octaves above its training rate it is drawn at
         f = drawn_fields(f, cloud, camera)
     dev = f["means"].device
-    filter_3d = _size(cloud, FILTER_KEY, dev) if mode == "mip" and FILTER_KEY in cloud.extra else None
-    dilation_3d = _size(cloud, DILATION_KEY, dev) if mode == "matched" else None
+    filter_3d = f[SIZE] if key == FILTER_KEY else None
+    dilation_3d = f[SIZE] if key == DILATION_KEY else None
     fields = (f["means"], f["scales"], f["quats"], f["opacities"], f["sh_dc"], f["sh_rest"])
     if compiled.use_compiled(settings.kernels, dev, settings.dtype):
         proj, table = compiled.project(*fields, camera, degree, filter_3d=filter_3d, mip_2d=mode == "mip",

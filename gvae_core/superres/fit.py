@@ -35,7 +35,7 @@ from ..datasets import Views
 from ..densify import g_scale
 from ..detail.fit import ORACLE_LEARNING_RATES, crop
 from ..losses import photometric_loss, psnr
-from ..octaves import FIELDS, with_octaves
+from ..octaves import FIELDS, REFINED_SIZE_CHANGE, SIZE, with_octaves
 from ..rendering import RenderOutput, RenderSettings, render
 from ..train import scene_extent
 from .children import CHILD_LOGIT, densify
@@ -64,7 +64,9 @@ class SuperResConfig:
     reference's units) at which a Gaussian densifies, None: no children; densify_at: when, as
     fractions of the steps; max_children: at most this many children per input Gaussian; start:
     where the changes start, "detail" (the detail model's prediction, `gvae_core.refine` makes it)
-    or "zero"."""
+    or "zero"; size_change: every Gaussian's anti-aliasing size's change per octave of its
+    logarithm (`octaves.SIZE`; default: drawn with the anti-aliasing of the rate it is refined to,
+    halved per octave; None: the anti-aliasing it was trained with)."""
 
     steps: int = 400
     patch: int = 96
@@ -78,6 +80,7 @@ class SuperResConfig:
     densify_at: tuple[float, ...] = (0.25, 0.5)
     max_children: float = 0.5
     start: str = "detail"
+    size_change: float | None = REFINED_SIZE_CHANGE
     seed: int = 0
     antialias: str = "auto"
 
@@ -154,7 +157,9 @@ class _Model:
         return GaussianCloud(**fields, extra={self.key: torch.cat([b.extra[self.key], b.extra[self.key][self.roots]])})
 
     def all_changes(self) -> dict[str, torch.Tensor]:
-        fixed = {f: torch.cat([v, torch.zeros((self.m,) + tuple(v.shape[1:]))]) for f, v in self.fixed.items()}
+        """Every row's changes per octave: the fitted ones, and the fixed ones (a child takes its
+        input Gaussian's)."""
+        fixed = {f: torch.cat([v, v[self.roots]]) for f, v in self.fixed.items()}
         return {**fixed, **self.changes}
 
     def cloud(self, limit: float, camera: Camera | None = None) -> tuple[GaussianCloud, torch.Tensor | None]:
@@ -330,6 +335,9 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     fields = [f for f in config.fields if getattr(src, f).size]
     extent = scene_extent(views.cameras)[1]
     lrs = {f: ORACLE_LEARNING_RATES[f] * config.lr * (extent if f == "means" else 1.0) for f in FIELDS}
+    start = dict(start or {})
+    if config.size_change is not None:
+        start[SIZE] = np.full(len(src), config.size_change, np.float32)
     model = _Model(src, fields, start, lrs)
     pose = exposure = None
     if config.pose is not None:
