@@ -519,7 +519,7 @@ def _converged_cycles(scene) -> None:
 def scenario_display_refined(bpy, args: dict) -> dict:
     """Refined and unrefined splats imported with the default options, each rendered alone by Cycles
     (as scenario_display) at the camera's size and at given Resolution % (a user's 200%: twice the
-    training resolution), without Russian roulette on transparent bounces."""
+    training resolution), without Russian roulette on transparent bounces; then exported."""
     scene = bpy.context.scene
     for obj in list(bpy.data.objects):
         bpy.data.objects.remove(obj)
@@ -541,6 +541,10 @@ def scenario_display_refined(bpy, args: dict) -> dict:
         bpy.ops.render.render(write_still=True)
         res["focal"][r["name"]] = _splat_input(objects[r["ply"]], "Focal Length (px)")
         res["seconds"][r["name"]] = time.perf_counter() - t0
+    for e in args.get("exports", []):  # File > Export of an object, with the operator's options
+        bpy.context.view_layer.objects.active = objects[e["ply"]]
+        operator = getattr(bpy.ops.export_scene, e["operator"])
+        assert operator(filepath=e["path"], **e.get("options", {})) == {"FINISHED"}, e
     return res
 
 

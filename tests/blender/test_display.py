@@ -24,7 +24,8 @@ from gvae_core.camera import Camera, orbit
 from gvae_core.cloud import GaussianCloud
 from gvae_core.conventions import (ALPHA_MAX, ALPHA_MIN, MIP_2D_VARIANCE, SH_REST_COUNTS, activate_opacities,
                                    activate_scales, footprint_sigmas, linear_to_srgb, srgb_to_linear)
-from gvae_core.octaves import (DEADBAND, LIMIT_KEY, REFINED_SIZE_CHANGE, SIZE, octave_fields, training_rate,
+from gvae_core.formats import write_splat_file
+from gvae_core.octaves import (DEADBAND, LIMIT_KEY, REFINED_SIZE_CHANGE, SIZE, bake, octave_fields, training_rate,
                                with_octaves)
 from gvae_core.superres.children import CHILD_LOGIT
 from gvae_core.ply import read_ply, write_ply
@@ -177,8 +178,12 @@ def test_refined_scene_at_twice_its_resolution(extension_zip, tmp_path):
     for key, cloud in clouds.items():
         plys[key] = str(tmp_path / f"{key}.ply")
         write_ply(cloud, plys[key])
+    exports = [{"ply": "refined_matched", "operator": "gaussian_splat", "path": str(tmp_path / "kept.ply")},
+               {"ply": "refined_mip", "operator": "gaussian_splat", "path": str(tmp_path / "baked.ply"),
+                "options": {"bake_refinement": 2.0}},
+               {"ply": "refined_matched", "operator": "gaussian_splat_spz", "path": str(tmp_path / "baked.spz")}]
     res = run_scenario("display_refined", tmp_path, extension_zip, plys=plys, c2w=cam.to_blender_c2w().tolist(),
-                       fov_x=cam.fov_x, width=cam.width, height=cam.height, renders=renders)
+                       fov_x=cam.fov_x, width=cam.width, height=cam.height, renders=renders, exports=exports)
     img = {r["name"]: png_over_white(tmp_path / f"{r['name']}.png") for r in renders}
     for r in renders:
         assert res["focal"][r["name"]] == pytest.approx(cam.fx * r["percentage"] / 100, rel=1e-5)
@@ -201,6 +206,19 @@ def test_refined_scene_at_twice_its_resolution(extension_zip, tmp_path):
         assert p1 >= MIN_PSNR and i1 >= MIN_IOU, kind
         assert same <= 1.5 / 255, kind
         np.testing.assert_array_equal(reference(refined_cloud, cam)[0], ref1)  # (t = 0 at the training rate)
+
+    # Export: a PLY keeps the changes per octave (every extra, as read); Bake Refinement 2 writes the
+    # refined splat as drawn at 2x (the anti-aliasing size too), the default of formats without extras.
+    assert Path(exports[0]["path"]).read_bytes() == Path(plys["refined_matched"]).read_bytes()
+    baked = bake(clouds["refined_mip"], 2.0)
+    got = read_ply(exports[1]["path"])
+    assert set(got.extra) == set(baked.extra) == {FILTER_KEY}
+    for name, value in baked.arrays().items():
+        np.testing.assert_array_equal(getattr(got, name), value, err_msg=name)
+    np.testing.assert_array_equal(got.extra[FILTER_KEY], baked.extra[FILTER_KEY])
+    with pytest.warns(UserWarning, match=f"not written: {DILATION_KEY}$"):  # (and no change per octave left)
+        write_splat_file(bake(clouds["refined_matched"], 2.0), tmp_path / "core.spz")
+    assert Path(exports[2]["path"]).read_bytes() == (tmp_path / "core.spz").read_bytes()
 
 
 @pytest.mark.slow
