@@ -11,9 +11,14 @@ following the reference renderer (DESIGN.md, Rendering semantics) for the scene'
   the Gaussian's depth z from the camera (f: the camera's focal length in pixels of the render,
   the "Focal Length (px)" input that `render_setup` keeps in step): its projection is the
   renderer's v I in pixels;
-- a refined cloud (`gvae_core.octaves`): its log-scales and opacity logit plus t times their
-  changes per octave (`gvae_octave_scale_0..2`, `gvae_octave_opacity`), t the octaves above the
-  Gaussian's training rate at which the scene camera draws it (none at the training resolution);
+- a refined cloud (`gvae_core.octaves`, as `gvae_core.render` draws it): t = the octaves above the
+  Gaussian's training rate (from its stored anti-aliasing size) at which the scene camera draws its
+  stored centre (0 at the training resolution); every parameter with a change per octave is drawn
+  as p + t dp: the centre (`gvae_octave_position_*`: the instance is placed there, and the depth,
+  view direction and filters are the drawn centre's), the w,x,y,z quaternion, log-scales, opacity
+  logit, DC colour and SH coefficients (`gvae_octave_rest_<3 j + c>` for `f_rest_<c K + j>`); the
+  anti-aliasing size (filter_3D or gvae_dilation_3D) times e^min(t dsize, 0). A Gaussian added by
+  refinement (opacity below 1/255 at its training rate) so appears only above that rate;
 - colour: SH_C0 * f_dc + 0.5 plus, with View-Dependent Colour on, the SH bands for the direction
   camera -> centre in the object's own frame; clamped at 0 and converted from sRGB to linear
   (splat colours are display-referred: the Standard view transform gives them back);
@@ -44,7 +49,7 @@ import bpy
 from gvae_core.antialias import CLASSIC_DILATION, DILATION_KEY, FILTER_3D_VARIANCE, FILTER_KEY
 from gvae_core.octaves import DEADBAND as OCTAVE_DEADBAND
 from gvae_core.octaves import LIMIT_KEY as OCTAVE_LIMIT_KEY
-from gvae_core.octaves import field_keys
+from gvae_core.octaves import SIZE, field_keys
 from gvae_core.conventions import (ALPHA_MAX, ALPHA_MIN, LOG_SCALE_RANGE, MIP_2D_VARIANCE, OPACITY_LOGIT_RANGE,
                                    SH_C0, SH_C1, SH_C2, SH_C3, SH_REST_COUNTS, SRGB_EOTF)
 
@@ -56,7 +61,7 @@ MODIFIER_NAME = "GaussianVAE Splats"
 COLOR_ATTR = "gvae_color"
 ALPHA_ATTR = "gvae_alpha"
 #: Bumped when the node setup changes; an older group or material in a blend file is rebuilt in place.
-NODES_VERSION = 5
+NODES_VERSION = 6
 #: Multiplies every Gaussian's standard deviations (1: the Gaussians as trained).
 DEFAULT_SCALE_FACTOR = 1.0
 #: Circumradius of Blender's icosphere (subdivisions d) that encloses the unit sphere is
@@ -382,23 +387,29 @@ def _build_group(ng, degree: int) -> None:
     # The scene's active camera in the object's own frame (the frame of the Gaussians' data).
     cam = b.node("GeometryNodeObjectInfo", transform_space="RELATIVE")
     b.link(outp(b.node("GeometryNodeInputActiveCamera"), "Active Camera", "OBJECT"), inp(cam, "Object", "OBJECT"))
-    rel = b.vmath("SUBTRACT", outp(b.node("GeometryNodeInputPosition"), "Position", "VECTOR"),
-                  outp(cam, "Location", "VECTOR"))
-    view_dir = b.vmath("NORMALIZE", rel)  # camera -> centre
     forward = b.node("FunctionNodeRotateVector")
     inp(forward, "Vector", "VECTOR").default_value = (0.0, 0.0, -1.0)
     b.link(outp(cam, "Rotation", "ROTATION"), inp(forward, "Rotation", "ROTATION"))
-    depth = m("ABSOLUTE", b.vmath("DOT_PRODUCT", rel, outp(forward, "Vector", "VECTOR")))
+    forward = outp(forward, "Vector", "VECTOR")
+    cam_at = outp(cam, "Location", "VECTOR")
+    base = outp(b.node("GeometryNodeInputPosition"), "Position", "VECTOR")
+    # A refined cloud: the octaves above its training rate at which the camera draws each Gaussian,
+    # from its stored (unchanged) centre; every other quantity from the centre as drawn.
+    octaves = _octaves_seen(b, m("ABSOLUTE", b.vmath("DOT_PRODUCT", b.vmath("SUBTRACT", base, cam_at), forward)),
+                            gin["Focal Length (px)"])
+    centre = b.vmath("MULTIPLY_ADD", b.combine([_named(b, key) for key in field_keys("means", 3)]), octaves, base)
+    rel = b.vmath("SUBTRACT", centre, cam_at)
+    view_dir = b.vmath("NORMALIZE", rel)  # camera -> centre
+    depth = m("ABSOLUTE", b.vmath("DOT_PRODUCT", rel, forward))
     # Screen-space filter as a world-space isotropic variance at the Gaussian's depth:
     # variance (px²) x (depth / focal length in px)²; 0 while the focal length is unknown (0).
     pixel = m("DIVIDE", depth, gin["Focal Length (px)"])
     screen_var = m("MULTIPLY", gin["Screen Filter"], m("MULTIPLY", pixel, pixel))
-    octaves = _octaves_seen(b, depth, gin["Focal Length (px)"])
 
     # Rotation from the w,x,y,z quaternion (normalised by the node).
     q = b.node("FunctionNodeQuaternionToRotation")
-    for i, comp in enumerate("WXYZ"):
-        b.link(_named(b, f"rot_{i}"), inp(q, comp, "VALUE"))
+    for i, (comp, change) in enumerate(zip("WXYZ", field_keys("quats", 4))):
+        b.link(_refined(b, f"rot_{i}", change, octaves), inp(q, comp, "VALUE"))
     rotation = outp(q, "Rotation", "ROTATION")
 
     # Variances: s² (std-devs exp(clamp(log-scale)) x factor); with the 3D filter f:
@@ -407,11 +418,13 @@ def _build_group(ng, degree: int) -> None:
     # with Compensate, the Mip 2D filter) sqrt(det Σ2D / det(Σ2D + v I)), with the 2D
     # covariance of the projection along the view direction u (in the Gaussian's frame):
     # det Σ2D = det Σ · uᵀ Σ⁻¹ u.
-    f = _named(b, FILTER_KEY)
+    # A refined cloud's anti-aliasing size (either one) times e^min(t x its change per octave, 0).
+    shrink = m("EXPONENT", m("MINIMUM", m("MULTIPLY", octaves, _named(b, field_keys(SIZE, 1)[0])), 0.0))
+    f = m("MULTIPLY", _named(b, FILTER_KEY), shrink)
     ff = m("MULTIPLY", f, f)
     # "matched" (a cloud with the classic dilation held in world units, DILATION_KEY = d): the
     # added variance is max(d², screen variance), opacity unchanged; not with the Mip filters.
-    d = m("MULTIPLY", _named(b, DILATION_KEY), m("SUBTRACT", 1.0, gin["Compensate Screen Filter"]))
+    d = b.product([_named(b, DILATION_KEY), shrink, m("SUBTRACT", 1.0, gin["Compensate Screen Filter"])])
     screen_var = m("MAXIMUM", m("MULTIPLY", d, d), screen_var)
     u = b.node("FunctionNodeRotateVector")
     b.link(view_dir, inp(u, "Vector", "VECTOR"))
@@ -455,12 +468,16 @@ def _build_group(ng, degree: int) -> None:
                        _compare(b, "LESS_THAN", outp(rand, "Value", "VALUE"), fraction))
 
     # Colour: SH_C0 * f_dc + 0.5 (+ the SH bands seen from the active camera), clamped at 0.
-    colour = b.vmath("MULTIPLY_ADD", b.combine([_named(b, f"f_dc_{i}") for i in range(3)]), SH_C0, 0.5)
+    # A refined cloud's changes per octave of the DC colour and of each SH coefficient (`sh_rest`
+    # (K, 3) flattened: column 3 j + c; the PLY's f_rest is channel-major: c K + j).
+    dc = b.combine([_refined(b, f"f_dc_{i}", change, octaves) for i, change in enumerate(field_keys("sh_dc", 3))])
+    colour = b.vmath("MULTIPLY_ADD", dc, SH_C0, 0.5)
     k = SH_REST_COUNTS[degree]
     if k:
         rest = None
+        rest_changes = field_keys("sh_rest", 3 * k)
         for j, basis in enumerate(sh_basis_terms(b, view_dir, degree)):
-            coeff = b.combine([_named(b, f"f_rest_{c * k + j}") for c in range(3)])
+            coeff = b.combine([_refined(b, f"f_rest_{c * k + j}", rest_changes[3 * j + c], octaves) for c in range(3)])
             rest = (b.vmath("SCALE", coeff, scale=basis) if rest is None
                     else b.vmath("MULTIPLY_ADD", coeff, basis, rest))
         colour = b.vmath("ADD", colour, b.switch("VECTOR", gin["View-Dependent Colour"], 0.0, rest))
@@ -473,7 +490,8 @@ def _build_group(ng, degree: int) -> None:
     cap = b.node("GeometryNodeCaptureAttribute", domain="POINT")
     captured = (("Rotation", "ROTATION", rotation), ("Scale", "VECTOR", scale), ("Shown", "BOOLEAN", select),
                 ("Colour", "VECTOR", linear), ("Opacity", "FLOAT", opacity), ("Std", "VECTOR", b.combine(std_tot)),
-                ("Facing", "VECTOR", b.vmath("DIVIDE", b.vmath("SCALE", u, scale=-1.0), b.combine(std_tot))))
+                ("Facing", "VECTOR", b.vmath("DIVIDE", b.vmath("SCALE", u, scale=-1.0), b.combine(std_tot))),
+                ("Centre", "VECTOR", centre))
     for name, kind, _ in captured:
         cap.capture_items.new(kind, name)
     b.link(gin["Geometry"], inp(cap, "Geometry", "GEOMETRY"))
@@ -483,6 +501,10 @@ def _build_group(ng, degree: int) -> None:
     geo = _remove_attributes(b, outp(cap, "Geometry", "GEOMETRY"), "*")
     geo = _store(b, geo, COLOR_ATTR, got["Colour"], "FLOAT_VECTOR")
     geo = _store(b, geo, ALPHA_ATTR, got["Opacity"], "FLOAT")
+    moved = b.node("GeometryNodeSetPosition")  # a refined cloud's centres as drawn
+    b.link(geo, inp(moved, "Geometry", "GEOMETRY"))
+    b.link(got["Centre"], inp(moved, "Position", "VECTOR"))
+    geo = outp(moved, "Geometry", "GEOMETRY")
 
     # Ellipsoids: an icosphere enclosing the unit sphere, instanced per point with the Gaussian's
     # rotation and scale (instance space = its whitened frame). Renders (Camera-Facing): a disc
@@ -548,8 +570,58 @@ def ensure_node_group(degree: int = 0):
     if ng is None or ng.bl_idname != "GeometryNodeTree":
         ng = bpy.data.node_groups.new(name, "GeometryNodeTree")
     if ng.get("gvae_nodes_version") != NODES_VERSION or ng.get("gvae_sh_degree") != degree:
-        _build_group(ng, degree)
+        _rebuild_group(ng, degree)
     return ng
+
+
+def _input_defaults(ng) -> dict:
+    """Name -> default value of the group's inputs but the geometry (None: no default, a material)."""
+    return {item.name: getattr(item, "default_value", None) for item in ng.interface.items_tree
+            if getattr(item, "in_out", None) == "INPUT" and item.socket_type != "NodeSocketGeometry"}
+
+
+def _rebuild_group(ng, degree: int) -> None:
+    """Build `ng` anew, keeping the input values of every modifier that uses it (by name: a rebuilt
+    interface has new socket identifiers, and the modifiers' values would otherwise become zeros:
+    Scale Factor 0, a Mip-Splatting cloud's Compensate Screen Filter off); inputs new to the group
+    get their defaults."""
+    old = set(_input_defaults(ng))
+    kept = []
+    for obj in bpy.data.objects:
+        for mod in obj.modifiers:
+            if mod.type == "NODES" and mod.node_group == ng:
+                values = {}
+                for name in old:
+                    try:
+                        values[name] = get_modifier_input(mod, name)
+                    except (LookupError, KeyError, ValueError):
+                        pass  # never set: it takes the default
+                kept.append((obj, mod, values))
+    _build_group(ng, degree)
+    defaults = _input_defaults(ng)
+    for obj, mod, values in kept:
+        for name, default in defaults.items():
+            value = values.get(name, default)
+            if value is not None:
+                set_modifier_input(mod, name, value)
+        obj.update_tag()
+
+
+def upgrade_outdated() -> int:
+    """Rebuild the splat node groups and the material of an opened file that an older version of
+    the add-on made (its objects then draw as this version does), keeping their modifiers' inputs;
+    returns how many groups were rebuilt. Linked (library) data is left alone."""
+    count = 0
+    for ng in list(bpy.data.node_groups):
+        degree = ng.get("gvae_sh_degree")
+        if (ng.bl_idname == "GeometryNodeTree" and ng.name.startswith(GROUP_NAME) and ng.library is None
+                and degree in SH_REST_COUNTS and ng.get("gvae_nodes_version") != NODES_VERSION):
+            _rebuild_group(ng, int(degree))
+            count += 1
+    mat = bpy.data.materials.get(MATERIAL_NAME)
+    if mat is not None and mat.library is None and mat.get("gvae_nodes_version") != NODES_VERSION:
+        _build_material(mat)
+    return count
 
 
 def _attr_sum(b: _Builder, name: str, vector: bool = False):

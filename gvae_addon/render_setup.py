@@ -129,6 +129,7 @@ def bounce_problem(scene) -> str | None:
 
 @persistent
 def _on_load(*_args):
+    nodes.upgrade_outdated()  # a file saved with an older add-on: its splats draw as this one does
     for scene in bpy.data.scenes:
         sync_focal_length(scene)
 

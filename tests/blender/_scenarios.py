@@ -499,6 +499,55 @@ def _camera(bpy, args: dict):
     return add_camera(bpy.context.scene, args["c2w"], args["fov_x"], args["width"], args["height"])
 
 
+def _converged_cycles(scene) -> None:
+    """Cycles on the CPU, 1 sample at each pixel's centre (filter width 0.01, the reference renderer's
+    point sampling), film transparent, to 8-bit RGBA PNG."""
+    scene.render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = 1
+    scene.cycles.use_denoising = False
+    scene.cycles.use_adaptive_sampling = False
+    scene.cycles.filter_width = 0.01
+    scene.render.threads_mode = "FIXED"
+    scene.render.threads = 2
+    scene.render.film_transparent = True
+    scene.render.image_settings.file_format = "PNG"
+    scene.render.image_settings.color_mode = "RGBA"
+    scene.render.image_settings.color_depth = "8"
+
+
+def scenario_display_refined(bpy, args: dict) -> dict:
+    """Refined and unrefined splats imported with the default options, each rendered alone by Cycles
+    (as scenario_display) at the camera's size and at given Resolution % (a user's 200%: twice the
+    training resolution), without Russian roulette on transparent bounces; then exported."""
+    scene = bpy.context.scene
+    for obj in list(bpy.data.objects):
+        bpy.data.objects.remove(obj)
+    objects = {}
+    for key, path in args["plys"].items():
+        bpy.ops.import_scene.gaussian_splat(filepath=path)
+        objects[key] = bpy.context.active_object
+    _camera(bpy, args)
+    _converged_cycles(scene)
+    scene.cycles.min_transparent_bounces = scene.cycles.transparent_max_bounces
+    res = {"focal": {}, "seconds": {}}
+    import time
+    for r in args["renders"]:
+        t0 = time.perf_counter()
+        for key, obj in objects.items():
+            obj.hide_render = key != r["ply"]
+        scene.render.resolution_percentage = r["percentage"]
+        scene.render.filepath = os.path.join(os.path.dirname(args["out"]), f"{r['name']}.png")
+        bpy.ops.render.render(write_still=True)
+        res["focal"][r["name"]] = _splat_input(objects[r["ply"]], "Focal Length (px)")
+        res["seconds"][r["name"]] = time.perf_counter() - t0
+    for e in args.get("exports", []):  # File > Export of an object, with the operator's options
+        bpy.context.view_layer.objects.active = objects[e["ply"]]
+        operator = getattr(bpy.ops.export_scene, e["operator"])
+        assert operator(filepath=e["path"], **e.get("options", {})) == {"FINISHED"}, e
+    return res
+
+
 def scenario_display(bpy, args: dict) -> dict:
     """File > Import with the default options into Blender's default scene, then Cycles renders to
     8-bit RGBA PNG (display space, as a user saves them) from the given camera, once per variant.
@@ -515,18 +564,7 @@ def scenario_display(bpy, args: dict) -> dict:
     res["after"] = {"view": scene.view_settings.view_transform, "look": scene.view_settings.look,
                     "bounces": scene.cycles.transparent_max_bounces}
     _camera(bpy, args)
-    scene.render.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = 1
-    scene.cycles.use_denoising = False
-    scene.cycles.use_adaptive_sampling = False
-    scene.cycles.filter_width = 0.01
-    scene.render.threads_mode = "FIXED"
-    scene.render.threads = 2
-    scene.render.film_transparent = True
-    scene.render.image_settings.file_format = "PNG"
-    scene.render.image_settings.color_mode = "RGBA"
-    scene.render.image_settings.color_depth = "8"
+    _converged_cycles(scene)
     default_bounces = scene.cycles.transparent_max_bounces
     res["missing_inputs"] = []
     for variant in args["variants"]:
@@ -600,7 +638,47 @@ def scenario_display_nodes(bpy, args: dict) -> dict:
     scene.render.resolution_percentage = 50
     bpy.context.evaluated_depsgraph_get().update()
     res["focal_half"] = _splat_input(bpy.context.active_object, "Focal Length (px)")
+    scene.render.resolution_percentage = 100
+    if args.get("upgrade"):
+        res["upgrade"] = _upgrade_on_load(bpy, bpy.context.active_object.name, args["out"] + ".old.blend")
     return res
+
+
+def _upgrade_on_load(bpy, name: str, path: str) -> dict:
+    """A file saved by the add-on's previous version (its group marked older and without the node
+    that moves a refined cloud's centres) opened again: the group is rebuilt on load, the object
+    draws as this version does and keeps its modifier's inputs."""
+    import numpy as np
+    from bl_ext.user_default.gaussian_vae.gvae_addon import nodes
+
+    def instances():
+        obj = bpy.data.objects[name]
+        obj.update_tag()
+        dg = bpy.context.evaluated_depsgraph_get()
+        dg.update()
+        return np.array([np.array(i.matrix_world) for i in dg.object_instances
+                         if i.is_instance and i.parent is not None and i.parent.original == obj])
+
+    obj = bpy.data.objects[name]
+    obj.hide_viewport = obj.hide_render = False
+    _splat_inputs(obj, {"Min Opacity": 0.02, "Scale Factor": 1.1, "Points Only": False})
+    now = instances()
+    inputs = {n: _splat_input(obj, n) for n in _input_names(obj) if n not in ("Geometry", "Material")}
+    ng = obj.modifiers[0].node_group
+    ng["gvae_nodes_version"] = nodes.NODES_VERSION - 1
+    ng.nodes.remove(next(n for n in ng.nodes if n.bl_idname == "GeometryNodeSetPosition"))
+    old = instances()
+    bpy.ops.wm.save_as_mainfile(filepath=path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    obj = bpy.data.objects[name]
+    ng = obj.modifiers[0].node_group
+    after = instances()
+    return {"old_differs": bool(len(old) != len(now) or not np.allclose(old, now, atol=1e-6)),
+            "same": bool(len(after) == len(now) and np.allclose(after, now, rtol=1e-6, atol=1e-7)),
+            "count": len(now), "version": ng.get("gvae_nodes_version") == nodes.NODES_VERSION,
+            "inputs": inputs == {n: _splat_input(obj, n) for n in inputs},
+            "material": getattr(_splat_input(obj, "Material"), "name", None) == nodes.MATERIAL_NAME,
+            "set_position": any(n.bl_idname == "GeometryNodeSetPosition" for n in ng.nodes)}
 
 
 def _job_stand_in(release, fail: bool = False):
