@@ -424,8 +424,9 @@ def refine_images(cloud: GaussianCloud | RefineInput, images: Any, *, steps: int
     fitted = fit_octaves(src, views, steps, config, start=start, background=capture.match.background,
                          progress=lambda f, message: say(0.05 + 0.93 * f, message))
     timings["fit"] = time.perf_counter() - t0
-    out = with_octaves(src, fitted.changes, limit=float(steps))
-    parents = fitted.child_roots
+    kept = fitted.psnr_after > fitted.psnr_before  # else a safety net: the fit made its own images worse
+    out = with_octaves(src, fitted.changes if kept else (start or {}), limit=float(steps))
+    parents = fitted.child_roots if kept else np.zeros(0, np.int64)
     if len(parents):
         out = out.append_children(fitted.children, parents)
     timings["total"] = time.perf_counter() - t_start
@@ -435,7 +436,9 @@ def refine_images(cloud: GaussianCloud | RefineInput, images: Any, *, steps: int
                        f"{capture.match.psnr:.1f} dB)",
              "fit": f"the training images drawn at 2x and averaged down {fitted.psnr_before:.2f} -> "
                     f"{fitted.psnr_after:.2f} dB PSNR ({fitted.psnr_views} of them), loss "
-                    f"{np.mean(fitted.losses[-50:]) if fitted.losses else float('nan'):.4f}"}
+                    f"{np.mean(fitted.losses[-50:]) if fitted.losses else float('nan'):.4f}"
+                    + ("" if kept else "; WORSE than where it started, so not kept: the detail model's changes "
+                       "instead" if start else "; WORSE than where it started, so not kept: the input as it was")}
     result = RefineResult(cloud=out, added=np.arange(n, len(out), dtype=np.int64), parents=parents,
                           step=np.ones(len(parents), np.int64), scores=np.zeros(n, np.float32),
                           selected=np.arange(n, dtype=np.int64), timings=timings, notes=notes, fit=fitted)

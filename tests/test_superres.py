@@ -176,10 +176,14 @@ def test_refine_with_images_and_the_cli(tmp_path, capsys):
     out = tmp_path / "out.ply"
     assert main(["refine", str(src), str(out), "--images", str(folder), "--fit-steps", "4"]) == 0
     text = capsys.readouterr().out
-    assert "training resolution: 24 px" in text and len(read_ply(out)) >= len(trained)
+    assert "training resolution: 24 px" in text and len(read_ply(out)) == len(trained)  # no children by default
+    assert main(["refine", str(src), str(out), "--images", str(folder), "--fit-steps", "4", "--children",
+                 "--pose-correction", "--exposure-correction"]) == 0
+    assert "training resolution: 24 px" in capsys.readouterr().out and len(read_ply(out)) > len(trained)
     for args, message in ((["--images", str(folder), "--image-height", "48"], "trained at about 24 px"),
                           (["--images", str(tmp_path / "missing")], "missing"),
-                          (["--image-height", "24"], "need --images")):
+                          (["--image-height", "24"], "need --images"),
+                          (["--pose-correction"], "need --images")):
         bad = tmp_path / "never.ply"
         assert main(["refine", str(src), str(bad), *args]) == 2
         assert message in capsys.readouterr().err and not bad.exists()
@@ -233,3 +237,47 @@ def test_a_fit_too_large_for_the_memory_is_refused_before_the_images_are_read(mo
     monkeypatch.setattr(match, "load_capture_images", lambda *a, **k: pytest.fail("images read"))
     with pytest.raises(resources.NotEnoughMemoryError, match="from 3 images of 24x24 px"):
         refine(trained.with_sh_degree(1), images=folder, fit={"children": None})
+
+
+def test_visible_adam_is_adam_on_rows_seen_and_leaves_the_others_where_they_are():
+    from gvae_core.superres.optim import VisibleAdam  # noqa: PLC0415
+
+    torch.manual_seed(0)
+    a = torch.randn(6, 3, requires_grad=True)
+    b = a.detach().clone().requires_grad_(True)
+    ours, adam = VisibleAdam([a], lr=0.1), torch.optim.Adam([b], lr=0.1, eps=1e-15)
+    for _ in range(3):  # every row seen: Adam, step for step
+        g = torch.randn(6, 3)
+        a.grad, b.grad = g.clone(), g.clone()
+        ours.step()
+        adam.step()
+    assert torch.allclose(a, b, atol=1e-6)
+    kept = a.detach()[:3].clone()
+    for _ in range(5):  # rows 0-2 unseen (zero gradient): they stay put; Adam's momentum would move them
+        g = torch.randn(6, 3)
+        g[:3] = 0.0
+        a.grad, b.grad = g.clone(), g.clone()
+        ours.step()
+        adam.step()
+    assert torch.equal(a.detach()[:3], kept) and not torch.allclose(b.detach()[:3], kept, atol=1e-3)
+    assert torch.allclose(a.detach()[3:], b.detach()[3:], atol=1e-6)  # the rows seen: Adam's update, its step count
+
+
+def test_a_fit_that_makes_its_own_images_worse_is_not_kept(monkeypatch):
+    import gvae_core.refinement as refinement  # noqa: PLC0415
+
+    _, trained, views = _capture(n_views=3, n=100)
+    real = refinement.fit_octaves
+
+    def worse(*args, **kwargs):
+        fit = real(*args, **kwargs)
+        fit.psnr_after = fit.psnr_before - 1.0
+        return fit
+
+    monkeypatch.setattr(refinement, "fit_octaves", worse)
+    for start, same_as in (("detail", refine(trained, fidelity=None).cloud), ("zero", trained)):
+        r = refine(trained, images=views, fit=SuperResConfig(steps=4, patch=0, start=start, children=0.0,
+                                                             densify_at=(0.5,)))
+        assert "WORSE than where it started, so not kept" in r.summary() and not len(r.added)
+        cam = views.cameras[0].scaled(2 * H)  # drawn at 2x exactly as the fallback is
+        assert torch.equal(render(r.cloud, cam).image, render(same_as, cam).image)

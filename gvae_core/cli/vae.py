@@ -86,6 +86,14 @@ def register(subparsers) -> None:
                    "anti-aliasing size says against the capture's cameras, else the images as they are)")
     r.add_argument("--fit-steps", type=int, default=None, metavar="N",
                    help="with --images: optimiser steps per octave (default: superres.SuperResConfig's)")
+    r.add_argument("--children", action="store_true",
+                   help="with --images: add Gaussians that fade in above the training resolution where the fit's "
+                   "gradients ask for them (more detail at 2x, a little less at 1.5x; BENCHMARKS.md)")
+    r.add_argument("--pose-correction", action="store_true",
+                   help="with --images: fit a small rigid correction per image (for cameras a quarter pixel or "
+                   "more off; on exact cameras it costs a little)")
+    r.add_argument("--exposure-correction", action="store_true",
+                   help="with --images: fit an affine colour per image (exposure or white balance that varies)")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--sanitize", action="store_true", help="drop non-finite Gaussians of IN.ply first")
     r.set_defaults(func=run_refine)
@@ -176,6 +184,7 @@ def run_refine(args: argparse.Namespace) -> int:
     from ..formats import output_format, read_splat_file, write_splat_file
     from ..octaves import bake, has_octaves
     from ..refinement import refine
+    from ..superres import CHILD_GRADIENT, EXPOSURE_WEIGHT, POSE_WEIGHT
 
     output_format(args.output)  # a name no format is written under is refused before any work
     budget = parse_budget(args.budget) if args.budget is not None else None
@@ -190,10 +199,15 @@ def run_refine(args: argparse.Namespace) -> int:
     if args.bake is not None and not args.bake > 0:
         raise ValueError(f"--bake must be a positive factor, got {args.bake}")
     fit = None
-    if args.images is None and (args.image_height is not None or args.fit_steps is not None):
-        raise ValueError("--image-height and --fit-steps need --images")
+    guards = {"children": CHILD_GRADIENT if args.children else None, "pose": POSE_WEIGHT if args.pose_correction
+              else None, "exposure": EXPOSURE_WEIGHT if args.exposure_correction else None}
+    if args.images is None and (args.image_height is not None or args.fit_steps is not None
+                                or any(v is not None for v in guards.values())):
+        raise ValueError("--image-height, --fit-steps, --children, --pose-correction and --exposure-correction "
+                         "need --images")
     if args.images is not None:
-        fit = {"seed": args.seed, **({"steps": args.fit_steps} if args.fit_steps is not None else {})}
+        fit = {"seed": args.seed, **({"steps": args.fit_steps} if args.fit_steps is not None else {}),
+               **{k: v for k, v in guards.items() if v is not None}}
     result = refine(cloud, steps=args.steps, budget=budget, method=args.method, model=args.model, lineage=lineage,
                     stage=args.stage, cameras=cameras, seed=args.seed, fidelity=fidelity,
                     hessian_options={"views": args.views, "resolution": args.resolution}, images=args.images,

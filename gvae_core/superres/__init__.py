@@ -4,9 +4,9 @@ changes per octave fitted to them through an area-averaged higher-resolution ren
 (Gaussians that fade in above the training rate where the fit asks for more), `guards` (per-image
 pose and exposure corrections)."""
 
-from .fit import DEFAULT_FIELDS, SuperResConfig, SuperResFit, fit_octaves
+from .fit import CHILD_GRADIENT, DEFAULT_FIELDS, SuperResConfig, SuperResFit, fit_octaves
 from .guards import EXPOSURE_WEIGHT, POSE_WEIGHT
 from .match import CaptureImages, ImageMismatchError, capture_images, match_images
 
-__all__ = ["DEFAULT_FIELDS", "SuperResConfig", "SuperResFit", "fit_octaves", "CaptureImages", "ImageMismatchError",
-           "capture_images", "match_images", "POSE_WEIGHT", "EXPOSURE_WEIGHT"]
+__all__ = ["CHILD_GRADIENT", "DEFAULT_FIELDS", "SuperResConfig", "SuperResFit", "fit_octaves", "CaptureImages",
+           "ImageMismatchError", "capture_images", "match_images", "POSE_WEIGHT", "EXPOSURE_WEIGHT"]

@@ -32,7 +32,7 @@ from ..camera import Camera
 from ..cloud import GaussianCloud
 from ..conventions import activate_opacities
 from ..datasets import Views
-from ..densify import g_scale
+from ..densify import DensifyStrategy, g_scale
 from ..detail.fit import ORACLE_LEARNING_RATES, crop
 from ..losses import photometric_loss, psnr
 from ..octaves import FIELDS, REFINED_SIZE_CHANGE, SIZE, with_octaves
@@ -40,11 +40,16 @@ from ..rendering import RenderOutput, RenderSettings, render
 from ..train import scene_extent
 from .children import CHILD_LOGIT, densify
 from .guards import ExposureCorrection, PoseCorrection
+from .optim import VisibleAdam
 
-__all__ = ["SuperResConfig", "SuperResFit", "fit_octaves", "DEFAULT_FIELDS"]
+__all__ = ["SuperResConfig", "SuperResFit", "fit_octaves", "DEFAULT_FIELDS", "CHILD_GRADIENT"]
 
-#: What the fit changes unless told (BENCHMARKS.md, "Refine with the capture's images").
-DEFAULT_FIELDS = ("scales", "opacities", "sh_dc", "means")
+#: What the fit changes unless told (BENCHMARKS.md, "Refine with the capture's images": rotations and
+#: SH bands beside the issue's four fields gained 0.36-0.38 dB at 2x on both validation scenes).
+DEFAULT_FIELDS = ("scales", "opacities", "sh_dc", "means", "quats", "sh_rest")
+#: The view-space gradient at which the fit adds children when asked (`SuperResConfig.children`):
+#: the reference 3DGS's densification threshold.
+CHILD_GRADIENT = DensifyStrategy.grad_threshold
 #: A child's own parameters. Its opacity at the training rate is CHILD_LOGIT and its centre there is
 #: the one of the input Gaussian it comes from (both fixed): it sees every camera as that Gaussian
 #: does, so it is drawn changed exactly where that Gaussian is; its change per octave moves it out.
@@ -61,12 +66,13 @@ class SuperResConfig:
     lr: times the reference 3DGS learning rate of each field, decaying exponentially to `lr_final`
     times that by the last step (the reference's schedule for positions); pose / exposure: the penalty weight
     of the per-image guard (`guards`), None: off; children: the view-space gradient (NDC, the
-    reference's units) at which a Gaussian densifies, None: no children; densify_at: when, as
-    fractions of the steps; max_children: at most this many children per input Gaussian; start:
-    where the changes start, "detail" (the detail model's prediction, `gvae_core.refine` makes it)
-    or "zero"; size_change: every Gaussian's anti-aliasing size's change per octave of its
-    logarithm (`octaves.SIZE`; default: drawn with the anti-aliasing of the rate it is refined to,
-    halved per octave; None: the anti-aliasing it was trained with)."""
+    reference's units) at which a Gaussian densifies (`CHILD_GRADIENT`, the reference 3DGS's), None
+    (the default): no children; densify_at: when, as fractions of the steps; max_children: at most
+    this many children per input Gaussian; start: where the changes start, "detail" (the detail
+    model's prediction, `gvae_core.refine` makes it) or "zero"; size_change: every Gaussian's
+    anti-aliasing size's change per octave of its logarithm (`octaves.SIZE`; default: drawn with
+    the anti-aliasing of the rate it is refined to, halved per octave; None: the anti-aliasing it
+    was trained with)."""
 
     steps: int = 400
     patch: int = 96
@@ -139,7 +145,7 @@ class _Model:
         self.roots = torch.zeros(0, dtype=torch.int64)
         self.means64 = np.ascontiguousarray(self.base.means.double().numpy().T)  # (3, R): the rows' fixed centres
         self.lrs = lrs
-        self.opt = torch.optim.Adam([{"params": [p], "lr": lrs[f]} for f, p in self.changes.items()]
+        self.opt = VisibleAdam([{"params": [p], "lr": lrs[f]} for f, p in self.changes.items()]
                                     + [{"params": [p], "lr": lrs[f]} for f, p in self.child.items()], eps=1e-15)
 
     @property
