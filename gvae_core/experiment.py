@@ -60,8 +60,8 @@ from .refinement import RefineResult, refine, refine_steps
 from .rendering import RenderSettings, render, resolve_device
 from .rendering.reference import render_reference
 from .scenes import SPLITS, cache_dir, make_scene
-from .scenes.faults import faulted_scene
-from .superres import EXPOSURE_WEIGHT, POSE_WEIGHT, SuperResConfig, fit_octaves
+from .scenes.faults import FAULTS, faulted_scene
+from .superres import CHILD_GRADIENT, EXPOSURE_WEIGHT, POSE_WEIGHT, SuperResConfig, fit_octaves
 from .train import TrainConfig, fine_tune, scene_extent, train_progressive
 from .vae import GaussianVAE, default_model_dir
 
@@ -72,10 +72,12 @@ OURS, OURS_H = "ours", "ours_h"
 DEFAULT = "refine"
 #: At the default's cost: linear lineage extrapolation; the bound: the oracle.
 EXTRAPOLATION, ORACLE = "extrapolation", "oracle"
-#: Refine from the capture's images (`refine(images=...)`, `gvae_core.superres`); without its
-#: children; the same number of plain training steps at 1x (`train.fine_tune`); the same fit to the
-#: real 2x images (the oracle of the fit's quantities).
-IMAGES, IMAGES_NO_CHILDREN, FINETUNE, ORACLE_IMAGES = "images", "images_no_children", "finetune", "oracle_images"
+#: Refine from the capture's images (`refine(images=...)`, `gvae_core.superres`); the same fit with
+#: children (when the protocol's fit has none) or without them (when it has); the same number of
+#: plain training steps at 1x (`train.fine_tune`); the same fit to the real 2x images (the oracle of
+#: the fit's quantities).
+IMAGES, IMAGES_CHILDREN, IMAGES_NO_CHILDREN = "images", "images_children", "images_no_children"
+FINETUNE, ORACLE_IMAGES = "finetune", "oracle_images"
 #: The 4x rows: from the first training stage, two octaves up (method -> its row name).
 FOUR_X = {m: f"{m}_4x" for m in ("3dgs", "refine", "images", "finetune", "3dgs_real")}
 SPLIT, RANDOM, DUPLICATE = "split", "random", "duplicate"
@@ -160,7 +162,7 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
     Protocol("quick", scene_profile="small", resolutions=(50, 75, 100), iterations=(300, 200, 200),
              higher=(150, 200), higher_iterations=(200, 200),
              train_overrides=dict(init_count=4000, max_gaussians=20_000), test_views=8,
-             knob_scenes=SPLITS["train"][:2]),
+             knob_scenes=SPLITS["train"][:2], faults=tuple(f for f in FAULTS if f != "none")),
     # The benchmark profile (hours on 2 cores; runs resume).
     Protocol("full", scene_profile="default", resolutions=(100, 150, 200), iterations=(600, 400, 400),
              higher=(300, 400), higher_iterations=(400, 400), steps=4, test_views=10),
@@ -414,11 +416,12 @@ def _fit_to_images(base, views, config: SuperResConfig, start, octaves: int = 1,
 
 
 def image_rows(run: SceneRun, base, lineage, detail, evaluate: Evaluator, add, say=print) -> None:
-    """Refine from the pair's training images at +1 (2x): `refine(images=...)`, the same fit without
-    children (what they buy), the same number of plain training steps at 1x, and the same fit to
-    the real 2x images (the oracle of its quantities); and, with `image_4x`, from the first stage two
-    octaves up (4x, scored at 1x, 2x and 4x that stage's resolution) beside the detail model, the
-    same steps of 1x training and the run's stage trained on the real 4x images."""
+    """Refine from the pair's training images at +1 (2x): `refine(images=...)`, the same fit with
+    children, or without them when the fit has them (what they buy), the same number of plain
+    training steps at 1x, and the same fit to the real 2x images (the oracle of its quantities);
+    and, with `image_4x`, from the first stage two octaves up (4x, scored at 1x, 2x and 4x that
+    stage's resolution) beside the detail model, the same steps of 1x training and the run's stage
+    trained on the real 4x images."""
     p = run.protocol
     k = p.train_stage
     log = run.log()
@@ -429,10 +432,11 @@ def image_rows(run: SceneRun, base, lineage, detail, evaluate: Evaluator, add, s
     r = refine(base, images=views, lineage=lineage, model=detail, fit=config)
     add(IMAGES, 1, r.cloud, refine_s=time.perf_counter() - t0, added=len(r.added),
         fit_psnr=[r.fit.psnr_before, r.fit.psnr_after])
-    if config.children is not None:
-        t0 = time.perf_counter()
-        r0 = refine(base, images=views, lineage=lineage, model=detail, fit=dataclasses.replace(config, children=None))
-        add(IMAGES_NO_CHILDREN, 1, r0.cloud, refine_s=time.perf_counter() - t0)
+    other = CHILD_GRADIENT if config.children is None else None  # what children buy, either way
+    t0 = time.perf_counter()
+    r0 = refine(base, images=views, lineage=lineage, model=detail, fit=dataclasses.replace(config, children=other))
+    add(IMAGES_NO_CHILDREN if other is None else IMAGES_CHILDREN, 1, r0.cloud, refine_s=time.perf_counter() - t0,
+        added=len(r0.added))
     t0 = time.perf_counter()
     add(FINETUNE, 1, fine_tune(base, views, config.steps, seed=run.seed), train_s=time.perf_counter() - t0,
         iterations=config.steps)

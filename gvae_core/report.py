@@ -24,13 +24,15 @@ from scipy import stats
 
 from .atomic import atomic_write_text
 from .experiment import (BASELINE, CONTROLS, DEFAULT, DUPLICATE, EXTRAPOLATION, FINETUNE, FOUR_X, IMAGES,
-                         IMAGES_NO_CHILDREN, KNOB, ORACLE, ORACLE_IMAGES, OURS, OURS_H, RANDOM, REAL, SPLIT, _finite)
+                         IMAGES_CHILDREN, IMAGES_NO_CHILDREN, KNOB, ORACLE, ORACLE_IMAGES, OURS, OURS_H, RANDOM, REAL,
+                         SPLIT, _finite)
 
 METHOD_NAMES = {BASELINE: "3DGS, unrefined", KNOB: "global scale knob per octave", REAL: "3DGS on the real images",
                 OURS: "Ours (every Gaussian)", OURS_H: "Ours-∇²", SPLIT: "plain split", RANDOM: "random + model",
                 DUPLICATE: "duplicate in place", DEFAULT: "refine default (detail model + fidelity check)",
                 EXTRAPOLATION: "linear lineage extrapolation", ORACLE: "oracle (upper bound)",
                 IMAGES: "refine with the images", IMAGES_NO_CHILDREN: "refine with the images, no children",
+                IMAGES_CHILDREN: "refine with the images, with children",
                 FINETUNE: "the same steps of plain 1x training", ORACLE_IMAGES: "the same fit to the real 2x images "
                 "(oracle)"}
 METHOD_NAMES.update({FOUR_X[BASELINE]: "3DGS, unrefined", FOUR_X[DEFAULT]: "refine default (detail model)",
@@ -154,11 +156,20 @@ def default_losses(res: Results) -> list[str]:
                    f"at least as good as the knob and the extrapolation, on every pair."]
 
 
+def _with_and_without_children(res: Results, scene, seed) -> tuple[str, str] | None:
+    """The pair's fit with children and the same without them: the default and its other row."""
+    if res.row(scene, seed, IMAGES_CHILDREN, 1):
+        return IMAGES_CHILDREN, IMAGES
+    if res.row(scene, seed, IMAGES_NO_CHILDREN, 1):
+        return IMAGES, IMAGES_NO_CHILDREN
+    return None
+
+
 def images_table(res: Results) -> list[str]:
     """Refine with the images against what it is measured by: mean ± 95% interval of the change
-    against the unrefined cloud per metric, then per pair at 2x with the Gaussians it added."""
-    methods = [m for m in (IMAGES, IMAGES_NO_CHILDREN, DEFAULT, EXTRAPOLATION, FINETUNE, ORACLE_IMAGES)
-               if any(res.row(s, d, m, 1) for s, d in res.pairs)]
+    against the unrefined cloud per metric, then per pair at 2x with the Gaussians its children add."""
+    methods = [m for m in (IMAGES, IMAGES_CHILDREN, IMAGES_NO_CHILDREN, DEFAULT, EXTRAPOLATION, FINETUNE,
+                           ORACLE_IMAGES) if any(res.row(s, d, m, 1) for s, d in res.pairs)]
     if IMAGES not in methods:
         return []
     lines = ["| metric | " + " | ".join(METHOD_NAMES[m] for m in methods) + " | 3DGS on the real 2x images |",
@@ -168,18 +179,20 @@ def images_table(res: Results) -> list[str]:
                  for m in methods]
         real = _fmt(*mean_ci([res.change(s, d, REAL, 0, key, False, "2x") for s, d in res.pairs]), digits, True)
         lines.append(f"| {label} | " + " | ".join(cells) + f" | {real} |")
-    added = [res.value(s, d, IMAGES, 1, "added") for s, d in res.pairs]
-    lines.append("| Gaussians added | " + " | ".join(f"{_nanmean(added):.0f}" if m == IMAGES else "0"
+    added = {m: _nanmean([res.value(s, d, m, 1, "added") for s, d in res.pairs]) for m in methods}
+    lines.append("| Gaussians added | " + " | ".join(f"{added[m]:.0f}" if math.isfinite(added[m]) else "0"
                                                       for m in methods) + " | – |")
+    other = next((m for m in (IMAGES_CHILDREN, IMAGES_NO_CHILDREN) if m in methods), None)
     lines += ["", "Per pair, PSNR change at 2x (dB); the gain per 1,000 added Gaussians is what the fit with children "
               "gains over the same fit without them:", "",
-              "| scene | seed | with the images | no children | detail model | 1x training | oracle | added | "
-              "gain per 1,000 added |", "|---|---|---|---|---|---|---|---|---|"]
+              "| scene | seed | with the images | " + (METHOD_NAMES[other].split(", ")[-1] if other else "–")
+              + " | detail model | 1x training | oracle | added | gain per 1,000 added |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for s, d in res.pairs:
-        g = {m: res.change(s, d, m, 1, "psnr_2x", False) for m in (IMAGES, IMAGES_NO_CHILDREN, DEFAULT, FINETUNE,
-                                                                   ORACLE_IMAGES)}
-        n = res.value(s, d, IMAGES, 1, "added")
-        per = 1000.0 * (g[IMAGES] - g[IMAGES_NO_CHILDREN]) / n if n and math.isfinite(n) else float("nan")
+        g = {m: res.change(s, d, m, 1, "psnr_2x", False) for m in (IMAGES, other, DEFAULT, FINETUNE, ORACLE_IMAGES)}
+        kids = _with_and_without_children(res, s, d)
+        n = res.value(s, d, kids[0], 1, "added") if kids else float("nan")
+        per = (1000.0 * (g[kids[0]] - g[kids[1]]) / n if kids and n and math.isfinite(n) else float("nan"))
         lines.append(f"| {s} | {d} | " + " | ".join(_fmt(g[m], digits=2, sign=True) for m in g)
                      + f" | {n:.0f} | {_fmt(per, digits=2, sign=True)} |")
     return lines

@@ -16,7 +16,7 @@ from gvae_core.controls import extrapolation_control
 from gvae_core.detail import DetailModel
 from gvae_core.experiment import (BASELINE, CONTROLS, DEFAULT, DUPLICATE, EXTRAPOLATION, KNOB, ORACLE, OURS, OURS_H,
                                   RANDOM, REAL, SCALES, SPLIT, Protocol, SceneRun, run_scene, tune_knob, IMAGES,
-                                  IMAGES_NO_CHILDREN, FINETUNE, ORACLE_IMAGES, FOUR_X)
+                                  IMAGES_CHILDREN, IMAGES_NO_CHILDREN, FINETUNE, ORACLE_IMAGES, FOUR_X)
 from gvae_core.rendering import render
 from gvae_core.report import (Results, default_losses, default_table, fault_table, four_x_table, headline_table,
                               images_goals, images_table, losses, mean_ci, methods_table, write_report)
@@ -235,6 +235,13 @@ def test_report_tables_of_refine_with_the_images():
     assert table["Gaussians added"][1] == "20"
     per_pair = [line for line in images_table(res) if line.startswith("| b | 1 |")]
     assert per_pair == ["| b | 1 | +0.20 | +0.10 | +0.60 | +0.40 | +1.50 | 20 | +5.00 |"]
+    # a default fit without children, its children's row beside it: the same gain per child
+    swap = {IMAGES: IMAGES_CHILDREN, IMAGES_NO_CHILDREN: IMAGES}
+    other = Results({**doc, "rows": [{**r, "method": swap.get(r["method"], r["method"])} for r in doc["rows"]]})
+    lines = images_table(other)
+    assert "| Gaussians added | 0 | 20 |" in lines[6] and "| with children |" in lines[10]
+    assert [line for line in lines if line.startswith("| b | 1 |")] == [
+        "| b | 1 | +0.10 | +0.20 | +0.60 | +0.40 | +1.50 | 20 | +5.00 |"]
     goals = images_goals(res)
     assert "+0.70 ± " in goals[0] and "goal +1.0: not met" in goals[0] and "b s0 (+0.20), b s1 (+0.20)" in goals[0]
     assert "+0.30 ± " in goals[1] and "not met" in goals[1] and "worst pair -0.20" in goals[1]
