@@ -424,7 +424,7 @@ def refine_images(cloud: GaussianCloud | RefineInput, images: Any, *, steps: int
     fitted = fit_octaves(src, views, steps, config, start=start, background=capture.match.background,
                          progress=lambda f, message: say(0.05 + 0.93 * f, message))
     timings["fit"] = time.perf_counter() - t0
-    kept = fitted.psnr_after > fitted.psnr_before  # else a safety net: the fit made its own images worse
+    kept = fitted.psnr_after > fitted.psnr_start  # else a safety net: the fit did not reproduce its images better
     out = with_octaves(src, fitted.changes if kept else (start or {}), limit=float(steps))
     parents = fitted.child_roots if kept else np.zeros(0, np.int64)
     if len(parents):
@@ -436,9 +436,10 @@ def refine_images(cloud: GaussianCloud | RefineInput, images: Any, *, steps: int
                        f"{capture.match.psnr:.1f} dB)",
              "fit": f"the training images drawn at 2x and averaged down {fitted.psnr_before:.2f} -> "
                     f"{fitted.psnr_after:.2f} dB PSNR ({fitted.psnr_views} of them), loss "
-                    f"{np.mean(fitted.losses[-50:]) if fitted.losses else float('nan'):.4f}"
-                    + ("" if kept else "; WORSE than where it started, so not kept: the detail model's changes "
-                       "instead" if start else "; WORSE than where it started, so not kept: the input as it was")}
+                    f"{np.mean(fitted.losses[-50:]) if fitted.losses else float('nan'):.4f}"}
+    if not kept:
+        instead = "the detail model's changes" if start else "the input as it was"
+        notes["fit"] += f"; no better than {instead} ({fitted.psnr_start:.2f} dB), so not kept: {instead} instead"
     result = RefineResult(cloud=out, added=np.arange(n, len(out), dtype=np.int64), parents=parents,
                           step=np.ones(len(parents), np.int64), scores=np.zeros(n, np.float32),
                           selected=np.arange(n, dtype=np.int64), timings=timings, notes=notes, fit=fitted)

@@ -108,13 +108,16 @@ class SuperResFit:
     the children (a numpy cloud of their parameters at their training rate, with their changes per
     octave as `gvae_octave_*` extras, and each one's input row it came from), the loss of every
     step, PSNR of the averaged-down renders against the training images before and after (dB, on
-    `psnr_views` of the `images` fitted, octave 1), the per-image guards' state, and seconds."""
+    `psnr_views` of the `images` fitted, octave 1) and of the cloud with only the changes it started
+    from (`psnr_start`: no anti-aliasing change; what `refine` keeps when the fit ends below it),
+    the per-image guards' state, and seconds."""
 
     changes: dict[str, np.ndarray]
     losses: list[float]
     psnr_before: float
     psnr_after: float
     psnr_views: int
+    psnr_start: float = float("nan")
     images: int = 0
     children: GaussianCloud | None = None
     child_roots: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -362,6 +365,8 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     t0 = time.perf_counter()
     first = max(2 // images_scale, 1)  # octave 1 (or the images' own resolution)
     before = training_psnr(model.cloud(limit)[0], views, targets, background, first, settings, check_rows)
+    given = with_octaves(src, {f: v for f, v in start.items() if f != SIZE}, limit=limit)
+    start_psnr = training_psnr(given, views, targets, background, first, settings, check_rows)
     timings = {"check": time.perf_counter() - t0}
     losses: list[float] = []
     total = config.steps * octaves
@@ -425,7 +430,7 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     after = training_psnr(model.cloud(limit)[0], views, targets, background, first, settings, check_rows)
     timings["check"] += time.perf_counter() - t0
     changes, children, roots = model.result(limit)
-    return SuperResFit(changes=changes, losses=losses, psnr_before=before, psnr_after=after,
+    return SuperResFit(changes=changes, losses=losses, psnr_before=before, psnr_after=after, psnr_start=start_psnr,
                        psnr_views=len(check_rows), images=len(views), children=children, child_roots=roots,
                        pose_pixels=None if pose is None else pose.pixels(),
                        exposure_gains=None if exposure is None else exposure.gains(),
