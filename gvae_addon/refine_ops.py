@@ -210,6 +210,7 @@ class RefineJob(CoreJob):
                 "selected": len(getattr(r, "selected", ())), "put_back": len(getattr(r, "reverted", ())),
                 "not_refined": getattr(r, "notes", {}).get("not refined"),
                 "fit": None if fit is None else {"before": fit.psnr_before, "after": fit.psnr_after,
+                                                 "start": getattr(fit, "psnr_start", float("nan")),
                                                  "images": fit.images},
                 "training_resolution": getattr(r, "notes", {}).get("training resolution")}
 
@@ -424,6 +425,9 @@ class GVAE_OT_refine(JobOperator, Operator):
         fit = info.get("fit")
         if fit:
             added = f"; {info['added']} Gaussians added above the training resolution" if info["added"] else ""
+            if np.isfinite(fit["start"]) and not fit["after"] > fit["start"]:  # refine kept what it started from
+                added += (f"; no better than the changes it started from ({fit['start']:.2f} dB): not kept, "
+                          f"those instead")
             return (f"Refine: fitted to {fit['images']} training images ({info['training_resolution']}) in "
                     f"{info['seconds']:.1f} s: drawn at 2x and averaged down they are reproduced at "
                     f"{fit['before']:.2f} -> {fit['after']:.2f} dB ({fit['after'] - fit['before']:+.2f} dB){added}"

@@ -157,8 +157,8 @@ class Protocol:
 
 
 PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
-    # Within 25 minutes on 2 cores from nothing: the test scenes, three seeds, small renders; the
-    # knob on the first two training scenes.
+    # About 80 minutes on 2 cores from nothing (50 of them the fault rows): the test scenes, three
+    # seeds, small renders; the knob on the first two training scenes.
     Protocol("quick", scene_profile="small", resolutions=(50, 75, 100), iterations=(300, 200, 200),
              higher=(150, 200), higher_iterations=(200, 200),
              train_overrides=dict(init_count=4000, max_gaussians=20_000), test_views=8,

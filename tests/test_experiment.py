@@ -73,7 +73,7 @@ def experiment(tmp_path_factory):
                         higher_iterations=(20, 20), scenes=("ball",), seeds=(0,), steps=2,
                         train_overrides=dict(init_count=300, max_gaussians=3000, sh_degree=1), test_views=2,
                         hessian_views=2, knob_factors=(0.5, 1.0), oracle_steps=30, oracle_patch=0,
-                        image_fit=dict(steps=12, patch=0, children=0.0, densify_at=(0.5,), max_children=0.1),
+                        image_fit=dict(steps=40, patch=0, children=0.0, densify_at=(0.5,), max_children=0.1),
                         image_4x=False)
     run_dir = tmp / "run"
     train_progressive(scene, protocol.train_config(0), out_dir=run_dir, progress=False)
@@ -122,7 +122,7 @@ def test_every_method_and_step_is_scored(experiment):
         assert r["psnr_1x"] == pytest.approx(base["psnr_1x"], abs=0.02) and r["psnr_2x"] != base["psnr_2x"]
     assert images["fit_psnr"][1] > images["fit_psnr"][0]
     tuned = _pick(rows, FINETUNE, 1)
-    assert tuned["iterations"] == 12 and tuned["n_gaussians"] == base["n_gaussians"]
+    assert tuned["iterations"] == 40 and tuned["n_gaussians"] == base["n_gaussians"]
     assert tuned["psnr_1x"] != base["psnr_1x"]
 
 

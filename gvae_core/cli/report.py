@@ -21,7 +21,7 @@ def register(subparsers) -> None:
         "weighted by opacity, PSNR/SSIM at 1x/1.5x/2x with the anti-aliasing filter and classic, NIQE) and "
         "write OUT/README.md, OUT/results.json and plots. Scenes and runs are cached ($GVAE_CACHE_DIR).")
     p.add_argument("--profile", choices=list(PROTOCOLS), default="quick",
-                   help="quick: the test scenes, 3 seeds, small sizes (within 25 min on 2 cores from nothing); "
+                   help="quick: the test scenes, 3 seeds, small sizes (about 80 min on 2 cores from nothing); "
                    "full: the benchmark profile (hours); paper: training at 400 px, for a GPU machine")
     p.add_argument("--out", type=Path, default=Path("reports"), help="report folder (default: %(default)s)")
     p.add_argument("--split", choices=list(SPLITS), default=None,

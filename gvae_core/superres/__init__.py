@@ -2,7 +2,7 @@
 (the images at the training resolution, checked against the cloud), `fit` (every Gaussian's
 changes per octave fitted to them through an area-averaged higher-resolution render), `children`
 (Gaussians that fade in above the training rate where the fit asks for more), `guards` (per-image
-pose and exposure corrections)."""
+pose and exposure corrections), `optim` (an Adam that moves only the rows a step saw)."""
 
 from .fit import CHILD_GRADIENT, DEFAULT_FIELDS, SuperResConfig, SuperResFit, fit_octaves
 from .guards import EXPOSURE_WEIGHT, POSE_WEIGHT
