@@ -149,7 +149,7 @@ class _Model:
         self.means64 = np.ascontiguousarray(self.base.means.double().numpy().T)  # (3, R): the rows' fixed centres
         self.lrs = lrs
         self.opt = VisibleAdam([{"params": [p], "lr": lrs[f]} for f, p in self.changes.items()]
-                                    + [{"params": [p], "lr": lrs[f]} for f, p in self.child.items()], eps=1e-15)
+                               + [{"params": [p], "lr": lrs[f]} for f, p in self.child.items()], eps=1e-15)
 
     @property
     def m(self) -> int:
