@@ -210,7 +210,7 @@ class RefineJob(CoreJob):
                 "selected": len(getattr(r, "selected", ())), "put_back": len(getattr(r, "reverted", ())),
                 "not_refined": getattr(r, "notes", {}).get("not refined"),
                 "fit": None if fit is None else {"before": fit.psnr_before, "after": fit.psnr_after,
-                                                 "start": getattr(fit, "psnr_start", float("nan")),
+                                                 "start": fit.psnr_start, "kept": fit.improves,
                                                  "images": fit.images},
                 "training_resolution": getattr(r, "notes", {}).get("training resolution")}
 
@@ -425,7 +425,7 @@ class GVAE_OT_refine(JobOperator, Operator):
         fit = info.get("fit")
         if fit:
             added = f"; {info['added']} Gaussians added above the training resolution" if info["added"] else ""
-            if np.isfinite(fit["start"]) and not fit["after"] > fit["start"]:  # refine kept what it started from
+            if not fit["kept"]:
                 added += (f"; no better than the changes it started from ({fit['start']:.2f} dB): not kept, "
                           f"those instead")
             return (f"Refine: fitted to {fit['images']} training images ({info['training_resolution']}) in "

@@ -424,7 +424,7 @@ def refine_images(cloud: GaussianCloud | RefineInput, images: Any, *, steps: int
     fitted = fit_octaves(src, views, steps, config, start=start, background=capture.match.background,
                          progress=lambda f, message: say(0.05 + 0.93 * f, message))
     timings["fit"] = time.perf_counter() - t0
-    kept = fitted.psnr_after > fitted.psnr_start  # else a safety net: the fit did not reproduce its images better
+    kept = fitted.improves  # else a safety net: the changes it started from
     out = with_octaves(src, fitted.changes if kept else (start or {}), limit=float(steps))
     parents = fitted.child_roots if kept else np.zeros(0, np.int64)
     if len(parents):

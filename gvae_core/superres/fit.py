@@ -126,6 +126,12 @@ class SuperResFit:
     seconds: float = 0.0
     timings: dict[str, float] = field(default_factory=dict)
 
+    @property
+    def improves(self) -> bool:
+        """Whether the fit reproduces its images better than the changes it started from (else
+        `refine` keeps those)."""
+        return self.psnr_after > self.psnr_start
+
 
 class _Model:
     """What the fit changes: the input rows (fixed) with their changes per octave, and the children
