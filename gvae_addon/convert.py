@@ -7,7 +7,8 @@ stored losslessly so that export writes back exactly what was imported:
 - int8 extras as INT8, bool as BOOLEAN, uint8/int16/uint16/int32 as INT (same values);
 - uint32 as INT and float64/int64/uint64 as INT32_2D holding the raw bits.
 The mesh's custom property `gvae_ply` (JSON) records the SH degree and the extra properties with
-their dtypes, in file order. All transfers are vectorised (`foreach_get`/`foreach_set`).
+their dtypes, in file order, and the background the cloud was trained over (when it is known).
+All transfers are vectorised (`foreach_get`/`foreach_set`).
 
 Blender 5.3 and later also draw Gaussian splats themselves: a point cloud of type GAUSSIAN_SPLAT
 (`pointcloud_from_cloud`, `cloud_from_pointcloud`) with the attributes Blender's own PLY importer
@@ -152,13 +153,21 @@ def mesh_from_cloud(cloud: GaussianCloud, name: str, steps: np.ndarray | None = 
         if steps is not None:
             _set(_new_attribute(me, STEP_ATTR, "INT"), "value",
                  np.ascontiguousarray(steps, np.int32).ravel())
-        me[LAYOUT_KEY] = json.dumps({"sh_degree": cloud.sh_degree,
-                                     "extra": [[key, value.dtype.str] for key, value in extras]})
+        me[LAYOUT_KEY] = _layout_json(cloud)
         me.update()
     except BaseException:
         bpy.data.meshes.remove(me)
         raise
     return me
+
+
+def _layout_json(cloud: GaussianCloud) -> str:
+    """What `gvae_ply` records of a cloud: SH degree, extra properties, the background it was
+    trained over (when known)."""
+    info = {"sh_degree": cloud.sh_degree, "extra": [[key, value.dtype.str] for key, value in cloud.extra.items()]}
+    if cloud.background is not None:
+        info["background"] = list(cloud.background)
+    return json.dumps(info)
 
 
 def layout(me: bpy.types.Mesh) -> dict:
@@ -216,7 +225,7 @@ def cloud_from_mesh(me: bpy.types.Mesh) -> tuple[GaussianCloud, np.ndarray | Non
     cloud = GaussianCloud(means=means, sh_dc=rows[:, 0:3],
                           sh_rest=rows[:, 3:o].reshape(n, 3, k).transpose(0, 2, 1),
                           opacities=rows[:, o], scales=rows[:, o + 1:o + 4], quats=rows[:, o + 4:o + 8],
-                          extra=extra)
+                          extra=extra, background=info.get("background"))
     steps = _get(me, STEP_ATTR, "INT", 1, n) if STEP_ATTR in me.attributes else None
     return cloud, steps
 
@@ -293,8 +302,7 @@ def pointcloud_from_cloud(cloud: GaussianCloud, name: str) -> bpy.types.PointClo
                  np.ascontiguousarray(c.sh_rest[:, j], np.float32).ravel())
         for key, kind, buf in buffers:
             _set(_new_attribute(pc, key, kind), "value", buf)
-        pc[LAYOUT_KEY] = json.dumps({"sh_degree": c.sh_degree,
-                                     "extra": [[key, value.dtype.str] for key, value in extras]})
+        pc[LAYOUT_KEY] = _layout_json(c)
     except BaseException:
         bpy.data.pointclouds.remove(pc)
         raise
@@ -333,10 +341,12 @@ def cloud_from_pointcloud(pc) -> GaussianCloud:
     for j in range(k):
         rest[:, j] = get(native_sh(j), "vector", 3)
     extra = {}
-    for key, dt in json.loads(pc.get(LAYOUT_KEY, '{"extra": []}'))["extra"]:
+    info = json.loads(pc.get(LAYOUT_KEY, '{"extra": []}'))
+    for key, dt in info["extra"]:
         dtype = np.dtype(dt)
         kind = _EXTRA_STORAGE[dtype.str[1:]][0]
         extra[key] = _extra_from_buffer(_get(pc, key, kind, 2 if kind == "INT32_2D" else 1, n), dtype)
     return GaussianCloud(means=get("position", "vector", 3), scales=scales.astype(np.float32),
                          quats=get(NATIVE_ROTATION, "value", 4), opacities=logits.astype(np.float32),
-                         sh_dc=np.ascontiguousarray(base[:, :3]), sh_rest=rest, extra=extra)
+                         sh_dc=np.ascontiguousarray(base[:, :3]), sh_rest=rest, extra=extra,
+                         background=info.get("background"))

@@ -203,8 +203,9 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
                                  "the base (DC) colour only (faster, independent of the camera)")
     setup_scene: BoolProperty(name="Set Up Scene", default=True,
                               description="Standard view transform (splat colours are display-referred: "
-                              "AgX or Filmic would tone-map them) and enough Cycles transparent bounces "
-                              "for overlapping splats")
+                              "AgX or Filmic would tone-map them), enough Cycles transparent bounces "
+                              "for overlapping splats, and the world colour the splat was trained over "
+                              "(when its file says)")
     display_fraction: FloatProperty(name="Display Fraction", default=1.0, min=0.0, max=1.0,
                                     subtype="FACTOR", description="Fraction of the splats shown")
     points_only: BoolProperty(name="Points Only", default=False,
@@ -271,17 +272,21 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
             obj.select_set(True)
         context.view_layer.objects.active = made[-1]
         total = sum(len(o.data.vertices if o.type == "MESH" else o.data.points) for o in made)
-        scene_note = self._scene(context.scene)
+        scene_note = self._scene(context.scene, next((c.background for _, c in reversed(loaded) if c.background),
+                                                     None))
         self.report({"INFO"}, f"Imported {total} Gaussians into {len(made)} object(s) in "
                     f"{time.perf_counter() - start:.2f} s{scene_note}")
         return {"FINISHED"}
 
-    def _scene(self, scene) -> str:
+    def _scene(self, scene, background=None) -> str:
         """Set up (or check) the scene for splats: the INFO note of what changed; warnings when
-        Set Up Scene is off and the scene would show the splats wrong."""
+        Set Up Scene is off and the scene would show the splats wrong. `background`: the colour
+        the (last) imported splat was trained over, shown as the world's."""
         render_setup.sync_focal_length(scene)
         if self.setup_scene:
             changes = render_setup.setup_scene(scene)
+            if background is not None:
+                changes.append(render_setup.set_world_colour(scene, background))
             return f"; scene set up for splats: {', '.join(changes)}" if changes else ""
         for problem in (render_setup.view_transform_problem(scene), render_setup.bounce_problem(scene)):
             if problem:

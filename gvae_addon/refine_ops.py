@@ -210,7 +210,7 @@ class RefineJob(CoreJob):
                 "selected": len(getattr(r, "selected", ())), "put_back": len(getattr(r, "reverted", ())),
                 "not_refined": getattr(r, "notes", {}).get("not refined"),
                 "fit": None if fit is None else {"before": fit.psnr_before, "after": fit.psnr_after,
-                                                 "start": fit.psnr_start, "kept": fit.improves,
+                                                 "kept": fit.kept, "judged": fit.judged(),
                                                  "images": fit.images},
                 "training_resolution": getattr(r, "notes", {}).get("training resolution")}
 
@@ -425,13 +425,13 @@ class GVAE_OT_refine(JobOperator, Operator):
         fit = info.get("fit")
         if fit:
             added = f"; {info['added']} Gaussians added above the training resolution" if info["added"] else ""
-            if not fit["kept"]:
-                added += (f"; no better than the changes it started from ({fit['start']:.2f} dB): not kept, "
-                          f"those instead")
+            if fit["kept"] != "fit":
+                instead = "the detail model's changes" if fit["kept"] == "start" else "the splat as it was"
+                added += f"; the fit was no better than {instead}: not kept, {instead} instead"
             return (f"Refine: fitted to {fit['images']} training images ({info['training_resolution']}) in "
                     f"{info['seconds']:.1f} s: drawn at 2x and averaged down they are reproduced at "
-                    f"{fit['before']:.2f} -> {fit['after']:.2f} dB ({fit['after'] - fit['before']:+.2f} dB){added}"
-                    + _timing_text(info))
+                    f"{fit['before']:.2f} -> {fit['after']:.2f} dB ({fit['after'] - fit['before']:+.2f} dB); judged "
+                    f"on {fit['judged']}{added}" + _timing_text(info))
         if info["added"] == 0 and info["selected"]:  # the detail model: changes per octave, no Gaussian added
             return (f"Refine: {info['selected'] - info['put_back']} of {info['before']} Gaussians given detail above "
                     f"their training resolution in {info['seconds']:.2f} s" + back + _timing_text(info))

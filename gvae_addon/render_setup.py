@@ -6,6 +6,8 @@ scene camera's focal length that their screen-space filter follows.
   default to AgX (Filmic before 4.0), which tone-maps and desaturates: a splat under AgX is not
   the splat. Import sets Standard (and look None) unless asked not to, and says so; otherwise it
   warns (`view_transform_problem`).
+- Background: a splat's see-through parts were fitted over the colour it was trained over (stored
+  with it); import shows that colour as the world's (`set_world_colour`) unless asked not to.
 - Cycles: every Gaussian along a camera ray costs a transparent bounce (its camera-facing disc
   in renders; two, front and back, for the viewport's ellipsoids); with the default limit (8) a
   ray stops after eight and the rest of the pixel renders black. Import raises
@@ -20,8 +22,11 @@ scene camera's focal length that their screen-space filter follows.
 from __future__ import annotations
 
 import bpy
+import numpy as np
 from bpy.app.handlers import persistent
 from mathutils import Matrix
+
+from gvae_core.conventions import srgb_to_linear
 
 from . import nodes
 
@@ -115,6 +120,22 @@ def setup_scene(scene) -> list[str]:
         changes.append(f"Cycles transparent bounces {cycles.transparent_max_bounces} -> {TRANSPARENT_BOUNCES}")
         cycles.transparent_max_bounces = TRANSPARENT_BOUNCES
     return changes
+
+
+def set_world_colour(scene, background) -> str:
+    """Show `background` (display-referred RGB, what a splat was trained over) behind the splats:
+    the world's colour and its Background node, as the linear value the Standard view transform
+    shows as it (a world is made when the scene has none). Returns a description of the change."""
+    linear = tuple(float(v) for v in srgb_to_linear(np.asarray(background, np.float64)))
+    world = scene.world
+    if world is None:
+        world = scene.world = bpy.data.worlds.new("World")
+    world.color = linear
+    if world.node_tree is not None:
+        for node in world.node_tree.nodes:
+            if node.type == "BACKGROUND":
+                node.inputs["Color"].default_value = (*linear, 1.0)
+    return "world colour " + ",".join(f"{v:g}" for v in background) + " (what the splat was trained over)"
 
 
 def bounce_problem(scene) -> str | None:

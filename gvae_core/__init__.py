@@ -21,7 +21,7 @@ _LAZY = {
     "read_splat_file": "gvae_core.formats",
     "write_splat_file": "gvae_core.formats",
     "write_spz": "gvae_core.formats",
-    "load_nerf_synthetic": "gvae_core.datasets",
+    "load_nerf_synthetic": "gvae_core.capture",
     "DatasetError": "gvae_core.datasets",
     "Views": "gvae_core.datasets",
     "render": "gvae_core.rendering",

@@ -149,3 +149,17 @@ def orbit(n: int, radius: float, elevation: float = math.radians(30.0), *, targe
         d = math.cos(elevation) * (math.cos(az) * a + math.sin(az) * b) + math.sin(elevation) * up
         cams.append(Camera.look_at(target + radius * d, target, up, width=width, height=height, fov_x=fov_x))
     return cams
+
+
+def look_target(cameras) -> np.ndarray:
+    """Least-squares point nearest to every optical axis (where the cameras look); a point in front
+    of them when the axes are all parallel."""
+    a, b = np.zeros((3, 3)), np.zeros(3)
+    for c in cameras:
+        d = c.rotation[2]  # camera +z axis in world coordinates
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ c.center
+    if np.linalg.cond(a) > 1e8:
+        return np.mean([c.center + 3.0 * c.rotation[2] for c in cameras], 0)
+    return np.linalg.solve(a, b)

@@ -86,6 +86,9 @@ class GaussianCloud:
     {0,3,8,15}; extra: per-Gaussian arrays for properties the project does not interpret
     (kept with their own dtype so they round-trip through PLY).
     All fields are numpy arrays or all are torch tensors.
+    background: the colour (display-referred RGB in [0, 1]) the cloud was trained over, where it is
+    known: what it is drawn over unless told otherwise (its see-through parts were fitted to it);
+    None: unknown (tools that know no better draw over black).
     """
 
     means: Any
@@ -95,8 +98,14 @@ class GaussianCloud:
     sh_dc: Any
     sh_rest: Any = None
     extra: dict[str, Any] = field(default_factory=dict)
+    background: tuple[float, float, float] | None = None
 
     def __post_init__(self):
+        if self.background is not None:
+            bg = tuple(float(v) for v in np.asarray(self.background, np.float64).reshape(-1))
+            if len(bg) != 3 or not all(math.isfinite(v) for v in bg):
+                raise ValueError(f"GaussianCloud.background must be 3 finite numbers, got {self.background!r}")
+            self.background = bg
         for name in _FIELDS:
             value = getattr(self, name)
             if value is None and name == "sh_rest":
@@ -194,7 +203,7 @@ class GaussianCloud:
                 extra[k] = v[index if is_torch(index) else _torch().as_tensor(index)]
             else:
                 extra[k] = v[index.cpu().numpy() if is_torch(index) else index]
-        return GaussianCloud(**fields, extra=extra)
+        return GaussianCloud(**fields, extra=extra, background=self.background)
 
     @staticmethod
     def concat(clouds: Sequence[GaussianCloud]) -> GaussianCloud:
@@ -226,7 +235,8 @@ class GaussianCloud:
                 else:
                     parts.append(np.zeros((len(c),) + template.shape[1:], template.dtype))
             extra[k] = (_torch().cat if is_torch(template) else np.concatenate)(parts, 0)
-        return GaussianCloud(**fields, extra=extra)
+        backgrounds = {c.background for c in clouds}
+        return GaussianCloud(**fields, extra=extra, background=backgrounds.pop() if len(backgrounds) == 1 else None)
 
     def with_sh_degree(self, degree: int) -> GaussianCloud:
         """A copy with SH truncated or zero-padded to `degree`."""
@@ -257,7 +267,7 @@ class GaussianCloud:
 
         fields = {name: conv(getattr(self, name), dtype) for name in _FIELDS}
         extra = {k: conv(v, None) for k, v in self.extra.items()}
-        return GaussianCloud(**fields, extra=extra)
+        return GaussianCloud(**fields, extra=extra, background=self.background)
 
     def numpy(self) -> GaussianCloud:
         """numpy form: float32 parameters, detached from any autograd graph, every array C-contiguous
@@ -270,19 +280,21 @@ class GaussianCloud:
 
         fields = {name: conv(getattr(self, name), True) for name in _FIELDS}
         extra = {k: conv(v, False) for k, v in self.extra.items()}
-        return GaussianCloud(**fields, extra=extra)
+        return GaussianCloud(**fields, extra=extra, background=self.background)
 
     def detach(self) -> GaussianCloud:
         if not self.is_torch:
             return self
         return GaussianCloud(**{n: getattr(self, n).detach() for n in _FIELDS},
-                             extra={k: v.detach() if is_torch(v) else v for k, v in self.extra.items()})
+                             extra={k: v.detach() if is_torch(v) else v for k, v in self.extra.items()},
+                             background=self.background)
 
     def copy(self) -> GaussianCloud:
         """Deep copy of every array."""
         dup = (lambda x: x.clone()) if self.is_torch else (lambda x: x.copy())
         return GaussianCloud(**{n: dup(getattr(self, n)) for n in _FIELDS},
-                             extra={k: (v.clone() if is_torch(v) else v.copy()) for k, v in self.extra.items()})
+                             extra={k: (v.clone() if is_torch(v) else v.copy()) for k, v in self.extra.items()},
+                             background=self.background)
 
     # ------------------------------------------------------ geometry
     def normalization(self) -> tuple[np.ndarray, float]:

@@ -1,14 +1,12 @@
-"""NeRF-Synthetic style datasets: `transforms_{split}.json` plus RGBA images, read with Pillow.
+"""Posed images (`Views`) and how they are read and resampled; captures are read by `gvae_core.capture`.
 
-Cameras are converted from the Blender/OpenGL camera-to-world matrices of the JSON file to the
-OpenCV convention of `Camera`. Images are straight (not premultiplied) RGB in [0, 1] with a
-separate alpha; downsampling averages areas exactly (box filter with fractional overlaps) in
-premultiplied space, so transparent pixels do not bleed their colour into the result.
+Images are straight (not premultiplied) RGB in [0, 1] with a separate alpha (1 for photos);
+downsampling averages areas exactly (box filter with fractional overlaps) in premultiplied space,
+so transparent pixels do not bleed their colour into the result.
 """
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,10 +16,7 @@ from PIL import Image, UnidentifiedImageError
 
 from .camera import Camera
 
-__all__ = ["DatasetError", "Views", "load_nerf_synthetic", "resize_area", "resize_area_reference"]
-
-_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".webp")
-
+__all__ = ["DatasetError", "Views", "read_rgba", "resize_rgba", "resize_area", "resize_area_reference"]
 
 class DatasetError(ValueError):
     """A dataset folder that cannot be read: the message names the file and what is wrong."""
@@ -53,12 +48,12 @@ class Views:
 
     def at_resolution(self, height: int) -> Views:
         """The same views at another image height: cameras scaled, RGBA area-averaged in
-        premultiplied space (as `load_nerf_synthetic` does)."""
+        premultiplied space (as reading a capture does)."""
         if int(height) == self.images.shape[1]:
             return self
         cams = [c.scaled(int(height)) for c in self.cameras]
         rgba = np.concatenate([self.images, self.alphas[..., None]], -1)
-        out = np.stack([_resize_rgba(x, cams[0].height, cams[0].width) for x in rgba])
+        out = np.stack([resize_rgba(x, cams[0].height, cams[0].width) for x in rgba])
         return Views(cams, out[..., :3], out[..., 3], list(self.names))
 
     def composite(self, background=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -68,84 +63,7 @@ class Views:
         return (self.images * a + bg * (1.0 - a)).astype(np.float32, copy=False)
 
 
-def read_transforms(path: Path) -> tuple[dict, list]:
-    """A transforms JSON (NeRF-Synthetic, Instant-NGP, nerfstudio) and its non-empty 'frames'
-    list; DatasetError naming the file when it is not one."""
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: malformed JSON: {exc}") from None
-    frames = meta.get("frames") if isinstance(meta, dict) else None
-    if not isinstance(frames, list) or not frames:
-        raise DatasetError(f"{path}: malformed: expected an object with a non-empty 'frames' list")
-    return meta, frames
-
-
-def load_nerf_synthetic(root, split: str = "train", resolution: int | None = None) -> Views:
-    """Read `root/transforms_{split}.json` and its images.
-
-    `resolution` is the image height in pixels to downsample to (width keeps the aspect ratio,
-    rounded like `Camera.scaled`); None keeps the stored size."""
-    root = Path(root)
-    meta_path = root / f"transforms_{split}.json"
-    if not meta_path.is_file():
-        raise DatasetError(f"{meta_path}: missing (no {split!r} split in {root})")
-    meta, frames = read_transforms(meta_path)
-    try:
-        angle_x = float(meta["camera_angle_x"])
-    except (KeyError, TypeError, ValueError):
-        raise DatasetError(f"{meta_path}: malformed: missing or non-numeric 'camera_angle_x'") from None
-    if not 0.0 < angle_x < math.pi:
-        raise DatasetError(f"{meta_path}: camera_angle_x {angle_x} is not in (0, pi)")
-    if resolution is not None and int(resolution) <= 0:
-        raise ValueError(f"load_nerf_synthetic: resolution must be a positive height, got {resolution}")
-
-    cameras, names = [], []
-    images = alphas = None  # allocated once the first image gives the size (no list + stack copy)
-    size = None
-    for i, frame in enumerate(frames):
-        try:
-            c2w = np.asarray(frame["transform_matrix"], np.float64)
-            rel = str(frame["file_path"])
-        except (KeyError, TypeError, ValueError):
-            raise DatasetError(f"{meta_path}: malformed frame {i}: needs 'file_path' and a numeric "
-                               "'transform_matrix'") from None
-        if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
-            raise DatasetError(f"{meta_path}: frame {i}: transform_matrix must be a finite 4x4 matrix")
-        image_path = _find_image(root, rel, meta_path, i)
-        rgba = _read_rgba(image_path)
-        h, w = rgba.shape[:2]
-        if size is None:
-            size = (h, w)
-        elif size != (h, w):
-            raise DatasetError(f"{image_path}: size {w}x{h} differs from the first image's "
-                               f"{size[1]}x{size[0]}")
-        cam = Camera.from_blender_c2w(c2w, angle_x, w, h)
-        if resolution is not None and int(resolution) != h:
-            cam = cam.scaled(int(resolution))
-            rgba = _resize_rgba(rgba, cam.height, cam.width)
-        if images is None:
-            images = np.empty((len(frames), cam.height, cam.width, 3), np.float32)
-            alphas = np.empty((len(frames), cam.height, cam.width), np.float32)
-        images[i] = rgba[..., :3]
-        alphas[i] = rgba[..., 3]
-        cameras.append(cam)
-        names.append(Path(rel).stem)
-    return Views(cameras, images, alphas, names)
-
-
-def _find_image(root: Path, rel: str, meta_path: Path, index: int) -> Path:
-    """The image a frame's file_path refers to; NeRF-Synthetic omits the '.png' suffix."""
-    base = root / rel
-    candidates = [base] if base.suffix.lower() in _IMAGE_SUFFIXES else []
-    candidates += [base.with_name(base.name + s) for s in _IMAGE_SUFFIXES]
-    for c in candidates:
-        if c.is_file():
-            return c
-    raise DatasetError(f"{candidates[0]}: image not found (frame {index} of {meta_path}, file_path {rel!r})")
-
-
-def _read_rgba(path: Path) -> np.ndarray:
+def read_rgba(path: Path) -> np.ndarray:
     """(H,W,4) float32 in [0,1]; images without alpha get alpha 1."""
     try:
         with Image.open(path) as im:
@@ -160,23 +78,25 @@ def _read_rgba(path: Path) -> np.ndarray:
 
 # ------------------------------------------------------------------------ area resampling
 
-def _area_weights(n_in: int, n_out: int) -> np.ndarray:
-    """(n_out, n_in) weights of the exact box filter: output pixel i covers the input interval
-    [i*s, (i+1)*s) with s = n_in/n_out; the weight of input pixel j is its overlap divided by s."""
+def _box_axis0(img: np.ndarray, n_out: int) -> np.ndarray:
+    """The exact box filter along axis 0: output pixel i averages the input interval [i*s, (i+1)*s),
+    s = n_in / n_out, as differences of the input's running sum at the interval's ends (the sum is
+    linear within a pixel), in O(n_in) per column rather than a dense n_out x n_in product."""
+    n_in = img.shape[0]
     s = n_in / n_out
-    lo = np.arange(n_out)[:, None] * s
-    j = np.arange(n_in)[None, :]
-    overlap = np.clip(np.minimum(lo + s, j + 1) - np.maximum(lo, j), 0.0, None)
-    return overlap / s
+    edges = np.arange(n_out + 1) * s
+    row = np.minimum(np.floor(edges).astype(np.int64), n_in - 1)
+    frac = (edges - row).reshape((-1,) + (1,) * (img.ndim - 1))
+    running = np.concatenate([np.zeros((1,) + img.shape[1:]), np.cumsum(img, axis=0)])
+    at_edges = running[row] + frac * img[row]
+    return (at_edges[1:] - at_edges[:-1]) / s
 
 
 def resize_area(image: np.ndarray, height: int, width: int) -> np.ndarray:
     """Area-average (H,W,...) to (height,width,...): separable exact box filter, float64 inside."""
     img = np.asarray(image, np.float64)
-    wy = _area_weights(img.shape[0], height)
-    wx = _area_weights(img.shape[1], width)
-    out = np.tensordot(wy, img, axes=(1, 0))                 # (height, W, ...)
-    out = np.moveaxis(np.tensordot(wx, out, axes=(1, 1)), 0, 1)  # (height, width, ...)
+    out = _box_axis0(img, height)                                       # (height, W, ...)
+    out = np.moveaxis(_box_axis0(np.moveaxis(out, 1, 0), width), 0, 1)  # (height, width, ...)
     return out.astype(np.float32)
 
 
@@ -202,7 +122,7 @@ def resize_area_reference(image: np.ndarray, height: int, width: int) -> np.ndar
     return out.astype(np.float32)
 
 
-def _resize_rgba(rgba: np.ndarray, height: int, width: int) -> np.ndarray:
+def resize_rgba(rgba: np.ndarray, height: int, width: int) -> np.ndarray:
     """Resize straight RGBA by area averaging in premultiplied space, then un-premultiply."""
     alpha = rgba[..., 3:4].astype(np.float64)
     premult = np.concatenate([rgba[..., :3] * alpha, alpha], axis=-1)

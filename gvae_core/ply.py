@@ -8,7 +8,8 @@ in the same directory that is renamed into place, so a failed write leaves nothi
 
 Integer dtypes PLY has no type for (int64, uint64), bool and float16 are stored in the nearest
 PLY type that holds them exactly, with a header comment `gvae_dtype NAME DTYPE` that restores the
-dtype on read; other readers see a standard file.
+dtype on read; other readers see a standard file. The colour a cloud was trained over
+(`GaussianCloud.background`) is the header comment `gvae_background R G B`.
 """
 
 from __future__ import annotations
@@ -24,7 +25,10 @@ from .atomic import atomic_write
 from .cloud import GaussianCloud
 from .conventions import LOG_SCALE_RANGE, OPACITY_LOGIT_RANGE, SH_REST_COUNTS
 
-__all__ = ["PlyError", "InfinitiesReadWarning", "read_ply", "write_ply"]
+__all__ = ["PlyError", "InfinitiesReadWarning", "read_ply", "write_ply", "BACKGROUND_COMMENT"]
+
+#: Header comment holding the colour a cloud was trained over: `comment gvae_background R G B`.
+BACKGROUND_COMMENT = "gvae_background"
 
 
 class PlyError(ValueError):
@@ -74,6 +78,7 @@ class _Header:
     elements: list[_Element]
     data_offset: int              # bytes from the file start to the first data byte
     dtype_comments: dict[str, str]
+    background: tuple[float, float, float] | None = None  # `comment gvae_background R G B`
 
     @property
     def byte_order(self) -> str | None:
@@ -102,6 +107,7 @@ def _parse_header(raw: bytes, where: str) -> _Header:
     fmt = None
     elements: list[_Element] = []
     comments: dict[str, str] = {}
+    background = None
     for lineno, line in enumerate(text.splitlines()[1:], start=2):
         words = line.split()
         if not words:
@@ -111,6 +117,8 @@ def _parse_header(raw: bytes, where: str) -> _Header:
         if key in ("comment", "obj_info"):
             if len(words) == 4 and words[1] == "gvae_dtype" and words[3] in _COMMENT_DTYPES:
                 comments[words[2]] = words[3]
+            elif len(words) == 5 and words[1] == BACKGROUND_COMMENT:
+                background = _background(words[2:], f"{where}: bad header line {lineno} {line.strip()!r}")
             continue
         if key == "format":
             if fmt is not None:
@@ -140,7 +148,17 @@ def _parse_header(raw: bytes, where: str) -> _Header:
             raise PlyError(f"{bad}: unknown keyword {key!r}")
     if fmt is None:
         raise PlyError(f"{where}: bad header: no 'format' line")
-    return _Header(fmt, elements, eol + 1, comments)
+    return _Header(fmt, elements, eol + 1, comments, background)
+
+
+def _background(words: list[str], bad: str) -> tuple[float, float, float]:
+    try:
+        rgb = tuple(float(w) for w in words)
+    except ValueError:
+        rgb = ()
+    if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
+        raise PlyError(f"{bad}: expected '{BACKGROUND_COMMENT} R G B' with each in [0, 1]")
+    return rgb  # type: ignore[return-value]
 
 
 def _read_header_bytes(f, where: str) -> bytes:
@@ -190,7 +208,7 @@ def read_ply(path, *, sanitize: bool = False) -> GaussianCloud:
             f.seek(header.data_offset + skip_bytes)
             chunks = _file_chunks(f, dtype, n, where)
         cloud, finite = _cloud_from_records(chunks, dtype, n, header.dtype_comments)
-    return drop_nonfinite(cloud, finite, where, sanitize, stacklevel=3)
+    return drop_nonfinite(cloud.replace(background=header.background), finite, where, sanitize, stacklevel=3)
 
 
 class InfinitiesReadWarning(UserWarning):
@@ -459,6 +477,8 @@ def write_ply(cloud: GaussianCloud, path) -> Path:
 
     lines = ["ply", "format binary_little_endian 1.0"]
     lines += [f"comment gvae_dtype {name} {dt}" for name, dt in comments]
+    if cloud.background is not None:
+        lines.append(f"comment {BACKGROUND_COMMENT} " + " ".join(repr(float(v)) for v in cloud.background))
     lines.append(f"element vertex {n}")
     lines += [f"property {_WRITE_NAMES[np.dtype(t).str[1:]]} {name}" for name, t in props]
     lines.append("end_header")

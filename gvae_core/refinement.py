@@ -190,7 +190,8 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = None, method: 
            stage: int | None = None, seed: int = 0, progress: Callable[[float, str], None] | None = None,
            hessian_options: dict | None = None, scores: Any = None, carry_appearance: bool = True,
            check_memory: bool = True, fidelity: float | str | None = "auto", images: Any = None,
-           image_height: int | None = None, fit: SuperResConfig | dict | None = None) -> RefineResult:
+           image_height: int | None = None, fit: SuperResConfig | dict | None = None,
+           test_every: int | None = None) -> RefineResult:
     """Refine `cloud` with `method` (module docstring; default: the one `model` is for, else
     DEFAULT_METHOD): "detail" changes the Gaussians the budget
     selects for up to `steps` (>= 1) octaves above their training resolution, "vae" runs `steps`
@@ -213,7 +214,8 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = None, method: 
     they were (`gvae_core.fidelity`; "auto": the method's, DEFAULT_TOLERANCES; None: keep
     everything the models did). `images` (the detail method): the capture's training images, a
     dataset folder (`capture.load_capture_images`) or `Views` (`refine_images`), at
-    `image_height` (default: the training resolution the cloud's anti-aliasing size says); `fit`
+    `image_height` (default: the training resolution the cloud's anti-aliasing size says), every
+    `test_every`-th held out as training held it out (those are never fitted); `fit`
     how the changes are fitted to them (a `superres.SuperResConfig` or a dict of its fields).
     Raises ValueError on non-finite input rows."""
     if method is None:
@@ -229,17 +231,21 @@ def refine(cloud: GaussianCloud, *, steps: int = 1, budget: Any = None, method: 
                   fidelity=fidelity)
     if images is not None and method != "detail":
         raise ValueError(f"refine: images are fitted by the detail method (changes per octave), not by {method!r}")
-    if images is None and (image_height is not None or fit is not None):
-        raise ValueError("refine: image_height and fit need images")
+    if images is None and (image_height is not None or fit is not None or test_every is not None):
+        raise ValueError("refine: image_height, fit and test_every need images")
     _check_steps(steps)
     with reuse_freed_memory():  # one scope over all the parts: memory is handed back once, at the end
         src = RefineInput.of(cloud)
         if images is not None:
-            return refine_images(src, images, steps=steps, image_height=image_height, config=fit, model=model,
-                                 lineage=lineage, stage=stage, progress=progress, check_memory=check_memory)
-        if method == "detail":
-            return refine_detail(src, **common)
-        (result,) = refine_steps(src, seed=seed, every_step=False, carry_appearance=carry_appearance, **common)
+            result = refine_images(src, images, steps=steps, image_height=image_height, config=fit, model=model,
+                                   lineage=lineage, stage=stage, progress=progress, check_memory=check_memory,
+                                   test_every=test_every)
+        elif method == "detail":
+            result = refine_detail(src, **common)
+        else:
+            (result,) = refine_steps(src, seed=seed, every_step=False, carry_appearance=carry_appearance, **common)
+    # the refined cloud is drawn over what the input was trained over
+    result.cloud = result.cloud.replace(background=cloud.background)
     return result
 
 
@@ -383,7 +389,7 @@ def refine_detail(cloud: GaussianCloud | RefineInput, *, steps: int = 1, budget:
 def refine_images(cloud: GaussianCloud | RefineInput, images: Any, *, steps: int = 1, image_height: int | None = None,
                   config: SuperResConfig | dict | None = None, model: Any = None, lineage: Lineage | None = None,
                   stage: int | None = None, progress: Callable[[float, str], None] | None = None,
-                  check_memory: bool = True) -> RefineResult:
+                  check_memory: bool = True, test_every: int | None = None) -> RefineResult:
     """`refine` from the capture's own images (DESIGN.md step 5b, `gvae_core.superres`): every
     Gaussian's changes per octave, for octaves 1..`steps`, fitted so that the cloud drawn at 2^k
     times the images' resolution and area-averaged back down reproduces each image; starting from
@@ -410,7 +416,7 @@ def refine_images(cloud: GaussianCloud | RefineInput, images: Any, *, steps: int
             check_image_fit_memory(n, src.sh_degree, images=count, height=height, width=width, extra_values=extra,
                                    children=config.max_children if config.children is not None else 0.0)
 
-    capture = capture_images(src, images, image_height, before_loading=memory)
+    capture = capture_images(src, images, image_height, before_loading=memory, test_every=test_every)
     src, views = capture.cloud, capture.views
     timings["images"] = time.perf_counter() - t0
     start = None
@@ -424,8 +430,9 @@ def refine_images(cloud: GaussianCloud | RefineInput, images: Any, *, steps: int
     fitted = fit_octaves(src, views, steps, config, start=start, background=capture.match.background,
                          progress=lambda f, message: say(0.05 + 0.93 * f, message))
     timings["fit"] = time.perf_counter() - t0
-    kept = fitted.improves  # else a safety net: the changes it started from
-    out = with_octaves(src, fitted.changes if kept else (start or {}), limit=float(steps))
+    kept = fitted.improves  # else what the held-out images liked better: the changes it started from, or none
+    out = with_octaves(src, {"fit": fitted.changes, "start": start or {}, "input": {}}[fitted.kept],
+                       limit=float(steps))
     parents = fitted.child_roots if kept else np.zeros(0, np.int64)
     if len(parents):
         out = out.append_children(fitted.children, parents)
@@ -434,12 +441,13 @@ def refine_images(cloud: GaussianCloud | RefineInput, images: Any, *, steps: int
     notes = {"training resolution": capture.height_source,
              "images": f"{len(views)} over a {bg} background (the cloud reproduces them at "
                        f"{capture.match.psnr:.1f} dB)",
-             "fit": f"the training images drawn at 2x and averaged down {fitted.psnr_before:.2f} -> "
+             "fit": f"{fitted.images} images fitted, drawn at 2x and averaged down {fitted.psnr_before:.2f} -> "
                     f"{fitted.psnr_after:.2f} dB PSNR ({fitted.psnr_views} of them), loss "
-                    f"{np.mean(fitted.losses[-50:]) if fitted.losses else float('nan'):.4f}"}
+                    f"{np.mean(fitted.losses[-50:]) if fitted.losses else float('nan'):.4f}",
+             "judged on": fitted.judged()}
     if not kept:
-        instead = "the detail model's changes" if start else "the input as it was"
-        notes["fit"] += f"; no better than {instead} ({fitted.psnr_start:.2f} dB), so not kept: {instead} instead"
+        instead = "the detail model's changes" if fitted.kept == "start" and start else "the input as it was"
+        notes["fit"] += f"; no better than {instead}, so not kept: {instead} instead"
     result = RefineResult(cloud=out, added=np.arange(n, len(out), dtype=np.int64), parents=parents,
                           step=np.ones(len(parents), np.int64), scores=np.zeros(n, np.float32),
                           selected=np.arange(n, dtype=np.int64), timings=timings, notes=notes, fit=fitted)

@@ -24,7 +24,7 @@ from .conventions import SH_REST_COUNTS
 
 __all__ = ["NotEnoughMemoryError", "available_memory", "estimate_refine_memory", "check_refine_memory",
            "estimate_compact_memory", "check_compact_memory", "estimate_image_fit_memory", "check_image_fit_memory",
-           "reuse_freed_memory"]
+           "estimate_train_memory", "train_cap", "reuse_freed_memory"]
 
 #: Bytes of the Python process with torch and the models loaded, before any cloud.
 BASE_BYTES = 600 << 20
@@ -58,6 +58,17 @@ MERGE_PER_GAUSSIAN = 400
 #: the copies each step draws from; per image pixel: the images and their composites (float32 RGB).
 IMAGE_FIT_PER_VALUE = 40
 IMAGE_FIT_PER_PIXEL = 28
+
+
+#: Training (`gvae_core.train`): bytes per Gaussian per value it holds (the parameters, their
+#: gradients and Adam's two moments, the densification statistics and the renderer's per-Gaussian
+#: buffers of a step), and per pixel of the stage's training images (the images, their composites
+#: and one view's render buffers, spread over the views). Calibrated against the peaks of
+#: `gvae train` runs (BENCHMARKS.md, "Training on a real capture").
+TRAIN_PER_VALUE = 64
+TRAIN_PER_PIXEL = 40
+#: The share of the available memory a run may fill with Gaussians (`train_cap`).
+TRAIN_MEMORY_SHARE = 0.7
 
 
 class NotEnoughMemoryError(ValueError):
@@ -181,6 +192,25 @@ def check_image_fit_memory(n: int, sh_degree: int = 3, **kwargs) -> int:
                   f"refining {n:,} Gaussians (SH degree {sh_degree}) from {kwargs.get('images')} images of "
                   f"{kwargs.get('width')}x{kwargs.get('height')} px",
                   "fit at a smaller --image-height, with fewer images or a part of the cloud")
+
+
+def estimate_train_memory(n: int, views: int, height: int, width: int, sh_degree: int = 3) -> int:
+    """Estimated peak bytes of a training stage with `n` Gaussians of SH degree `sh_degree` on
+    `views` images of `height` x `width` pixels."""
+    values = 14 + 3 * SH_REST_COUNTS[min(int(sh_degree), 3)]
+    return int(BASE_BYTES + n * values * TRAIN_PER_VALUE + int(views) * int(height) * int(width) * TRAIN_PER_PIXEL)
+
+
+def train_cap(views: int, height: int, width: int, sh_degree: int = 3, available: int | None = None) -> int:
+    """The most Gaussians a training stage may grow to on this machine: those whose estimated peak
+    (`estimate_train_memory`) fits in TRAIN_MEMORY_SHARE of the memory available now (`available`
+    bytes where given), at least 10,000; 10 million where the available memory cannot be told."""
+    free = available_memory() if available is None else int(available)
+    if free is None:
+        return 10_000_000
+    values = 14 + 3 * SH_REST_COUNTS[min(int(sh_degree), 3)]
+    room = TRAIN_MEMORY_SHARE * free - estimate_train_memory(0, views, height, width, sh_degree)
+    return max(10_000, int(room // (values * TRAIN_PER_VALUE)))
 
 
 # glibc's mallopt parameters (malloc.h)

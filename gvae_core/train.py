@@ -32,20 +32,22 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from .antialias import DILATION_KEY, FILTER_KEY, dilation_3d, filter_3d
 from .atomic import atomic_write_text
-from .camera import Camera
+from .camera import Camera, look_target
+from .capture import Capture, SfMPoints, read_capture
 from .cloud import GaussianCloud
-from .conventions import SH_REST_COUNTS, opacity_logit, rgb_to_dc
-from .datasets import Views, load_nerf_synthetic
+from .conventions import SH_REST_COUNTS
+from .datasets import Views
 from .densify import DensifyStrategy, GaussianModel
+from .initialization import INIT_MODES, coverage, initial_cloud, start_points
 from .lineage import Lineage
-from .losses import photometric_loss, psnr
+from .losses import photometric_loss, psnr, ssim
 from .ply import read_ply, write_ply
 from .rendering import RenderSettings, render, resolve_device
+from .resources import estimate_train_memory, train_cap
 
 #: Profiles: overrides of the `TrainConfig` defaults. `default` is the benchmark profile.
 PROFILES: dict[str, dict[str, Any]] = {
@@ -62,9 +64,15 @@ class TrainConfig:
     """Everything a progressive run depends on (JSON-serialisable; stored in run.json).
 
     Schedules given in `reference_iterations` units (the reference 30k-iteration run) are scaled
-    to each stage's budget (see `stage_schedule`). `init`: "random" (the reference: uniform in
-    the scene bounds, grey) or "hull" (uniform random points kept only inside the visual hull of
-    the training alpha masks, coloured from the images: the default, as CPU budgets are small).
+    to each stage's budget (see `stage_schedule`). `init`: where the first stage starts
+    (`gvae_core.initialization`): "sfm" (the capture's SfM points, the reference's start for a
+    COLMAP capture), "hull" (random points inside the visual hull of the training alpha masks),
+    "random" (random points along the training rays, `init_count` of them), or "auto" (the
+    default: sfm, else hull for images with transparent pixels, else random). `max_gaussians`:
+    a cap on the count (None, the default: none but what memory allows, `resources.train_cap`;
+    the reference has none, densification stops by its schedule). `test_every`: hold out every
+    n-th image of a capture, sorted by name, as a test view (LLFF / Mip-NeRF 360: 8; None: a
+    NeRF-Synthetic folder's test split, or none).
     `max_screen_fraction` (None) would prune Gaussians whose radius exceeds that fraction of the
     image height; the reference code's screen-size test never fires, so it is off by default.
     `antialias`: how stages render while they train: "classic" (the reference 3DGS) or "mip"
@@ -101,16 +109,17 @@ class TrainConfig:
     max_world_size: float = 0.1
     max_screen_fraction: float | None = None
     reset_opacity_value: float = 0.01
-    max_gaussians: int | None = 50_000
+    max_gaussians: int | None = None
     # Data, initialisation, evaluation.
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    init: str = "hull"
+    init: str = "auto"
     init_count: int = 10_000
     init_opacity: float = 0.1
     train_eval_views: int = 10
     test_eval_views: int | None = None
     seed: int = 0
     antialias: str = "classic"
+    test_every: int | None = None
 
     def __post_init__(self):
         self.resolutions = tuple(int(r) for r in np.atleast_1d(self.resolutions))
@@ -126,8 +135,10 @@ class TrainConfig:
                              f"({len(self.resolutions)}), got {self.iterations}")
         if self.sh_degree not in SH_REST_COUNTS:
             raise ValueError(f"TrainConfig.sh_degree must be 0..3, got {self.sh_degree}")
-        if self.init not in ("random", "hull"):
-            raise ValueError(f"TrainConfig.init must be 'random' or 'hull', got {self.init!r}")
+        if self.init not in INIT_MODES:
+            raise ValueError(f"TrainConfig.init must be one of {', '.join(INIT_MODES)}, got {self.init!r}")
+        if self.test_every is not None and int(self.test_every) < 2:
+            raise ValueError(f"TrainConfig.test_every must be 2 or more, got {self.test_every}")
         if len(self.background) != 3:
             raise ValueError(f"TrainConfig.background must be 3 values, got {self.background}")
         if self.antialias not in ("classic", "mip"):
@@ -185,7 +196,7 @@ class TrainConfig:
 
 
 #: `TrainConfig` fields that `to_dict` writes only when they are not at their default.
-ADDED_FIELDS = ("antialias",)
+ADDED_FIELDS = ("antialias", "test_every")
 
 
 @dataclass
@@ -203,33 +214,44 @@ class TrainResult:
 
 # ------------------------------------------------------------------ data
 
-def make_view_source(data, test=None) -> Callable[[str, int], Any]:
-    """A function (split, height) -> views or None, from a NeRF-Synthetic folder, a callable
-    of that form, or in-memory views (resampled to each height; `test` views likewise)."""
-    if isinstance(data, (str, os.PathLike)):
-        root = Path(data)
-        if not root.is_dir():
-            raise FileNotFoundError(f"{root}: scene directory not found")
-        if not (root / "transforms_train.json").is_file():
-            raise ValueError(f"{root}: not a NeRF-Synthetic scene (no transforms_train.json)")
-        def source(split: str, height: int):
-            if split == "test" and not (root / "transforms_test.json").is_file():
-                return None
-            return load_nerf_synthetic(root, split, resolution=height)
+@dataclass
+class TrainingData:
+    """What a run trains from: `views(split, height)` -> the split's views at that image height, or
+    None when there is no such split; the capture's SfM points (None without); a line saying what
+    it is; the capture's path (None for views in memory)."""
 
-        return source
-    if callable(data):
+    views: Callable[[str, int], Views | None]
+    points: SfMPoints | None = None
+    description: str = "views given in memory"
+    source: str | None = None
+
+
+def training_data(data, test=None, test_every: int | None = None) -> TrainingData:
+    """`data` as TrainingData: a capture (a path `capture.read_capture` reads: COLMAP, a
+    transforms.json, a NeRF-Synthetic folder; or a `Capture`) with every `test_every`-th image held
+    out, a (split, height) -> views function, or in-memory views (resampled to each height; `test`
+    views likewise)."""
+    if isinstance(data, TrainingData):
         return data
+    if isinstance(data, (str, os.PathLike, Capture)):
+        capture = (data if isinstance(data, Capture) else read_capture(data)).held_out(test_every)
+
+        def views(split: str, height: int):
+            return capture.load(split, height) if len(capture.indices(split)) else None
+
+        return TrainingData(views, capture.points, capture.summary(), str(capture.source))
+    if callable(data):
+        return TrainingData(data)
     if not isinstance(data, Views) or not (test is None or isinstance(test, Views)):
-        raise ValueError("train_progressive: data must be a scene directory, a (split, height) -> "
-                         "views function or gvae_core.datasets.Views")
+        raise ValueError("train_progressive: data must be a capture (a COLMAP model, a transforms.json, a "
+                         "NeRF-Synthetic folder), a (split, height) -> views function or gvae_core.datasets.Views")
     splits = {"train": data, "test": test}
 
     def source(split: str, height: int):
         v = splits.get(split)
         return None if v is None else v.at_resolution(height)
 
-    return source
+    return TrainingData(source)
 
 
 # ------------------------------------------------------------------ geometry helpers
@@ -241,100 +263,8 @@ def scene_extent(cameras: list[Camera]) -> tuple[np.ndarray, float]:
     mid = centers.mean(0)
     radius = 1.1 * float(np.linalg.norm(centers - mid, axis=1).max())
     if radius < 1e-9:  # one camera: use its distance to the point it looks at
-        radius = 1.1 * float(np.linalg.norm(_look_target(cameras) - centers[0])) or 1.0
+        radius = 1.1 * float(np.linalg.norm(look_target(cameras) - centers[0])) or 1.0
     return mid, radius
-
-
-def _look_target(cameras: list[Camera]) -> np.ndarray:
-    """Least-squares point nearest to every optical axis (where the cameras look)."""
-    a, b = np.zeros((3, 3)), np.zeros(3)
-    for c in cameras:
-        d = c.rotation[2]  # camera +z axis in world coordinates
-        p = np.eye(3) - np.outer(d, d)
-        a += p
-        b += p @ c.center
-    if np.linalg.cond(a) > 1e8:  # all axes parallel: a point in front of the cameras
-        return np.mean([c.center + 3.0 * c.rotation[2] for c in cameras], 0)
-    return np.linalg.solve(a, b)
-
-
-def initial_bounds(cameras: list[Camera]) -> tuple[np.ndarray, float]:
-    """Centre and half-size of a cube every camera sees: around where the optical axes meet,
-    as large as the sphere that fits in the narrowest view (1.3 for NeRF-Synthetic, whose
-    random initialisation the reference draws from [-1.3, 1.3]^3)."""
-    target = _look_target(cameras)
-    half = min(float(np.linalg.norm(c.center - target)) * math.sin(0.5 * min(c.fov_x, c.fov_y))
-               for c in cameras)
-    return target, max(half, 1e-6)
-
-
-def hull_points(views, count: int, rng: np.random.Generator, threshold: float = 0.1,
-                max_rounds: int = 8) -> np.ndarray:
-    """Up to `count` random points of `initial_bounds` inside the visual hull of the views'
-    alpha masks (a point is carved away when a view that sees it has alpha <= threshold there),
-    with the mean colour of the pixels they project to: (M,6) xyz + RGB."""
-    center, half = initial_bounds(views.cameras)
-    found, total, rate = [], 0, 0.05
-    for _ in range(max_rounds):
-        m = int(min(max(1.3 * (count - total) / rate, 1000), 2_000_000))
-        cand = center + (rng.random((m, 3)) * 2.0 - 1.0) * half
-        rgb_sum = np.zeros((m, 3))
-        seen = np.zeros(m)
-        alive = np.arange(m)
-        for cam, img, alpha in zip(views.cameras, views.images, views.alphas):
-            uv, z = cam.project(cand[alive])
-            with np.errstate(invalid="ignore"):
-                col, row = np.floor(uv[:, 0]), np.floor(uv[:, 1])
-                inside = (z > 0) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
-            r, c = row[inside].astype(np.int64), col[inside].astype(np.int64)
-            idx = alive[inside]
-            rgb_sum[idx] += img[r, c]
-            seen[idx] += 1
-            carved = np.zeros(len(alive), bool)
-            carved[np.flatnonzero(inside)[alpha[r, c] <= threshold]] = True
-            alive = alive[~carved]
-        alive = alive[seen[alive] > 0]
-        rate = max(len(alive) / m, 1e-4)
-        found.append(np.concatenate([cand[alive], rgb_sum[alive] / seen[alive, None]], 1))
-        total += len(alive)
-        if total >= count:
-            break
-    return np.concatenate(found)[:count]
-
-
-def initial_cloud(cameras: list[Camera], config: TrainConfig, rng: np.random.Generator,
-                  points=None) -> GaussianCloud:
-    """The reference initialisation: `points` ((N,3), or (N,6) with RGB in [0,1]) or
-    `init_count` uniform random points in `initial_bounds`, nearly grey; isotropic scales from
-    the mean squared distance to the 3 nearest neighbours; identity rotations; opacity 0.1."""
-    if points is not None and len(points) == 0:
-        points = None  # e.g. an empty visual hull: fall back to random points
-    if points is None:
-        center, half = initial_bounds(cameras)
-        xyz = center + (rng.random((config.init_count, 3)) * 2.0 - 1.0) * half
-        dc = rng.random((len(xyz), 3)) / 255.0  # the reference's near-zero random SH DC
-    else:
-        pts = np.asarray(points, np.float64)
-        if pts.ndim != 2 or pts.shape[1] not in (3, 6) or len(pts) == 0 or not np.isfinite(pts).all():
-            raise ValueError(f"initial points must be a finite (N,3) or (N,6) array, got shape {pts.shape}")
-        xyz = pts[:, :3]
-        dc = rgb_to_dc(pts[:, 3:6]) if pts.shape[1] == 6 else np.zeros((len(pts), 3))
-    n = len(xyz)
-    k = min(4, n)
-    if k > 1:
-        dist, _ = cKDTree(xyz).query(xyz, k=k)
-        d2 = np.maximum(np.mean(dist[:, 1:] ** 2, axis=1), 1e-7)
-    else:
-        d2 = np.full(n, 1e-2)
-    logit = opacity_logit(config.init_opacity)
-    return GaussianCloud(
-        means=xyz.astype(np.float32),
-        scales=np.repeat(0.5 * np.log(d2)[:, None], 3, 1).astype(np.float32),
-        quats=np.tile(np.array([1.0, 0, 0, 0], np.float32), (n, 1)),
-        opacities=np.full(n, logit, np.float32),
-        sh_dc=dc.astype(np.float32),
-        sh_rest=np.zeros((n, SH_REST_COUNTS[config.sh_degree], 3), np.float32),
-    )
 
 
 def position_lr(config: TrainConfig, extent: float, step: int, total: int) -> float:
@@ -381,20 +311,30 @@ def _targets(views, background) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(views.composite(background)))
 
 
-def evaluate_psnr(cloud: GaussianCloud, views, background, sh_degree: int, max_views: int | None = None,
-                  settings: RenderSettings | None = None) -> float:
-    """Mean PSNR over (up to `max_views` evenly spaced) views, images composited on background."""
+def evaluate_views(cloud: GaussianCloud, views, background, sh_degree: int, max_views: int | None = None,
+                   settings: RenderSettings | None = None, *, with_ssim: bool = True) -> tuple[float, float]:
+    """Mean PSNR and SSIM (NaN without `with_ssim`) over (up to `max_views` evenly spaced) views,
+    images composited on background; NaN, NaN without views."""
     if views is None or len(views) == 0:
-        return float("nan")
+        return float("nan"), float("nan")
     n = len(views)
     pick = range(n) if max_views is None or max_views >= n else np.linspace(0, n - 1, max_views).round().astype(int)
-    targets = views.composite(background)
-    values = []
+    targets = torch.from_numpy(views.composite(background))
+    psnrs, ssims = [], []
     with torch.no_grad():
         for i in pick:
             out = render(cloud, views.cameras[i], background=background, sh_degree=sh_degree, settings=settings)
-            values.append(min(psnr(out.image.clamp(0, 1).cpu(), targets[i]), 100.0))
-    return float(np.mean(values))
+            image = out.image.clamp(0, 1).cpu()
+            psnrs.append(min(psnr(image, targets[i]), 100.0))
+            if with_ssim:
+                ssims.append(float(ssim(image, targets[i])))
+    return float(np.mean(psnrs)), float(np.mean(ssims)) if ssims else float("nan")
+
+
+def evaluate_psnr(cloud: GaussianCloud, views, background, sh_degree: int, max_views: int | None = None,
+                  settings: RenderSettings | None = None) -> float:
+    """Mean PSNR over (up to `max_views` evenly spaced) views, images composited on background."""
+    return evaluate_views(cloud, views, background, sh_degree, max_views, settings, with_ssim=False)[0]
 
 
 def _write_json(path: Path, obj) -> None:
@@ -435,9 +375,10 @@ def train_progressive(data, config: TrainConfig | None = None, *, out_dir=None, 
                       threads: int | None = None, device=None) -> TrainResult:
     """Train 3DGS coarse-to-fine over `config.resolutions`, recording lineages.
 
-    `data`: a NeRF-Synthetic scene directory, in-memory views (cameras, images, alphas; with
-    optional `test` views), or a function (split, height) -> views. `init_points`: optional
-    (N,3)/(N,6) initial points instead of random ones. With `out_dir`, stage PLYs, lineage.npz,
+    `data`: a capture (a COLMAP model with its images, a transforms.json, a NeRF-Synthetic folder;
+    `training_data`), in-memory views (cameras, images, alphas; with optional `test` views), or a
+    function (split, height) -> views. `init_points`: optional (N,3)/(N,6) initial points instead of
+    `config.init`'s (`gvae_core.initialization`). With `out_dir`, stage PLYs, lineage.npz,
     log.json and run.json are written there after every stage and an interrupted run resumes
     (unless `resume` is False, which starts over). `threads`: torch CPU threads while training
     (restored afterwards); on a busy machine 1 is often much faster than oversubscribing. `device`:
@@ -455,7 +396,7 @@ def train_progressive(data, config: TrainConfig | None = None, *, out_dir=None, 
 
 def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, progress: bool,
            device: torch.device) -> TrainResult:
-    source = make_view_source(data, test)
+    data = training_data(data, test, config.test_every)
     out = Path(out_dir) if out_dir is not None else None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
@@ -468,7 +409,8 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
     stage_paths = [out / f"stage_{s}.ply" for s in range(first_stage)] if out is not None else []
     bg = config.background
     model: GaussianModel | None = None
-    strategy = config.densify_strategy()
+    say = tqdm.write if progress else (lambda message: None)
+    say(data.description)
     settings = RenderSettings(antialias=config.antialias)
     # What every snapshot stores for rendering above its resolution (`gvae_core.antialias`): the
     # Mip filter of a run trained with it, else the classic dilation in world units.
@@ -478,23 +420,39 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
 
     for s in range(first_stage, len(config.resolutions)):
         height = config.resolutions[s]
-        train_views = source("train", height)
+        train_views = data.views("train", height)
         if train_views is None or len(train_views) == 0:
             raise ValueError("train_progressive: no training views")
         _, extent = scene_extent(train_views.cameras)
         rng = np.random.default_rng([config.seed, s])
         gen = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
+        start = {}
         if s == 0:
             init_rng = np.random.default_rng([config.seed, 1_000_003])
-            if init_points is None and config.init == "hull":
-                init_points = hull_points(train_views, config.init_count, init_rng)
-            cloud = initial_cloud(train_views.cameras, config, init_rng, init_points)
+            if init_points is None:
+                init_points, what = start_points(train_views, config, init_rng, data.points)
+            else:
+                what = f"{len(init_points)} points given"
+            cloud = initial_cloud(config, init_points)
+            covered = coverage(cloud, train_views)
+            start = {"start": what, "start_coverage": round(float(covered.mean()), 6),
+                     "start_coverage_min": round(float(covered.mean((1, 2)).min()), 6)}
+            say(f"start: {what}; it covers {covered.mean():.2%} of the training pixels (the least covered view "
+                f"{start['start_coverage_min']:.2%})")
             ids, parents = np.arange(len(cloud), dtype=np.int64), np.full(len(cloud), -1, np.int64)
             next_id = len(cloud)
         else:
             snap = lineage.snapshots[-1]
             cloud, ids, parents = snap.cloud, snap.ids, snap.ids  # survivors are their own anchors
         model = GaussianModel(cloud, ids, parents, config.learning_rates(extent), extent, next_id, device)
+        cam0 = train_views.cameras[0]
+        cap = train_cap(len(train_views), cam0.height, cam0.width, config.sh_degree)
+        limit = cap if config.max_gaussians is None else min(cap, config.max_gaussians)
+        strategy = dataclasses.replace(config.densify_strategy(), max_gaussians=limit)
+        need = estimate_train_memory(len(cloud), len(train_views), cam0.height, cam0.width, config.sh_degree)
+        say(f"stage {s + 1}: {len(train_views)} views of {cam0.width}x{cam0.height}, {len(cloud)} Gaussians; memory "
+            f"about {need / 2**30:.2f} GiB now, at most {limit} Gaussians"
+            + (" (what memory allows)" if limit == cap else ""))
         sched = config.stage_schedule(s)
         targets = _targets(train_views, bg).to(device)
         cams = train_views.cameras
@@ -513,7 +471,7 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
             bar.close()
         peak = _peak_rss_mb() if reset_ok else max(_peak_rss_mb(), rss_before)
 
-        snap_cloud = model.snapshot()
+        snap_cloud = model.snapshot().replace(background=bg)
         ids_np, parents_np = snap_cloud.extra["gvae_id"], snap_cloud.extra["gvae_parent"]
         final_size = size_fn(snap_cloud.means, cams)  # the stage's training cameras
         snap_cloud = snap_cloud.replace(extra={**snap_cloud.extra, size_key: final_size})
@@ -524,12 +482,15 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         torch_cloud = snap_cloud.replace(extra={size_key: final_size}).to_torch(device=device)
         t1 = time.perf_counter()
         train_psnr = evaluate_psnr(torch_cloud, train_views, bg, degree, config.train_eval_views, settings)
-        test_psnr = evaluate_psnr(torch_cloud, source("test", height), bg, degree, config.test_eval_views, settings)
+        test_psnr, test_ssim = evaluate_views(torch_cloud, data.views("test", height), bg, degree,
+                                              config.test_eval_views, settings)
         entry = {"stage": s, "resolution": height, "iterations": n_iter, "seconds": round(seconds, 3),
                  "seconds_per_iteration": round(seconds / max(n_iter, 1), 5),
                  "cpu_seconds": round(cpu_seconds, 3),
                  "n_gaussians": len(snap_cloud), "train_psnr": round(train_psnr, 4),
                  "test_psnr": None if math.isnan(test_psnr) else round(test_psnr, 4),
+                 "test_ssim": None if math.isnan(test_ssim) else round(test_ssim, 5),
+                 "gaussian_limit": limit, **start,
                  "peak_rss_mb": round(peak, 1), "rss_start_mb": round(rss_start, 1), "peak_rss_exact": reset_ok,
                  "sh_degree": degree,
                  "eval_seconds": round(time.perf_counter() - t1, 3), "next_id": next_id, **counts}
@@ -539,13 +500,13 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
             lineage.save(out / "lineage.npz")
             _write_json(out / "log.json", log)
             _write_json(out / "run.json", {"config": config.to_dict(), "stages_done": s + 1,
-                                           "next_id": next_id})
+                                           "next_id": next_id, "data": data.source})
 
     final = lineage.stage_cloud(lineage.n_stages - 1)
     if final_size is None:  # every stage was done already: the size is in the last stage's PLY
-        final_size = _stage_size(out, lineage.n_stages - 1, final, source, config.resolutions[-1], size_key,
-                                   size_fn)
-    final = final.replace(extra={**final.extra, size_key: final_size})
+        final_size = _stage_size(out, lineage.n_stages - 1, final, data, config.resolutions[-1], size_key,
+                                 size_fn)
+    final = final.replace(extra={**final.extra, size_key: final_size}, background=bg)
     return TrainResult(final, lineage, log, out, stage_paths)
 
 
@@ -636,11 +597,83 @@ def fine_tune(cloud: GaussianCloud, views: Views, iterations: int, *, config: Tr
     return out.replace(extra={**extra, key: size_fn(out.means, views.cameras)})
 
 
+@dataclass
+class MoreResult:
+    """A finished stage trained `iterations` more: the cloud, where it was written, and its log entry
+    (PSNR/SSIM on the training and held-out views at the stage's resolution, time)."""
+
+    cloud: GaussianCloud
+    path: Path
+    entry: dict[str, Any]
+
+
+def train_more(run_dir, iterations: int, *, stage: int | None = None, progress: bool = True,
+               threads: int | None = None, device=None) -> MoreResult:
+    """Train a finished stage of the run in `run_dir` (the last by default) `iterations` more
+    iterations on its training views at its resolution, the run's configuration, without density
+    control (`fine_tune`: the same Gaussians; the control a refinement at the same count is judged
+    against). Writes `stage_<s>_more_<iterations>.ply` and appends the entry to `more.json`."""
+    out = Path(run_dir)
+    run_path = out / "run.json"
+    if not run_path.is_file():
+        raise ValueError(f"{out}: not a training run (no run.json)")
+    try:
+        run = json.loads(run_path.read_text(encoding="utf-8"))
+        config, done, source = TrainConfig(**run["config"]), int(run["stages_done"]), run.get("data")
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{run_path}: not a training run state file ({exc})") from None
+    stage = done - 1 if stage is None else int(stage)
+    if not 0 <= stage < done:
+        raise ValueError(f"{out}: stage {stage} is not finished ({done} stage(s) are)")
+    if source is None:
+        raise ValueError(f"{run_path}: the run does not say what it was trained from (trained from views in memory, "
+                         "or by a version that did not store it)")
+    data = training_data(source, test_every=config.test_every)
+    height = config.resolutions[stage]
+    views = data.views("train", height)
+    cloud = read_ply(out / f"stage_{stage}.ply")
+    previous = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(max(1, int(threads)))
+    bar = _progress_bar(int(iterations), f"stage {stage + 1} +{iterations}", progress)
+    last = [0]
+
+    def advance(fraction: float, message: str) -> None:
+        if bar is not None:
+            done_now = int(round(fraction * int(iterations)))
+            bar.update(done_now - last[0])
+            last[0] = done_now
+
+    try:
+        t0 = time.perf_counter()
+        tuned = fine_tune(cloud, views, iterations, config=config, seed=config.seed, progress=advance, device=device)
+        seconds = time.perf_counter() - t0
+    finally:
+        torch.set_num_threads(previous)
+        if bar is not None:
+            bar.close()
+    tuned = tuned.replace(background=config.background)
+    settings = RenderSettings(antialias=config.antialias)
+    dev = tuned.to_torch(device=resolve_device(device))
+    train_psnr = evaluate_psnr(dev, views, config.background, tuned.sh_degree, config.train_eval_views, settings)
+    test_psnr, test_ssim = evaluate_views(dev, data.views("test", height), config.background, tuned.sh_degree,
+                                          config.test_eval_views, settings)
+    path = write_ply(tuned, out / f"stage_{stage}_more_{int(iterations)}.ply")
+    entry = {"stage": stage, "resolution": height, "more": int(iterations), "seconds": round(seconds, 3),
+             "n_gaussians": len(tuned), "train_psnr": round(train_psnr, 4),
+             "test_psnr": None if math.isnan(test_psnr) else round(test_psnr, 4),
+             "test_ssim": None if math.isnan(test_ssim) else round(test_ssim, 5), "file": path.name}
+    more_path = out / "more.json"
+    entries = json.loads(more_path.read_text(encoding="utf-8")) if more_path.is_file() else []
+    _write_json(more_path, [e for e in entries if e.get("file") != path.name] + [entry])
+    return MoreResult(tuned, path, entry)
+
+
 def _model_filter(model: GaussianModel, cameras: list[Camera]) -> torch.Tensor:
     return torch.from_numpy(filter_3d(model.params["means"].detach().cpu().numpy(), cameras)).to(model.device)
 
 
-def _stage_size(out: Path | None, stage: int, cloud: GaussianCloud, source, height: int, key: str,
+def _stage_size(out: Path | None, stage: int, cloud: GaussianCloud, data: TrainingData, height: int, key: str,
                 size_fn) -> np.ndarray:
     """The anti-aliasing size of a finished stage: from its PLY, or (a run from before the size
     was stored) from the stage's training cameras."""
@@ -648,7 +681,7 @@ def _stage_size(out: Path | None, stage: int, cloud: GaussianCloud, source, heig
         saved = read_ply(out / f"stage_{stage}.ply")
         if key in saved.extra and len(saved) == len(cloud):
             return np.asarray(saved.extra[key], np.float32)
-    return size_fn(cloud.means, source("train", height).cameras)
+    return size_fn(cloud.means, data.views("train", height).cameras)
 
 
 def _progress_bar(total: int, desc: str, enabled: bool):

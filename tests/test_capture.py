@@ -1,5 +1,7 @@
-"""The capture's cameras: COLMAP sparse models (binary and text, written here from the documented
-format) and transforms*.json files, read as OpenCV cameras; bad files are refused by name."""
+"""Captures: COLMAP sparse models (binary and text, written here from the documented format),
+transforms*.json files and NeRF-Synthetic folders, read as OpenCV pinhole cameras with their lens
+distortion undone (to within 0.05 px), their images, held-out views and SfM points; missing images
+counted; bad files refused by name."""
 
 import json
 import math
@@ -10,7 +12,7 @@ import pytest
 from PIL import Image
 
 from gvae_core import Camera
-from gvae_core.capture import load_cameras, load_capture_images
+from gvae_core.capture import Lens, load_cameras, load_capture_images, read_capture, undistorted_camera
 from gvae_core.datasets import DatasetError
 from gvae_core.quaternions import from_rotmat
 
@@ -30,12 +32,17 @@ def _cameras():
     return cams
 
 
-def _params(cam, model):
+def _params(cam, model, distortion=0.01):
     if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
         p = [cam.fx, cam.cx, cam.cy]
     else:
         p = [cam.fx, cam.fy, cam.cx, cam.cy]
-    return p + [0.01] * (MODELS[model][1] - len(p))  # distortion coefficients, ignored
+    return p + [distortion] * (MODELS[model][1] - len(p))  # distortion coefficients
+
+
+#: The lens each model's parameters above describe (COLMAP's parameter order).
+LENSES = {"SIMPLE_PINHOLE": Lens(), "PINHOLE": Lens(), "SIMPLE_RADIAL": Lens(k1=0.01), "RADIAL": Lens(k1=0.01, k2=0.01),
+          "OPENCV": Lens(k1=0.01, k2=0.01, p1=0.01, p2=0.01)}
 
 
 def _write_binary(folder, cams, model="PINHOLE", points=2):
@@ -58,11 +65,11 @@ def _write_binary(folder, cams, model="PINHOLE", points=2):
     return folder
 
 
-def _write_text(folder, cams, model="PINHOLE", empty_points_line=True):
+def _write_text(folder, cams, model="PINHOLE", empty_points_line=True, params=None):
     folder.mkdir(parents=True, exist_ok=True)
     lines = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
              f"# Number of cameras: {len(cams)}"]
-    lines += [f"{10 + i} {model} {c.width} {c.height} " + " ".join(repr(p) for p in _params(c, model))
+    lines += [f"{10 + i} {model} {c.width} {c.height} " + " ".join(repr(p) for p in (params or _params)(c, model))
               for i, c in enumerate(cams)]
     (folder / "cameras.txt").write_text("\n".join(lines) + "\n")
     lines = ["# Image list with two lines of data per image:",
@@ -100,13 +107,19 @@ def test_colmap_models_read_as_the_cameras_they_hold(tmp_path, writer):
 
 @pytest.mark.parametrize("writer", [_write_binary, _write_text])
 def test_colmap_camera_models(tmp_path, writer):
+    """Pinhole models read as they are; radial and OpenCV ones as the pinhole COLMAP's undistorter
+    makes of them (never silently as their pinhole part); fisheye refused with how to undistort."""
     cams = _cameras()
     simple = [Camera(c.world_to_cam, c.fx, c.fx, c.cx, c.cy, c.width, c.height) for c in cams]
     _same_cameras(load_cameras(writer(tmp_path / "simple", simple, "SIMPLE_PINHOLE")), simple)
-    for model, want in (("SIMPLE_RADIAL", simple), ("RADIAL", simple), ("OPENCV", cams)):
-        with pytest.warns(UserWarning, match=f"{model} cameras are read as pinholes"):
-            _same_cameras(load_cameras(writer(tmp_path / model, cams, model)), want)
-    with pytest.raises(DatasetError, match="OPENCV_FISHEYE model, which is not supported"):
+    for model, part in (("SIMPLE_RADIAL", simple), ("RADIAL", simple), ("OPENCV", cams)):
+        capture = read_capture(writer(tmp_path / model, cams, model), images=False)
+        assert capture.lenses == [LENSES[model]] * len(cams) and capture.distorted == len(cams)
+        _same_cameras(capture.photo_cameras, part)
+        want = [undistorted_camera(c, LENSES[model]) for c in part]
+        _same_cameras(load_cameras(tmp_path / model), want)
+        assert all(w.fx > 1.001 * c.fx for w, c in zip(want, part))  # pincushion: the view narrows
+    with pytest.raises(DatasetError, match="OPENCV_FISHEYE model, which is not supported.*image_undistorter"):
         load_cameras(writer(tmp_path / "fisheye", cams, "OPENCV_FISHEYE"))
 
 
@@ -169,16 +182,19 @@ def test_transforms_json_nerf_synthetic_and_nerfstudio(tmp_path):
     (tmp_path / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames}))
     _same_cameras(load_cameras(tmp_path / "transforms_train.json"), cams)
     _same_cameras(load_cameras(tmp_path), cams)  # the only transforms*.json in the folder
-    # nerfstudio: intrinsics in pixels, per file or per frame, with distortion (ignored, warned)
+    # nerfstudio: intrinsics in pixels, per file or per frame, with distortion (undone: the pinhole
+    # COLMAP's undistorter makes of each frame)
     odd = Camera(cams[1].world_to_cam, 70.0, 71.0, 30.5, 25.0, 64, 48)
-    frames[1] = {**frames[1], "fl_x": 70.0, "fl_y": 71.0, "cx": 30.5, "cy": 25.0}
+    frames[1] = {**frames[1], "fl_x": 70.0, "fl_y": 71.0, "cx": 30.5, "cy": 25.0, "k2": -0.01}
     meta = {"fl_x": cams[0].fx, "fl_y": cams[0].fy, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48, "k1": 0.02,
             "camera_model": "OPENCV", "frames": frames}
     (tmp_path / "ns").mkdir()
     (tmp_path / "ns" / "transforms.json").write_text(json.dumps(meta))
-    with pytest.warns(UserWarning, match="distortion is ignored"):
-        got = load_cameras(tmp_path / "ns")
-    _same_cameras(got, [cams[0], odd, cams[2]])
+    capture = read_capture(tmp_path / "ns", images=False)
+    assert capture.lenses == [Lens(k1=0.02), Lens(k1=0.02, k2=-0.01), Lens(k1=0.02)]
+    _same_cameras(capture.photo_cameras, [cams[0], odd, cams[2]])
+    _same_cameras(load_cameras(tmp_path / "ns"), [undistorted_camera(c, lens) for c, lens in
+                                                  zip([cams[0], odd, cams[2]], capture.lenses)])
     plain = {k: v for k, v in meta.items() if k != "k1"}
     for bad, reason in (({"frames": []}, "non-empty 'frames'"),
                         ({**plain, "camera_model": "OPENCV_FISHEYE"}, "not supported"),
@@ -211,6 +227,7 @@ def test_capture_images_from_colmap_and_nerf_synthetic(tmp_path):
         Image.fromarray(px).save(tmp_path / "cap" / "images" / f"img_{i}.jpg", format="PNG")
     views = load_capture_images(tmp_path / "cap")
     assert views.images.shape == (3, 30, 40, 3) and views.names == ["img_0", "img_1", "img_2"]
+    assert read_capture(tmp_path / "cap").points is None  # no points3D file
     np.testing.assert_allclose(views.images[1], pixels[1] / 255.0, atol=1e-6)
     assert (views.alphas == 1).all()
     _same_cameras(views.cameras, cams)
@@ -218,8 +235,14 @@ def test_capture_images_from_colmap_and_nerf_synthetic(tmp_path):
     assert small.images.shape == (3, 15, 20, 3) and small.cameras[0].fx == pytest.approx(cams[0].fx / 2)
     assert load_capture_images(tmp_path / "cap", resolution=60).images.shape[1] == 30  # never up
     (tmp_path / "cap" / "images" / "img_2.jpg").unlink()
-    with pytest.raises(DatasetError, match="img_2.jpg"):
-        load_capture_images(tmp_path / "cap")
+    with pytest.warns(UserWarning, match=r"1 of 3 frames skipped: image missing \(.*img_2.jpg"):
+        capture = read_capture(tmp_path / "cap")
+    assert capture.skipped == ["img_2.jpg"] and capture.names == ["img_0", "img_1"]
+    assert "1 frame(s) skipped" in capture.summary()
+    for name in ("img_0.jpg", "img_1.jpg"):
+        (tmp_path / "cap" / "images" / name).unlink()
+    with pytest.raises(DatasetError, match="img_0.jpg: image not found; none of the 3 frames"):
+        read_capture(tmp_path / "cap")
     nerf = tmp_path / "nerf"
     nerf.mkdir()
     Image.fromarray(pixels[0]).save(nerf / "r_0.png")
@@ -227,3 +250,153 @@ def test_capture_images_from_colmap_and_nerf_synthetic(tmp_path):
         {"file_path": "r_0", "transform_matrix": cams[0].to_blender_c2w().tolist()}]}))
     got = load_capture_images(nerf, resolution=15)
     assert got.images.shape == (1, 15, 20, 3)
+
+
+# ------------------------------------------------------------------ real captures: lenses, points, splits
+
+def _dot_photo(cam, lens, dots, sigma=1.6):
+    """The photo `cam` takes through `lens` of small round dots at world points `dots` (float RGB):
+    each photo pixel shows what its undistorted ray sees, a Gaussian blob of `sigma` pixels of the
+    pinhole around each dot's projection."""
+    v, u = np.mgrid[0:cam.height, 0:cam.width] + 0.5
+    x, y = lens.undistort((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy)
+    px, py = cam.fx * x + cam.cx, cam.fy * y + cam.cy
+    image = np.zeros((cam.height, cam.width))
+    uv, _ = cam.project(dots)
+    for du, dv in uv:
+        image += np.exp(-((px - du) ** 2 + (py - dv) ** 2) / (2 * sigma * sigma))
+    return np.repeat(np.clip(image, 0, 1)[..., None], 3, 2)
+
+
+def _centroids(image, guesses, radius=5):
+    """Intensity-weighted centres (x, y) of the blobs of `image` nearest `guesses` (pixel centres +0.5)."""
+    out = []
+    h, w = image.shape[:2]
+    for gx, gy in guesses:
+        c0, r0 = int(gx), int(gy)
+        rows = slice(max(r0 - radius, 0), min(r0 + radius + 1, h))
+        cols = slice(max(c0 - radius, 0), min(c0 + radius + 1, w))
+        patch = image[rows, cols, 0].astype(np.float64)
+        yy, xx = np.mgrid[rows, cols] + 0.5
+        out.append((float((patch * xx).sum() / patch.sum()), float((patch * yy).sum() / patch.sum())))
+    return np.array(out)
+
+
+def _dots_in_view(cam, margin=14, spacing=26, seed=0):
+    """World points at random depths whose projections lie on a grid of `spacing` px inside `cam`'s
+    image, `margin` px from its border (blobs far enough apart to be measured one by one)."""
+    rng = np.random.default_rng(seed)
+    u, v = np.meshgrid(np.arange(margin, cam.width - margin + 1, spacing), np.arange(margin, cam.height - margin + 1,
+                                                                                      spacing))
+    uv = np.stack([u.ravel(), v.ravel()], 1) + rng.uniform(-3, 3, (u.size, 2))
+    depth = rng.uniform(2.5, 3.5, len(uv))
+    local = np.stack([(uv[:, 0] - cam.cx) / cam.fx * depth, (uv[:, 1] - cam.cy) / cam.fy * depth, depth], 1)
+    return (local - cam.translation) @ cam.rotation
+
+
+@pytest.mark.parametrize("kind", ["colmap_opencv", "colmap_radial", "transforms"])
+def test_distortion_is_undone_to_a_twentieth_of_a_pixel(tmp_path, kind):
+    """Photos taken through a distorting lens (up to several pixels at the corners), written as a
+    COLMAP OPENCV / RADIAL model or a nerfstudio transforms.json: read back, each dot of the photo
+    lies where the undistorted pinhole camera projects its world point, within 0.05 px."""
+    base = Camera.look_at((3.0, 0.5, 1.0), (0.0, 0.0, 0.2), width=160, height=120, fov_x=1.0)
+    cams = [Camera(base.world_to_cam, base.fx, base.fx * 1.01, 81.3, 58.6, 160, 120)]
+    cams.append(Camera(Camera.look_at((-2.5, 1.5, 1.2), (0, 0, 0), width=160, height=120).world_to_cam,
+                       *cams[0].K[[0, 1, 0, 1], [0, 1, 2, 2]], 160, 120))
+    if kind == "colmap_opencv":
+        lens = Lens(k1=-0.08, k2=0.03, p1=0.004, p2=-0.003)
+        params = lambda c, model: [c.fx, c.fy, c.cx, c.cy, lens.k1, lens.k2, lens.p1, lens.p2]  # noqa: E731
+    elif kind == "colmap_radial":
+        cams = [Camera(c.world_to_cam, c.fx, c.fx, c.cx, c.cy, 160, 120) for c in cams]
+        lens = Lens(k1=0.06, k2=-0.02)
+        params = lambda c, model: [c.fx, c.cx, c.cy, lens.k1, lens.k2]  # noqa: E731
+    else:
+        lens = Lens(k1=-0.05, k2=0.01, p1=0.002, p2=0.001)
+    folder = tmp_path / "cap"
+    (folder / "images").mkdir(parents=True)
+    dots = [_dots_in_view(c, seed=i) for i, c in enumerate(cams)]
+    for i, (c, d) in enumerate(zip(cams, dots)):
+        Image.fromarray(np.round(_dot_photo(c, lens, d) * 255).astype(np.uint8)).save(folder / "images" / f"p{i}.png")
+    if kind == "transforms":
+        frames = [{"file_path": f"images/p{i}.png", "transform_matrix": c.to_blender_c2w().tolist(), "fl_x": c.fx,
+                   "fl_y": c.fy, "cx": c.cx, "cy": c.cy} for i, c in enumerate(cams)]
+        (folder / "transforms.json").write_text(json.dumps({"w": 160, "h": 120, "k1": lens.k1, "k2": lens.k2,
+                                                            "p1": lens.p1, "p2": lens.p2, "frames": frames}))
+    else:
+        _write_text(folder / "sparse" / "0", cams, "OPENCV" if kind == "colmap_opencv" else "RADIAL", params=params)
+        for i in range(len(cams)):
+            (folder / "images" / f"p{i}.png").rename(folder / "images" / f"img_{i}.jpg")
+    capture = read_capture(folder)
+    assert capture.distorted == len(cams)
+    views = capture.load()
+    for cam, image, photo, lens_read, d in zip(views.cameras, views.images, capture.photo_cameras, capture.lenses,
+                                               dots):
+        want, _ = cam.project(d)
+        assert np.linalg.norm(_centroids(image, want) - want, axis=1).max() < 0.05, kind
+        # what reading the photo as its pinhole would have got wrong: pixels, not a twentieth of one
+        pin, _ = photo.project(d)
+        x, y = lens_read.distort((pin[:, 0] - photo.cx) / photo.fx, (pin[:, 1] - photo.cy) / photo.fy)
+        assert np.abs(np.stack([photo.fx * x + photo.cx, photo.fy * y + photo.cy], 1) - pin).max() > 0.5
+
+
+def _write_points(folder, xyz, rgb, err, binary):
+    """points3D as COLMAP writes it: text (ID X Y Z R G B ERROR TRACK[]) or binary (uint64 count, then
+    per point uint64 id, double xyz, uint8 rgb, double error, uint64 track length, (int32, int32)s)."""
+    if binary:
+        data = struct.pack("<Q", len(xyz))
+        for i, (p, c, e) in enumerate(zip(xyz, rgb, err)):
+            data += struct.pack("<Q3d3BdQ", 100 + i, *p, *c, e, 2) + struct.pack("<4i", 1, 0, 2, 5)
+        (folder / "points3D.bin").write_bytes(data)
+    else:
+        lines = ["# 3D point list with one line of data per point:"]
+        lines += [f"{100 + i} {p[0]!r} {p[1]!r} {p[2]!r} {c[0]} {c[1]} {c[2]} {e!r} 1 0 2 5"
+                  for i, (p, c, e) in enumerate(zip(xyz, rgb, err))]
+        (folder / "points3D.txt").write_text("\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize("writer", [_write_binary, _write_text])
+def test_sfm_points_held_out_views_and_scaled_copies(tmp_path, writer):
+    """A COLMAP capture's SfM points read exactly; --test-every holds out every n-th image by name;
+    images stored at a fraction of the model's size are read with the cameras scaled to them."""
+    cams = _cameras()[:1] * 9  # nine frames of one camera size
+    model = writer(tmp_path / "sparse" / "0", cams)
+    rng = np.random.default_rng(1)
+    xyz, rgb, err = rng.normal(size=(7, 3)), rng.integers(0, 256, (7, 3)), rng.uniform(0.1, 2, 7)
+    _write_points(model, xyz, rgb, err, writer is _write_binary)
+    (tmp_path / "images").mkdir()
+    names = [f"img {i}.jpg" if writer is _write_binary else f"img_{i}.jpg" for i in range(len(cams))]
+    for name, cam in zip(names, cams):  # stored at half the model's size
+        Image.new("RGB", (cam.width // 2, cam.height // 2), (10, 20, 30)).save(tmp_path / "images" / name, "PNG")
+    capture = read_capture(tmp_path, test_every=4)
+    np.testing.assert_array_equal(capture.points.xyz, xyz)
+    np.testing.assert_allclose(capture.points.rgb, rgb / 255.0, atol=1e-7)
+    np.testing.assert_array_equal(capture.points.error, err)
+    order = sorted(range(len(names)), key=lambda i: names[i])
+    assert [capture.splits[i] for i in order] == ["test", "train", "train", "train"] * 2 + ["test"]
+    assert len(load_cameras(tmp_path, test_every=4)) == 6
+    views = capture.load("test")
+    assert len(views) == 3 and views.images.shape[1:3] == (240, cams[0].width // 2)
+    half = views.cameras[0]
+    assert (half.fx, half.cx) == pytest.approx((cams[0].fx / 2, cams[0].cx / 2))
+
+
+def test_bad_captures_are_refused_by_name(tmp_path):
+    """A model with no images, an image that is not (a scaled copy of) its camera's size, an unknown
+    camera model, a hold-out that leaves nothing to train on: a clear error naming the file."""
+    cams = _cameras()[:2]
+    folder = _write_text(tmp_path / "empty", cams)
+    (folder / "images.txt").write_text("# no images\n")
+    with pytest.raises(DatasetError, match=r"images.txt: no images"):
+        read_capture(folder)
+    folder = _write_text(tmp_path / "sized" / "sparse" / "0", cams)
+    (tmp_path / "sized" / "images").mkdir()
+    Image.new("RGB", (cams[0].width, cams[0].height)).save(tmp_path / "sized" / "images" / "img_0.jpg", "PNG")
+    Image.new("RGB", (cams[1].width, cams[1].height - 40)).save(tmp_path / "sized" / "images" / "img_1.jpg", "PNG")
+    with pytest.raises(DatasetError, match=r"img_1.jpg: size \d+x440 differs from the \d+x480 of the model .*cameras"):
+        read_capture(tmp_path / "sized")
+    folder = _write_text(tmp_path / "unknown", cams)
+    (folder / "cameras.txt").write_text("10 EQUIDISTANT 640 480 500 320 240\n")
+    with pytest.raises(DatasetError, match=r"cameras.txt: line 1: unknown camera model 'EQUIDISTANT'"):
+        read_capture(folder, images=False)
+    with pytest.raises(ValueError, match="leaves none to train on"):
+        read_capture(_write_text(tmp_path / "two", cams[:1]), test_every=2, images=False)

@@ -37,8 +37,7 @@ import numpy as np
 import torch
 
 from ..antialias import DILATION_KEY, FILTER_KEY, dilation_3d, filter_3d
-from ..cli.render import cameras_from_transforms
-from ..datasets import load_nerf_synthetic
+from ..capture import load_cameras, load_nerf_synthetic
 from ..experiment import PROTOCOLS
 from ..metrics.image import image_scores
 from ..ply import read_ply
@@ -128,7 +127,7 @@ def evaluate_scene(classic: Run, mip: Run, background=(1.0, 1.0, 1.0)) -> dict:
     """Every row of ROWS at every scale for one scene, with render and training times."""
     k = classic.train_stage
     train_cams = [c.scaled(classic.heights[0]) for c in
-                  cameras_from_transforms(classic.scene_dir / "transforms_train.json")[0]]
+                  load_cameras(classic.scene_dir / "transforms_train.json")]
     base = classic.stage_cloud(k)
     plain = base.replace(extra={key: v for key, v in base.extra.items() if key not in (FILTER_KEY, DILATION_KEY)})
     dilation = dilation_3d(base.means, train_cams)

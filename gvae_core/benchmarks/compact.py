@@ -41,7 +41,7 @@ import numpy as np
 
 from ..antialias import DILATION_KEY, with_training_cameras
 from ..compaction import PRUNE_FRACTION, compact
-from ..datasets import load_nerf_synthetic
+from ..capture import load_nerf_synthetic
 from ..examples import example_cloud
 from ..experiment import PROTOCOLS, Evaluator, prepare_scene
 from ..metrics.image import image_scores

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from plyfile import PlyData
 
-from ..datasets import load_nerf_synthetic
+from ..capture import load_nerf_synthetic
 from ..scenes import PROFILES, bpy_available, list_scenes
 from ..scenes.geometry import sample_surface
 

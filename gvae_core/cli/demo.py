@@ -66,7 +66,7 @@ def run_trained(folder: Path, args: argparse.Namespace) -> int:
     import numpy as np
     from PIL import Image, ImageDraw
 
-    from ..datasets import load_nerf_synthetic
+    from ..capture import load_nerf_synthetic
     from ..losses import psnr
     from ..ply import read_ply, write_ply
     from ..refinement import refine

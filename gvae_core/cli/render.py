@@ -1,11 +1,11 @@
-"""`gvae render FILE.ply --out DIR [--transforms transforms.json | --orbit K] [--height H]
-[--antialias MODE] [--train-cameras transforms_train.json] [--train-resolution H] [--trained classic|mip]`:
-render a 3DGS PLY on the CPU and write one PNG per camera."""
+"""`gvae render FILE.ply --out DIR [--cameras CAPTURE | --orbit K] [--height H] [--background R,G,B]
+[--antialias MODE] [--train-cameras CAPTURE] [--train-resolution H] [--trained classic|mip]`:
+render a 3DGS PLY on the CPU and write one PNG per camera, over the background the cloud was
+trained over (stored with it) unless told otherwise."""
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import time
@@ -17,6 +17,7 @@ from ..antialias import (ANTIALIAS_MODES, DEFAULT_ANTIALIAS, DILATION_KEY, FILTE
                          with_training_cameras)
 from ..atomic import atomic_write
 from ..camera import Camera, orbit
+from ..capture import load_cameras, read_capture
 from . import DEVICE_HELP
 
 
@@ -24,16 +25,22 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "render", help="render a 3DGS PLY to PNG images (CPU)",
         description="Render a 3DGS PLY with the project's differentiable splatting renderer and "
-        "write one PNG per camera: the cameras of a NeRF-Synthetic transforms JSON, or K cameras "
-        "orbiting the cloud (z up).")
+        "write one PNG per camera: the cameras of a capture (a transforms*.json, a COLMAP model, a "
+        "NeRF-Synthetic folder; lens distortion undone), or K cameras orbiting the cloud (z up). "
+        "Drawn over the background the cloud was trained over (stored in PLYs gvae trains) unless "
+        "--background says otherwise.")
     p.add_argument("file", type=Path, help="the .ply file")
     p.add_argument("--out", type=Path, required=True, help="folder for the PNGs (created if missing)")
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--transforms", type=Path, help="NeRF-Synthetic transforms_*.json with the cameras")
+    src.add_argument("--cameras", "--transforms", type=Path, dest="cameras", metavar="CAPTURE",
+                     help="the cameras of a capture: a transforms*.json, a COLMAP model or capture folder, a "
+                          "NeRF-Synthetic folder (every frame; default: --orbit)")
     src.add_argument("--orbit", type=int, metavar="K", help="K cameras on a circle around the cloud (default 8)")
     p.add_argument("--height", type=int, help="image height in pixels (default: the transforms' image "
                    "size, or 400 for --orbit); the width keeps the aspect ratio")
-    p.add_argument("--background", default="0,0,0", help="background colour r,g,b in [0,1] (default 0,0,0)")
+    p.add_argument("--background", default=None,
+                   help="background colour r,g,b in [0,1] (default: the one the cloud was trained over, stored "
+                        "with it; black for a cloud that does not say)")
     p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), help="SH bands to use (default: all)")
     p.add_argument("--elevation", type=float, default=30.0, help="--orbit elevation in degrees (default 30)")
     p.add_argument("--device", default=None, help=DEVICE_HELP)
@@ -43,9 +50,10 @@ def register(subparsers) -> None:
                    "dilation held in world units at the training sampling (the PLY's gvae_dilation_3D); mip: "
                    "Mip-Splatting's 3D filter (the PLY's filter_3D) and 2D Mip filter; auto: mip with filter_3D, "
                    f"else matched with gvae_dilation_3D, else classic (default: {DEFAULT_ANTIALIAS})")
-    p.add_argument("--train-cameras", type=Path, metavar="JSON",
-                   help="transforms JSON of the cameras the cloud was trained with: sets the size --trained "
-                   "calls for (replacing one in the file), for a PLY from a tool that does not store it")
+    p.add_argument("--train-cameras", type=Path, metavar="CAPTURE",
+                   help="the capture the cloud was trained from (a transforms JSON, a COLMAP model): its cameras set "
+                   "the size --trained calls for (replacing one in the file), for a PLY from a tool that does not "
+                   "store it (default: none)")
     p.add_argument("--train-resolution", type=int, metavar="H",
                    help="the image height the cloud was trained at: the --train-cameras scaled to it, or "
                    "without --train-cameras the rendering cameras at that height stand in for the training ones")
@@ -63,37 +71,6 @@ def _parse_background(text: str) -> tuple[float, float, float]:
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
         raise ValueError(f"--background must be three numbers r,g,b, got {text!r}")
     return values  # type: ignore[return-value]
-
-
-def cameras_from_transforms(path: Path) -> tuple[list[Camera], list[str]]:
-    """Cameras and frame names of a NeRF-Synthetic transforms JSON. The image size comes from
-    'w'/'h' in the file, else from the first frame's image, else 800x800."""
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file")
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-        angle = float(meta["camera_angle_x"])
-        frames = meta["frames"]
-        mats = [np.asarray(f["transform_matrix"], np.float64) for f in frames]
-        names = [Path(str(f.get("file_path", f"frame_{i:03d}"))).name for i, f in enumerate(frames)]
-    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"{path}: not a transforms JSON with 'camera_angle_x' and 'frames' "
-                         f"(each with a 4x4 'transform_matrix'): {exc}") from None
-    if not frames or not 0.0 < angle < math.pi or any(m.shape != (4, 4) or not np.isfinite(m).all() for m in mats):
-        raise ValueError(f"{path}: needs at least one frame, 4x4 finite matrices and 0 < camera_angle_x < pi")
-    width, height = int(meta.get("w", 0) or 0), int(meta.get("h", 0) or 0)
-    if width <= 0 or height <= 0:
-        width = height = 800
-        first = str(frames[0].get("file_path", ""))
-        for cand in (path.parent / first, path.parent / (first + ".png")):
-            if first and cand.is_file():
-                from PIL import Image
-
-                with Image.open(cand) as im:
-                    width, height = im.size
-                break
-    cams = [Camera.from_blender_c2w(m, angle, width, height) for m in mats]
-    return cams, names
 
 
 def orbit_cameras(means: np.ndarray, k: int, height: int, elevation_deg: float) -> list[Camera]:
@@ -117,16 +94,22 @@ def run(args: argparse.Namespace) -> int:
     from ..ply import read_ply
     from ..rendering import RenderSettings, render, resolve_device
 
-    background = _parse_background(args.background)
     if args.height is not None and args.height <= 0:
         raise ValueError(f"--height must be positive, got {args.height}")
     if args.train_resolution is not None and args.train_resolution <= 0:
         raise ValueError(f"--train-resolution must be a positive image height, got {args.train_resolution}")
-    train_cams = cameras_from_transforms(args.train_cameras)[0] if args.train_cameras is not None else None
+    train_cams = load_cameras(args.train_cameras) if args.train_cameras is not None else None
     device = resolve_device(args.device)
     cloud = read_ply(args.file, sanitize=args.sanitize)
-    if args.transforms is not None:
-        cams, names = cameras_from_transforms(args.transforms)
+    if args.background is not None:
+        background = _parse_background(args.background)
+    else:
+        background = cloud.background or (0.0, 0.0, 0.0)
+        print(f"background {','.join(f'{v:g}' for v in background)} ("
+              + ("the one the cloud was trained over)" if cloud.background else "the file does not say; black)"))
+    if args.cameras is not None:
+        capture = read_capture(args.cameras, images=False)
+        cams, names = capture.cameras, capture.names
         if args.height:
             cams = [c.scaled(args.height) for c in cams]
     else:

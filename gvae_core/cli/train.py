@@ -1,37 +1,62 @@
-"""`gvae train SCENE_DIR --out RUN_DIR`: progressive 3DGS training with lineage tracking."""
+"""`gvae train CAPTURE --out RUN_DIR`: progressive 3DGS training with lineage tracking, and
+`gvae train RUN_DIR --more N`: a finished stage trained N more iterations."""
 
 from __future__ import annotations
 
 import argparse
 import math
 from pathlib import Path
+
 from . import DEVICE_HELP
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "train", help="train 3DGS coarse-to-fine on a NeRF-Synthetic scene, recording lineages",
-        description="Train 3D Gaussian Splatting over increasing resolutions. Writes stage_<s>.ply "
-                    "(with gvae_id / gvae_parent and the anti-aliasing size of its training cameras), "
-                    "lineage.npz, log.json and run.json into --out; "
-                    "an interrupted run resumes after its last finished stage.")
-    p.add_argument("scene", type=Path, help="NeRF-Synthetic folder (transforms_train.json, images)")
-    p.add_argument("--out", type=Path, required=True, help="run directory to write (created if needed)")
+        "train", help="train 3DGS coarse-to-fine on a capture (COLMAP, transforms.json, NeRF-Synthetic)",
+        description="Train 3D Gaussian Splatting over increasing resolutions from a capture: a COLMAP capture "
+                    "(sparse/0 + images/, binary or text; radial and OpenCV lenses undistorted on load), a "
+                    "transforms.json of instant-ngp or nerfstudio (intrinsics and distortion), or a NeRF-Synthetic "
+                    "folder. Writes stage_<s>.ply (with gvae_id / gvae_parent, the anti-aliasing size of its "
+                    "training cameras and the background it was trained over), lineage.npz, log.json and run.json "
+                    "into --out; an interrupted run resumes after its last finished stage. With --more N, SCENE is "
+                    "a finished run: its last stage is trained N more iterations (no densification).")
+    p.add_argument("scene", type=Path, metavar="CAPTURE",
+                   help="the capture folder (or its COLMAP model, or a transforms*.json); with --more, a run folder")
+    p.add_argument("--out", type=Path, help="run directory to write (created if needed; required but with --more)")
+    p.add_argument("--more", type=int, metavar="N",
+                   help="train the finished run CAPTURE's last stage N more iterations; writes "
+                        "stage_<s>_more_<N>.ply and more.json there (default: off)")
     p.add_argument("--profile", choices=("tiny", "default", "full"), default="default",
                    help="preset of resolutions, iterations and sizes (default: %(default)s)")
-    p.add_argument("--resolutions", type=int, nargs="+", metavar="H",
-                   help="training image heights, coarse to fine (overrides the profile)")
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--resolutions", type=int, nargs="+", metavar="H",
+                      help="training image heights, coarse to fine (default: the profile's, 100 150 200)")
+    size.add_argument("--image-height", type=int, metavar="H",
+                      help="the last stage's image height; earlier stages in the profile's proportions "
+                           "(default: the profile's)")
+    size.add_argument("--downscale", type=float, metavar="F",
+                      help="the last stage at the stored images' size divided by F (floor), e.g. 4 for 1/4; earlier "
+                           "stages in the profile's proportions (default: the profile's heights)")
     p.add_argument("--iterations", type=int, nargs="+", metavar="N",
-                   help="iterations per stage: one number for all stages or one per stage")
-    p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), help="largest SH degree")
+                   help="iterations per stage: one number for all stages or one per stage (default: the profile's, "
+                        "600 400 400)")
+    p.add_argument("--test-every", type=int, metavar="N",
+                   help="hold out every N-th image (sorted by name) as a test view, the LLFF / Mip-NeRF 360 "
+                        "convention being 8 (default: none; a NeRF-Synthetic folder's own test split)")
+    p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), help="largest SH degree (default: 3)")
     p.add_argument("--background", type=float, nargs=3, metavar=("R", "G", "B"),
-                   help="background colour images are composited on (default: white)")
+                   help="background colour images are composited on and the cloud is trained over, stored with "
+                        "it (default: white, 1 1 1)")
     p.add_argument("--init-points", type=Path, metavar="FILE",
-                   help="initial points instead of random ones: .npy (N,3) or (N,6 with RGB), or a PLY")
-    p.add_argument("--init", choices=("random", "hull"),
-                   help="random points in the scene bounds (the reference) or inside the visual hull of "
-                        "the training masks")
-    p.add_argument("--init-count", type=int, metavar="N", help="number of initial points")
+                   help="initial points instead of --init's: .npy (N,3) or (N,6 with RGB), or a PLY (default: none)")
+    p.add_argument("--init", choices=("auto", "sfm", "hull", "random"),
+                   help="where training starts: sfm (the capture's SfM points, with random points where they leave "
+                        "pixels uncovered), hull (inside the visual hull of transparent images' masks), random "
+                        "(random points along the training rays) or auto: sfm, else hull for images with "
+                        "transparency, else random (default: auto)")
+    p.add_argument("--init-count", type=int, metavar="N", help="number of random initial points (default: 10000)")
+    p.add_argument("--max-gaussians", type=int, metavar="N",
+                   help="cap on the number of Gaussians (default: none but what memory allows)")
     p.add_argument("--seed", type=int, help="random seed (default 0)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; 1 is "
                    "often fastest on a busy machine)")
@@ -39,8 +64,8 @@ def register(subparsers) -> None:
                    help="classic (the reference 3DGS, default; stage PLYs get gvae_dilation_3D) or mip "
                    "(train with Mip-Splatting's 3D and 2D filters; stage PLYs get filter_3D)")
     p.add_argument("--device", default=None, help=DEVICE_HELP)
-    p.add_argument("--restart", action="store_true", help="start over instead of resuming")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--restart", action="store_true", help="start over instead of resuming (default: resume)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (default: progress shown)")
     p.set_defaults(func=run)
 
 
@@ -59,33 +84,73 @@ def _load_points(path: Path):
         raise ValueError(f"{path}: cannot read points ({exc})") from None
 
 
+def _resolutions(args: argparse.Namespace, profile: tuple[int, ...]) -> tuple[int, ...] | None:
+    """The stage heights the options ask for (None: the profile's)."""
+    if args.resolutions:
+        return tuple(args.resolutions)
+    if args.image_height is None and args.downscale is None:
+        return None
+    height = args.image_height
+    if height is None:
+        from ..capture import read_capture
+
+        if not args.downscale >= 1:
+            raise ValueError(f"--downscale must be 1 or more, got {args.downscale}")
+        height = int(read_capture(args.scene, images=False).cameras[0].height / args.downscale)
+    if height <= 0:
+        raise ValueError(f"the last stage's image height must be positive, got {height}")
+    return tuple(max(1, round(height * r / profile[-1])) for r in profile)
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.more is not None:
+        return _run_more(args)
+    if args.out is None:
+        raise ValueError("--out is required (the run directory to write)")
     from ..train import TrainConfig, train_progressive
 
-    overrides = dict(resolutions=tuple(args.resolutions) if args.resolutions else None,
-                     sh_degree=args.sh_degree, seed=args.seed, init=args.init, init_count=args.init_count,
-                     antialias=args.antialias,
+    base = TrainConfig.profile(args.profile)
+    resolutions = _resolutions(args, base.resolutions)
+    overrides = dict(resolutions=resolutions, sh_degree=args.sh_degree, seed=args.seed, init=args.init,
+                     init_count=args.init_count, antialias=args.antialias, test_every=args.test_every,
                      background=tuple(args.background) if args.background else None)
+    if args.max_gaussians is not None:
+        overrides["max_gaussians"] = args.max_gaussians
     if args.iterations:
-        n_stages = len(args.resolutions or TrainConfig.profile(args.profile).resolutions)
+        n_stages = len(resolutions or base.resolutions)
         its = args.iterations * n_stages if len(args.iterations) == 1 else args.iterations
         if len(its) != n_stages:
             raise ValueError(f"--iterations needs 1 or {n_stages} numbers, got {len(its)}")
         overrides["iterations"] = tuple(its)
-    elif args.resolutions:
-        base = TrainConfig.profile(args.profile).iterations
-        overrides["iterations"] = (base[-1],) * len(args.resolutions) if len(base) != len(args.resolutions) else base
+    elif resolutions:
+        its = base.iterations
+        overrides["iterations"] = (its[-1],) * len(resolutions) if len(its) != len(resolutions) else its
     config = TrainConfig.profile(args.profile, **overrides)
     points = _load_points(args.init_points) if args.init_points else None
     result = train_progressive(args.scene, config, out_dir=args.out, init_points=points,
                                resume=not args.restart, progress=not args.quiet,
                                threads=args.threads, device=args.device)
     print(f"{'stage':>5} {'res':>5} {'iters':>6} {'s/it':>7} {'gaussians':>9} {'train dB':>8} "
-          f"{'test dB':>8} {'peak MB':>8}")
+          f"{'test dB':>8} {'test SSIM':>9} {'peak MB':>8}")
     for e in result.log:
-        test = e["test_psnr"]
+        test, ssim = e["test_psnr"], e.get("test_ssim")
         print(f"{e['stage']:>5} {e['resolution']:>5} {e['iterations']:>6} {e['seconds_per_iteration']:>7.3f} "
               f"{e['n_gaussians']:>9} {e['train_psnr']:>8.2f} "
-              f"{(test if test is not None else math.nan):>8.2f} {e['peak_rss_mb']:>8.0f}")
+              f"{(test if test is not None else math.nan):>8.2f} {(ssim if ssim is not None else math.nan):>9.4f} "
+              f"{e['peak_rss_mb']:>8.0f}")
     print(f"wrote {result.out_dir}")
+    return 0
+
+
+def _run_more(args: argparse.Namespace) -> int:
+    from ..train import train_more
+
+    if args.more <= 0:
+        raise ValueError(f"--more needs a positive number of iterations, got {args.more}")
+    result = train_more(args.scene, args.more, progress=not args.quiet, threads=args.threads, device=args.device)
+    e = result.entry
+    test = "n/a" if e["test_psnr"] is None else f"{e['test_psnr']:.2f} dB, SSIM {e['test_ssim']:.4f}"
+    print(f"stage {e['stage']} at {e['resolution']} px, {e['more']} more iterations in {e['seconds']:.1f} s: "
+          f"{e['n_gaussians']} Gaussians, training views {e['train_psnr']:.2f} dB, held-out views {test}")
+    print(f"wrote {result.path}")
     return 0

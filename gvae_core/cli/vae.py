@@ -77,13 +77,16 @@ def register(subparsers) -> None:
                    "those above are put back as they were (default: the method's, fidelity.DEFAULT_TOLERANCES; "
                    "off: keep everything the models did)")
     r.add_argument("--images", type=Path, default=None, metavar="DATASET",
-                   help="detail: the capture's training images (a NeRF-Synthetic folder with transforms_train.json, "
-                   "or a COLMAP capture: sparse model and images/): every Gaussian's changes per octave are fitted "
+                   help="detail: the capture's training images (a COLMAP capture, a transforms.json with its images "
+                   "or a NeRF-Synthetic folder: what gvae train reads): every Gaussian's changes per octave are fitted "
                    "so that the cloud drawn at 2^k times their resolution and averaged back down reproduces them "
                    "(multi-view super-resolution; checked against the cloud first)")
     r.add_argument("--image-height", type=int, default=None, metavar="H",
                    help="the height the cloud was trained at, the images are fitted at (default: what the cloud's "
                    "anti-aliasing size says against the capture's cameras, else the images as they are)")
+    r.add_argument("--test-every", type=int, default=None, metavar="N",
+                   help="with --images: every N-th image of the capture (by name) was held out from training "
+                   "(gvae train --test-every N): never fitted, as it was not trained on (default: none)")
     r.add_argument("--fit-steps", type=int, default=None, metavar="N",
                    help="with --images: optimiser steps per octave (default: superres.SuperResConfig's)")
     r.add_argument("--children", action="store_true",
@@ -192,7 +195,7 @@ def run_refine(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     cloud = read_splat_file(args.input, sanitize=args.sanitize)
     lineage = Lineage.load(args.lineage) if args.lineage is not None else None
-    cameras = load_cameras(args.cameras) if args.cameras is not None else None
+    cameras = load_cameras(args.cameras, args.test_every) if args.cameras is not None else None
     t_read = time.perf_counter() - t0
     if args.stage is not None and lineage is None:
         raise ValueError("--stage needs --lineage")
@@ -202,16 +205,17 @@ def run_refine(args: argparse.Namespace) -> int:
     guards = {"children": CHILD_GRADIENT if args.children else None, "pose": POSE_WEIGHT if args.pose_correction
               else None, "exposure": EXPOSURE_WEIGHT if args.exposure_correction else None}
     if args.images is None and (args.image_height is not None or args.fit_steps is not None
-                                or any(v is not None for v in guards.values())):
-        raise ValueError("--image-height, --fit-steps, --children, --pose-correction and --exposure-correction "
-                         "need --images")
+                                or args.test_every is not None or any(v is not None for v in guards.values())):
+        raise ValueError("--image-height, --fit-steps, --test-every, --children, --pose-correction and "
+                         "--exposure-correction need --images")
     if args.images is not None:
         fit = {"seed": args.seed, **({"steps": args.fit_steps} if args.fit_steps is not None else {}),
                **{k: v for k, v in guards.items() if v is not None}}
     result = refine(cloud, steps=args.steps, budget=budget, method=args.method, model=args.model, lineage=lineage,
                     stage=args.stage, cameras=cameras, seed=args.seed, fidelity=fidelity,
                     hessian_options={"views": args.views, "resolution": args.resolution}, images=args.images,
-                    image_height=args.image_height, fit=fit, progress=progress_lines() if args.images else None)
+                    image_height=args.image_height, fit=fit, progress=progress_lines() if args.images else None,
+                    test_every=args.test_every)
     t0 = time.perf_counter()
     out = result.cloud
     factor = args.bake

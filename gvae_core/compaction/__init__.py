@@ -193,6 +193,7 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
         else:
             result = _compact(src, target, tolerance, cameras, looks, how, seed, settings, say, timings)
     result.warnings = unseen_warning(n, result.unseen, looks is not None and looks.placed)
+    result.cloud = result.cloud.replace(background=src.background)  # drawn over what the input was trained over
     timings["total"] = time.perf_counter() - t_start
     say(1.0, result.summary())
     return result

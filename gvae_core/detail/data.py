@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ..antialias import DILATION_KEY, FILTER_KEY, with_training_cameras
-from ..datasets import load_nerf_synthetic
+from ..capture import load_nerf_synthetic
 from ..lineage import Lineage
 from ..ply import read_ply
 from .features import detail_inputs

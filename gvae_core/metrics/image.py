@@ -28,11 +28,21 @@ class ImageScores:
         return asdict(self)
 
 
-def render_views(cloud, views, background=(1.0, 1.0, 1.0), sh_degree: int | None = None,
+def background_of(cloud, background=None) -> tuple[float, float, float]:
+    """The background to draw `cloud` over: `background` when given, else the one it was trained
+    over (`GaussianCloud.background`), else white (the benchmark scenes')."""
+    if background is not None:
+        return tuple(float(v) for v in background)
+    return cloud.background or (1.0, 1.0, 1.0)
+
+
+def render_views(cloud, views, background=None, sh_degree: int | None = None,
                  antialias: str | None = None, device=None) -> np.ndarray:
-    """(N,H,W,3) float32 renders of `cloud` from every camera of `views`, clamped to [0,1].
-    `antialias`: a `gvae_core.rendering.ANTIALIAS_MODES` mode (default: RenderSettings');
-    `device`: the torch device to render on (default: the cloud's, the CPU for numpy)."""
+    """(N,H,W,3) float32 renders of `cloud` from every camera of `views` over `background`
+    (`background_of`), clamped to [0,1]. `antialias`: a `gvae_core.rendering.ANTIALIAS_MODES`
+    mode (default: RenderSettings'); `device`: the torch device to render on (default: the
+    cloud's, the CPU for numpy)."""
+    background = background_of(cloud, background)
     c = cloud.to_torch(device=device) if device is not None or not cloud.is_torch else cloud
     settings = RenderSettings() if antialias is None else RenderSettings(antialias=antialias)
     with torch.no_grad():
@@ -40,11 +50,13 @@ def render_views(cloud, views, background=(1.0, 1.0, 1.0), sh_degree: int | None
                          .image.clamp(0, 1).cpu().numpy() for cam in views.cameras])
 
 
-def image_scores(cloud, views, background=(1.0, 1.0, 1.0), *, no_reference: bool = True,
+def image_scores(cloud, views, background=None, *, no_reference: bool = True,
                  images: np.ndarray | None = None, antialias: str | None = None, device=None) -> ImageScores:
-    """PSNR and SSIM of the renders against `views` composited on `background`, and the mean NIQE
-    of the renders (skipped, NaN, when `no_reference` is False or the images are under 193 px).
-    `images`: renders made already (skips rendering); `antialias`, `device`: as for `render_views`."""
+    """PSNR and SSIM of the renders against `views` composited on `background` (`background_of`:
+    by default the one the cloud was trained over), and the mean NIQE of the renders (skipped, NaN,
+    when `no_reference` is False or the images are under 193 px). `images`: renders made already
+    (skips rendering); `antialias`, `device`: as for `render_views`."""
+    background = background_of(cloud, background)
     pred = (render_views(cloud, views, background, antialias=antialias, device=device) if images is None
             else np.asarray(images, np.float32))
     target = views.composite(background)

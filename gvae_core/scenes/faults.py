@@ -24,7 +24,8 @@ import numpy as np
 from PIL import Image
 
 from ..camera import Camera
-from ..datasets import load_nerf_synthetic, read_transforms
+from ..capture import load_nerf_synthetic
+from ..capture.transforms import read_transforms_file
 from . import cache_dir
 
 __all__ = ["Fault", "FAULTS", "faulted_scene"]
@@ -99,7 +100,7 @@ def faulted_scene(scene_dir, fault: Fault | str, height: int, *, seed: int = 0, 
 
 def _write(scene_dir: Path, fault: Fault, height: int, seed: int, out: Path) -> None:
     rng = np.random.default_rng([seed, 33])
-    meta, frames = read_transforms(scene_dir / "transforms_train.json")
+    meta, frames = read_transforms_file(scene_dir / "transforms_train.json")
     full = load_nerf_synthetic(scene_dir, "train")  # the stored images, straight RGBA
     resample = _FILTERS[fault.filter]
     source = full if resample is not None else full.at_resolution(height)  # (area: the datasets' own resize)
@@ -123,7 +124,7 @@ def _write(scene_dir: Path, fault: Fault, height: int, seed: int, out: Path) -> 
             c2w = Camera(w2c, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height).to_blender_c2w()
         new_frames.append({**frame, "file_path": name, "transform_matrix": c2w.tolist()})
     (out / "transforms_train.json").write_text(json.dumps({**meta, "frames": new_frames}, indent=1))
-    test_meta, test_frames = read_transforms(scene_dir / "transforms_test.json")
+    test_meta, test_frames = read_transforms_file(scene_dir / "transforms_test.json")
     test = [{**f, "file_path": str((scene_dir / f["file_path"]).resolve())} for f in test_frames]
     (out / "transforms_test.json").write_text(json.dumps({**test_meta, "frames": test}, indent=1))
     for extra in ("mesh.ply", "gt_points.npy"):

@@ -9,16 +9,27 @@ image sees the surface at its own sub-pixel offset and distance; together they c
 finer than any one of them resolves. At the training resolution nothing is drawn changed (by
 construction), so the picture the images were fitted with stays the input's.
 
-Each step draws an image, an octave k and a patch, renders the patch at 2^k times its resolution
-with the changes (every Gaussian takes the octaves above its own training rate the view samples it
-at), averages it down and back-propagates 0.8 L1 + 0.2 (1 - SSIM) into the changes (and into the
-per-image guards, `guards`, when on). Adam at the reference 3DGS learning rates of each field.
-With `children`, the 3DGS densification rule on the fit's view-space gradients adds Gaussians that
-fade in above the training rate (`children`).
+A fit is judged on images it did not fit: every `holdout`-th image is held out, the fit runs on
+the rest, and the held-out ones, drawn at 2x and averaged down, say how it is going (checked every
+`check_every` passes, the best state kept, stopped after `patience` checks without a gain) and
+which of the fit, the changes it started from and the input as it was is kept (`SuperResFit.kept`).
+A fit that reproduces its own images better proves nothing: on a real capture it reproduced them
+2.7 dB better and the photos it did not see no better.
+
+Each step draws `views_per_step` (image, tile) pairs (whole images by default; tiles that cover
+each image with `patch`; every pixel visited once a pass), an octave k, renders at 2^k times the
+image's resolution with the changes (every Gaussian takes the octaves above its own training rate
+the view samples it at), averages down and back-propagates 0.8 L1 + 0.2 (1 - SSIM) into the
+changes (and into the per-image guards, `guards`, when on). Adam (`VisibleAdam`: only the rows a
+step saw move) at `lr` times the reference 3DGS learning rates of each field; `pull` draws the
+changes a step saw back towards where they started (decoupled, as AdamW's weight decay), so that
+they grow no larger than the images keep asking for. With `children`, the 3DGS densification rule
+on the fit's view-space gradients adds Gaussians that fade in above the training rate (`children`).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -42,7 +53,7 @@ from .children import CHILD_LOGIT, densify
 from .guards import ExposureCorrection, PoseCorrection
 from .optim import VisibleAdam
 
-__all__ = ["SuperResConfig", "SuperResFit", "fit_octaves", "DEFAULT_FIELDS", "CHILD_GRADIENT"]
+__all__ = ["SuperResConfig", "SuperResFit", "fit_octaves", "holdout_rows", "DEFAULT_FIELDS", "CHILD_GRADIENT"]
 
 #: What the fit changes unless told (BENCHMARKS.md, "Refine with the capture's images": rotations and
 #: SH bands beside the issue's four fields gained 0.36-0.38 dB at 2x on both validation scenes).
@@ -60,11 +71,17 @@ CHILD_MIN_OPACITY = 0.005
 
 @dataclass
 class SuperResConfig:
-    """steps: optimiser steps per octave; patch: edge of the square image patch a step fits, in
-    pixels at the images' resolution (0: whole images; at octave k the render is 2^k times larger,
-    so octaves above the first fit patches 2^(k-1) times smaller); fields: what changes per octave;
-    lr: times the reference 3DGS learning rate of each field, decaying exponentially to `lr_final`
-    times that by the last step (the reference's schedule for positions); pose / exposure: the penalty weight
+    """epochs: passes over the fitted images (every pixel, each octave) at most; steps: optimiser
+    steps per octave instead (None: from `epochs`); patch: edge of the square tiles a step fits,
+    covering each image, in pixels at the images' resolution (0: whole images; at octave k the
+    render is 2^k times larger, so octaves above the first fit tiles 2^(k-1) times smaller);
+    views_per_step: (image, tile) pairs whose gradients one step sums; fields: what changes per
+    octave; lr: times the reference 3DGS learning rate of each field, decaying exponentially to
+    `lr_final` times that by the last step (the reference's schedule for positions); pull: the
+    share of its distance from where it started a seen change gives back each step (0: none);
+    holdout: every n-th image (of the images given, in their order) judges the fit instead of being
+    fitted (0, or fewer than 16 images: none, the fitted images judge it); check_every: passes between
+    checks on them; patience: checks without a gain before the fit stops; pose / exposure: the penalty weight
     of the per-image guard (`guards`), None: off; children: the view-space gradient (NDC, the
     reference's units) at which a Gaussian densifies (`CHILD_GRADIENT`, the reference 3DGS's), None
     (the default): no children; densify_at: when, as fractions of the steps; max_children: at most
@@ -74,11 +91,17 @@ class SuperResConfig:
     the anti-aliasing of the rate it is refined to, halved per octave; None: the anti-aliasing it
     was trained with)."""
 
-    steps: int = 400
-    patch: int = 96
+    epochs: float = 4.0
+    steps: int | None = None
+    patch: int = 0
+    views_per_step: int = 1
     fields: tuple[str, ...] = DEFAULT_FIELDS
     lr: float = 1.0
     lr_final: float = 1.0
+    pull: float = 0.0
+    holdout: int = 8
+    check_every: float = 0.5
+    patience: int = 2
     lambda_dssim: float = 0.2
     pose: float | None = None
     exposure: float | None = None
@@ -98,19 +121,27 @@ class SuperResConfig:
             raise ValueError(f"superres: unknown field(s) {', '.join(unknown)}; known: {', '.join(FIELDS)}")
         if self.start not in ("detail", "zero"):
             raise ValueError(f"superres: start must be 'detail' or 'zero', got {self.start!r}")
-        if int(self.steps) < 0 or int(self.patch) < 0:
-            raise ValueError(f"superres: steps and patch must be >= 0, got {self.steps}, {self.patch}")
+        if (self.steps is not None and int(self.steps) < 0) or int(self.patch) < 0 or not self.epochs >= 0:
+            raise ValueError(f"superres: steps, epochs and patch must be >= 0, got {self.steps}, {self.epochs}, "
+                             f"{self.patch}")
+        if int(self.views_per_step) < 1 or not 0 <= self.pull < 1 or int(self.holdout) < 0 \
+                or not self.check_every > 0 or int(self.patience) < 1:
+            raise ValueError("superres: views_per_step and patience must be >= 1, holdout >= 0, check_every > 0 "
+                             f"and pull in [0, 1), got {self.views_per_step}, {self.patience}, {self.holdout}, "
+                             f"{self.check_every}, {self.pull}")
 
 
 @dataclass
 class SuperResFit:
-    """The fitted changes per octave of the input rows (field -> numpy array shaped like the field),
-    the children (a numpy cloud of their parameters at their training rate, with their changes per
-    octave as `gvae_octave_*` extras, and each one's input row it came from), the loss of every
-    step, PSNR of the averaged-down renders against the training images before and after (dB, on
-    `psnr_views` of the `images` fitted, octave 1) and of the cloud with only the changes it started
-    from (`psnr_start`: no anti-aliasing change; what `refine` keeps when the fit ends below it),
-    the per-image guards' state, and seconds."""
+    """The kept changes per octave of the input rows (field -> numpy array shaped like the field;
+    what `kept` says), the children (a numpy cloud of their parameters at their training rate,
+    with their changes per octave as `gvae_octave_*` extras, and each one's input row it came from),
+    the loss of every step, PSNR (dB, octave 1: drawn at 2x and averaged down) on the held-out
+    images (`holdout_views` of them; NaN without) of the input as it was, of the changes the fit
+    started from and of the fit's best state, and the same on `psnr_views` of the fitted images
+    before and after; which state was kept ("fit", "start" or "input": the best on the held-out
+    images, else on the fitted ones), the step of the fit's best state, the steps run and planned,
+    every check on the held-out images (step, PSNR), the per-image guards' state, and seconds."""
 
     changes: dict[str, np.ndarray]
     losses: list[float]
@@ -119,6 +150,15 @@ class SuperResFit:
     psnr_views: int
     psnr_start: float = float("nan")
     images: int = 0
+    holdout_views: int = 0
+    holdout_input: float = float("nan")
+    holdout_start: float = float("nan")
+    holdout_fit: float = float("nan")
+    kept: str = "fit"
+    steps_best: int = 0
+    steps_run: int = 0
+    steps_planned: int = 0
+    checks: list[tuple[int, float]] = field(default_factory=list)
     children: GaussianCloud | None = None
     child_roots: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     pose_pixels: np.ndarray | None = None
@@ -128,9 +168,19 @@ class SuperResFit:
 
     @property
     def improves(self) -> bool:
-        """Whether the fit reproduces its images better than the changes it started from (else
-        `refine` keeps those)."""
-        return self.psnr_after > self.psnr_start
+        """Whether the fit's changes are the ones kept (it draws the held-out images, else its own,
+        better than the changes it started from and than the input)."""
+        return self.kept == "fit"
+
+    def judged(self) -> str:
+        """One line: what judged the fit and what it said."""
+        if self.holdout_views:
+            return (f"{self.holdout_views} held-out images drawn at 2x and averaged down: input "
+                    f"{self.holdout_input:.2f}, start {self.holdout_start:.2f}, fit {self.holdout_fit:.2f} dB PSNR "
+                    f"(its best at step {self.steps_best}; {self.steps_run} of {self.steps_planned} steps run); "
+                    f"kept: {self.kept}")
+        return (f"no images held out: its own images {self.psnr_start:.2f} (start) -> {self.psnr_after:.2f} dB; "
+                f"kept: {self.kept}")
 
 
 class _Model:
@@ -229,6 +279,26 @@ class _Model:
             self.child[f] = self._extend(p, d.children[f])
         self.roots = torch.cat([self.roots, roots])
         return len(d.rows)
+
+    def snapshot(self) -> dict:
+        """The fitted state (changes, children), to return to (`restore`)."""
+        with torch.no_grad():
+            return {"changes": {f: p.detach().clone() for f, p in self.changes.items()},
+                    "child": {f: p.detach().clone() for f, p in self.child.items()}, "roots": self.roots.clone()}
+
+    def restore(self, state: dict) -> None:
+        """Back to a `snapshot` (the optimiser is not used after this)."""
+        self.changes = {f: v.clone().requires_grad_(True) for f, v in state["changes"].items()}
+        self.child = {f: v.clone().requires_grad_(True) for f, v in state["child"].items()}
+        self.roots = state["roots"].clone()
+
+    def pull(self, towards: dict[str, torch.Tensor], share: float, seen: torch.Tensor) -> None:
+        """Move the input rows' changes `seen` (bool, input rows) `share` of the way back to
+        `towards` (their start): decoupled from Adam's step, as AdamW's weight decay."""
+        with torch.no_grad():
+            rows = torch.nonzero(seen[:self.n]).reshape(-1)
+            for f, p in self.changes.items():
+                p[rows] -= share * (p[rows] - towards[f][rows])
 
     def _extend(self, old: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         """`old` with `rows` appended, in its place in the optimiser (Adam moments zero for the new rows)."""
@@ -329,15 +399,36 @@ def training_psnr(cloud: GaussianCloud, views: Views, targets: torch.Tensor, bac
     return float(np.mean(values))
 
 
+def holdout_rows(count: int, every: int) -> np.ndarray:
+    """Which of `count` images judge a fit instead of being fitted: every `every`-th from the
+    `every // 2`-th (none with `every` 0, or fewer than 2 * `every` images)."""
+    if every <= 0 or count < 2 * every:
+        return np.zeros(0, np.int64)
+    return np.arange(every // 2, count, every, dtype=np.int64)
+
+
+def _tiles(width: int, height: int, patch: int) -> list[tuple[int, int, int, int]]:
+    """(x0, y0, w, h) tiles of edge `patch` covering a width x height image (the last row and column
+    shifted inside it; one tile, the whole image, with `patch` 0 or at least the image)."""
+    if not patch or patch >= max(width, height):
+        return [(0, 0, width, height)]
+    xs = sorted({min(x, width - patch) for x in range(0, width, patch)}) if patch < width else [0]
+    ys = sorted({min(y, height - patch) for y in range(0, height, patch)}) if patch < height else [0]
+    return [(x, y, min(patch, width), min(patch, height)) for y in ys for x in xs]
+
+
 def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: SuperResConfig | None = None, *,
                 start: dict | None = None, background=(1.0, 1.0, 1.0), images_scale: int = 1,
-                progress: Callable[[float, str], None] | None = None, check_views: int = 8) -> SuperResFit:
+                progress: Callable[[float, str], None] | None = None, check_views: int = 8,
+                on_check: Callable[[int, GaussianCloud], None] | None = None) -> SuperResFit:
     """Fit `cloud`'s changes per octave (numpy cloud that knows its training rate: an anti-aliasing
     size) for octaves 1..`octaves` to `views` (the capture's images at the resolution the cloud
-    was trained at, over `background`). `start`: changes to start from (field -> array; default
-    zero). `images_scale`: the images are this power of 2 times the training resolution (2: real
-    2x images, the oracle of one octave; renders are averaged down to them). `progress(fraction,
-    message)` now and then; an exception it raises stops the fit."""
+    was trained at, over `background`), judged on the ones held out (module docstring). `start`:
+    changes to start from (field -> array; default zero). `images_scale`: the images are this power
+    of 2 times the training resolution (2: real 2x images, the oracle of one octave; renders are
+    averaged down to them). `progress(fraction, message)` now and then; an exception it raises
+    stops the fit. `on_check(step, cloud)`: at every check, the cloud (torch, with the changes as
+    they are then) for whoever wants to look at it too (a study of how the fit goes)."""
     config = config or SuperResConfig()
     t_start = time.perf_counter()
     octaves = int(octaves)
@@ -354,6 +445,7 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     if config.size_change is not None:
         start[SIZE] = np.full(len(src), config.size_change, np.float32)
     model = _Model(src, fields, start, lrs)
+    origin = {f: p.detach().clone() for f, p in model.changes.items()}
     pose = exposure = None
     if config.pose is not None:
         pose = PoseCorrection(views.cameras, _median_depths(src, views), config.pose)
@@ -366,23 +458,37 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     targets = torch.from_numpy(views.composite(background))
     rng = np.random.default_rng(config.seed)
     gen = torch.Generator().manual_seed(int(config.seed))
-    check_rows = np.linspace(0, len(views) - 1, min(check_views, len(views))).round().astype(int)
+    held = holdout_rows(len(views), int(config.holdout))
+    fitted_rows = np.setdiff1d(np.arange(len(views)), held)
+    check_rows = fitted_rows[np.linspace(0, len(fitted_rows) - 1, min(check_views, len(fitted_rows))).round()
+                             .astype(int)]
+    first = max(2 // images_scale, 1)  # octave 1 (or the images' own resolution)
+
+    def judge(cloud_now: GaussianCloud, rows) -> float:
+        return training_psnr(cloud_now, views, targets, background, first, settings, rows) if len(rows) else math.nan
 
     t0 = time.perf_counter()
-    first = max(2 // images_scale, 1)  # octave 1 (or the images' own resolution)
-    before = training_psnr(model.cloud(limit)[0], views, targets, background, first, settings, check_rows)
     given = with_octaves(src, {f: v for f, v in start.items() if f != SIZE}, limit=limit)
-    start_psnr = training_psnr(given, views, targets, background, first, settings, check_rows)
+    before, start_psnr = judge(model.cloud(limit)[0], check_rows), judge(given, check_rows)
+    holdout = {"input": judge(src, held), "start": judge(given, held)}
+    best = judge(model.cloud(limit)[0], held)  # the fit's own start: the changes and the halved anti-aliasing
+    best_state, best_step, bad = model.snapshot(), 0, 0
+    checks = [(0, best)] if len(held) else []
     timings = {"check": time.perf_counter() - t0}
     losses: list[float] = []
-    total = config.steps * octaves
+    height, width = views.cameras[0].height, views.cameras[0].width
+    octave_list = [k for k in range(1, octaves + 1) if 2 ** k >= images_scale]
+    units = [(int(v), tile) for v in fitted_rows for tile in _tiles(width, height, int(config.patch))]
+    per_step = int(config.views_per_step)
+    per_octave = config.steps if config.steps is not None else math.ceil(config.epochs * len(units) / per_step)
+    total = int(per_octave) * len(octave_list)
+    check_interval = max(1, math.ceil(config.check_every * len(units) / per_step) * len(octave_list))
     densify_steps = {int(round(f * total)) for f in config.densify_at} if config.children is not None else set()
     grad_sum = grad_count = None
-    order: list[int] = []
-    height, width = views.cameras[0].height, views.cameras[0].width
-    t0 = time.perf_counter()
-    octave_list = [k for k in range(1, octaves + 1) if 2 ** k >= images_scale]
+    order: list[tuple[int, tuple]] = []
+    t0, checking = time.perf_counter(), 0.0
     initial = [g["lr"] for g in model.opt.param_groups]
+    step = 0
     for step in range(total):
         if config.lr_final != 1.0:
             decay = config.lr_final ** (step / max(total - 1, 1))
@@ -390,54 +496,88 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
                 g["lr"] = lr * decay
         octave = octave_list[step % len(octave_list)]
         scale = 2 ** octave // images_scale  # render size over image size
-        if not order:
-            order = list(rng.permutation(len(views)))
-        v = int(order.pop())
-        cam = views.cameras[v]
-        big = cam.scaled(cam.height * scale)
-        full_size = (big.width, big.height)
-        target = targets[v]
-        size = config.patch * images_scale // 2 ** (octave - 1) if config.patch else 0
-        if size and size < min(height, width):
-            x0, y0 = int(rng.integers(width - size + 1)), int(rng.integers(height - size + 1))
-            big = crop(big, x0 * scale, y0 * scale, size * scale, size * scale)
-            target = target[y0:y0 + size, x0:x0 + size]
-        cloud, subset = model.cloud(limit, big if pose is None else None)
-        drawn, out = _draw(cloud, big, scale, bg, settings, pose, exposure, v)
-        if densify_steps:
-            out.means2d.retain_grad()
-        loss = photometric_loss(drawn, target, config.lambda_dssim)
-        total_loss = loss
-        if pose is not None:
-            total_loss = total_loss + pose.penalty()
-        if exposure is not None:
-            total_loss = total_loss + exposure.penalty()
-        total_loss.backward()
-        if densify_steps and out.means2d.grad is not None:
-            if grad_sum is None or len(grad_sum) != model.n + model.m:
-                grad_sum, grad_count = torch.zeros(model.n + model.m), torch.zeros(model.n + model.m)
-            g = (out.means2d.grad.detach()[:, :2] * g_scale(*full_size)).norm(dim=-1)
-            seen = out.visible.float()
-            index = subset if subset is not None else slice(None)
-            grad_sum[index] += g * seen
-            grad_count[index] += seen
+        seen = torch.zeros(model.n + model.m, dtype=torch.bool)
+        step_loss = 0.0
+        for _ in range(per_step):
+            if not order:
+                order = [units[i] for i in rng.permutation(len(units))]
+            v, (x0, y0, w, h) = order.pop()
+            cam = views.cameras[v]
+            big = cam.scaled(cam.height * scale)
+            full_size = (big.width, big.height)
+            target = targets[v]
+            if (w, h) != (width, height):  # a tile
+                big = crop(big, x0 * scale, y0 * scale, w * scale, h * scale)
+                target = target[y0:y0 + h, x0:x0 + w]
+            cloud_now, subset = model.cloud(limit, big if pose is None else None)
+            drawn, out = _draw(cloud_now, big, scale, bg, settings, pose, exposure, v)
+            if densify_steps:
+                out.means2d.retain_grad()
+            loss = photometric_loss(drawn, target, config.lambda_dssim)
+            total_loss = loss / per_step
+            if pose is not None:
+                total_loss = total_loss + pose.penalty() / per_step
+            if exposure is not None:
+                total_loss = total_loss + exposure.penalty() / per_step
+            total_loss.backward()
+            step_loss += float(loss.detach()) / per_step
+            visible = out.visible.detach()
+            if subset is None:
+                seen |= visible
+            else:
+                seen[subset[visible]] = True
+            if densify_steps and out.means2d.grad is not None:
+                if grad_sum is None or len(grad_sum) != model.n + model.m:
+                    grad_sum, grad_count = torch.zeros(model.n + model.m), torch.zeros(model.n + model.m)
+                g = (out.means2d.grad.detach()[:, :2] * g_scale(*full_size)).norm(dim=-1)
+                index = subset if subset is not None else slice(None)
+                grad_sum[index] += g * visible.float()
+                grad_count[index] += visible.float()
         model.opt.step()
         model.opt.zero_grad(set_to_none=True)
-        losses.append(float(loss.detach()))
+        if config.pull:
+            model.pull(origin, config.pull, seen)
+        losses.append(step_loss)
         if step + 1 in densify_steps and grad_sum is not None:
             room = int(config.max_children * model.n) - model.m
             model.grow(grad_sum / grad_count.clamp(min=1.0), config.children, room, extent, gen)
             grad_sum = grad_count = None
+            origin = {f: torch.cat([origin[f], torch.zeros_like(p[len(origin[f]):])]) if len(p) > len(origin[f])
+                      else origin[f] for f, p in model.changes.items()}
         if progress is not None and (step % 10 == 9 or step == total - 1):
             progress((step + 1) / max(total, 1), f"fitting to the images: step {step + 1}/{total}, "
-                     f"loss {np.mean(losses[-20:]):.4f}")
-    timings["fit"] = time.perf_counter() - t0
+                     f"loss {np.mean(losses[-20:]):.4f}" + (f", held-out {best:.2f} dB" if len(held) else ""))
+        if len(held) and ((step + 1) % check_interval == 0 or step == total - 1):
+            t1 = time.perf_counter()
+            now = judge(model.cloud(limit)[0], held)
+            checking += time.perf_counter() - t1
+            checks.append((step + 1, now))
+            if on_check is not None:
+                on_check(step + 1, model.cloud(limit)[0].detach())
+            if now > best:
+                best, best_state, best_step, bad = now, model.snapshot(), step + 1, 0
+            else:
+                bad += 1
+                if bad >= int(config.patience):
+                    break
+    steps_run = step + 1 if total else 0
+    timings["fit"] = time.perf_counter() - t0 - checking
     t0 = time.perf_counter()
-    after = training_psnr(model.cloud(limit)[0], views, targets, background, first, settings, check_rows)
-    timings["check"] += time.perf_counter() - t0
+    if len(held):
+        model.restore(best_state)  # (the fit's own start when no check gained: step 0)
+    after = judge(model.cloud(limit)[0], check_rows)
+    timings["check"] += checking + time.perf_counter() - t0
+    # (a fit that never drew the held-out images better than at its step 0 is no candidate)
+    candidates = ({"fit": best if best_step else -math.inf, "start": holdout["start"], "input": holdout["input"]}
+                  if len(held) else {"fit": after, "start": start_psnr})
+    kept = max(candidates, key=candidates.get)  # (a tie keeps the first)
     changes, children, roots = model.result(limit)
     return SuperResFit(changes=changes, losses=losses, psnr_before=before, psnr_after=after, psnr_start=start_psnr,
-                       psnr_views=len(check_rows), images=len(views), children=children, child_roots=roots,
+                       psnr_views=len(check_rows), images=len(fitted_rows), holdout_views=len(held),
+                       holdout_input=holdout["input"], holdout_start=holdout["start"],
+                       holdout_fit=best if len(held) else math.nan, kept=kept, steps_best=best_step,
+                       steps_run=steps_run, checks=checks,
+                       steps_planned=total, children=children, child_roots=roots,
                        pose_pixels=None if pose is None else pose.pixels(),
                        exposure_gains=None if exposure is None else exposure.gains(),
                        seconds=time.perf_counter() - t_start, timings=timings)

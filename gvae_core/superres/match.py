@@ -5,8 +5,9 @@ untouched, when they are not (another scene, other cameras, missing files, anoth
 The training resolution comes from the height asked for, else from the cloud's anti-aliasing size
 against the capture's cameras (`octaves.training_height`: exact for a cloud whose size those
 cameras made), else it is the images' own. Then the cloud, drawn through a few of the cameras at
-that resolution, must reproduce their images clearly better than the images' mean colour does;
-which background (white or black) it reproduces them over is the one the fit uses.
+that resolution, must reproduce their images clearly better than the images' mean colour does,
+over the background it was trained over (stored with it), else over the one of white and black
+it reproduces them better over: the one the fit uses.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..antialias import DILATION_KEY, FILTER_KEY, with_dilation_3d
-from ..capture import load_capture_cameras, load_capture_images
+from ..capture import load_cameras, load_capture_images
 from ..cloud import GaussianCloud
 from ..datasets import DatasetError, Views
 from ..losses import psnr
@@ -65,15 +66,16 @@ class ImageMatch:
 
 
 def capture_images(cloud: GaussianCloud, images, height: int | None = None, *, check_views: int = 6,
-                   before_loading=None) -> CaptureImages:
-    """The capture's images for fitting `cloud` (numpy): `images` a dataset path (a NeRF-Synthetic
-    folder or COLMAP capture, `capture.load_capture_images`) or `Views` already loaded at the
+                   before_loading=None, test_every: int | None = None) -> CaptureImages:
+    """The capture's images for fitting `cloud` (numpy): `images` a capture (a path
+    `capture.read_capture` reads: COLMAP, transforms.json, NeRF-Synthetic; its training views, every
+    `test_every`-th held out as the training held it out) or `Views` already loaded at the
     training resolution; `height` the training image height if known. `before_loading(count,
     height, width)`: called once the images' number and size are known, before they are read (a
     memory check). Raises DatasetError (files) or ImageMismatchError / ValueError (content) naming
     the dataset."""
     name = "the images given" if isinstance(images, Views) else str(images)
-    cams = images.cameras if isinstance(images, Views) else load_capture_cameras(images)
+    cams = images.cameras if isinstance(images, Views) else load_cameras(images, test_every)
     if height is not None and int(height) <= 0:
         raise ValueError(f"{name}: the image height must be positive, got {height}")
     sized = {FILTER_KEY, DILATION_KEY} & set(cloud.extra)
@@ -101,7 +103,7 @@ def capture_images(cloud: GaussianCloud, images, height: int | None = None, *, c
     if isinstance(images, Views):
         views = images if height is None else images.at_resolution(height)
     else:
-        views = load_capture_images(Path(images), height)
+        views = load_capture_images(Path(images), height, test_every)
     got = views.cameras[0].height
     if height is not None and got != height:
         raise DatasetError(f"{name}: the images are {got} px high, fewer than the {height} px the fit needs "
@@ -115,13 +117,14 @@ def capture_images(cloud: GaussianCloud, images, height: int | None = None, *, c
 
 def match_images(cloud: GaussianCloud, views: Views, name: str = "the images", count: int = 6) -> ImageMatch:
     """How well `cloud`, drawn through `count` of the views' cameras, reproduces their images, over
-    the background that fits best; ImageMismatchError when it does not (module docstring)."""
+    the background it was trained over (`GaussianCloud.background`), else the one of white and black
+    that fits best; ImageMismatchError when it does not (module docstring)."""
     pick = np.linspace(0, len(views) - 1, min(count, len(views))).round().astype(int)
-    renders = {bg: [] for bg in _BACKGROUNDS}
+    renders = {bg: [] for bg in ((cloud.background,) if cloud.background is not None else _BACKGROUNDS)}
     for v in pick:
         out = render(cloud, views.cameras[v], settings=RenderSettings())
         colour, alpha = out.image.numpy(), out.alpha.numpy()[..., None]
-        for bg in _BACKGROUNDS:
+        for bg in renders:
             renders[bg].append(colour + (1.0 - alpha) * np.asarray(bg, np.float32))
     scores = {}
     for bg, images in renders.items():

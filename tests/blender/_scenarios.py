@@ -146,6 +146,14 @@ def scenario_io(bpy, args: dict) -> dict:
     bpy.ops.import_scene.gaussian_splat(filepath=args["ply"], axis_conversion="Y_DOWN")
     res["y_down_rotation"] = list(bpy.context.active_object.rotation_euler)
 
+    # A splat that says what it was trained over: shown over it (the world's colour), kept on export.
+    bpy.ops.import_scene.gaussian_splat(filepath=args["ply_background"])
+    world = bpy.context.scene.world
+    res["world_colour"] = list(world.color)
+    res["world_node_colour"] = [list(n.inputs["Color"].default_value) for n in world.node_tree.nodes
+                                if n.type == "BACKGROUND"] if world.node_tree is not None else []
+    bpy.ops.export_scene.gaussian_splat(filepath=args["export_background"])
+
     # The add-on finds sockets by name and type: Random Value's float output whichever its place,
     # and a clear error for a socket the node does not have (Probability is its boolean mode's).
     from bl_ext.user_default.gaussian_vae.gvae_addon import nodes

@@ -22,7 +22,7 @@ from plyfile import PlyData
 from gvae_core import render
 from gvae_core.camera import Camera
 from gvae_core.cloud import GaussianCloud
-from gvae_core.conventions import linear_to_srgb
+from gvae_core.conventions import linear_to_srgb, srgb_to_linear
 from gvae_core.ply import read_ply, write_ply
 from gvae_core.quaternions import normalize as normalize_quats
 from gvae_core.quaternions import to_rotmat as quat_to_rotmat
@@ -158,9 +158,12 @@ def test_import_instances_display_export_round_trip(extension_zip, tmp_path):
     n = 300
     src = tmp_path / "scene.ply"
     write_ply(make_cloud(n), src)
+    background = (0.9, 0.5, 0.1)
+    write_ply(make_cloud(n).replace(background=background), tmp_path / "over.ply")
     args = {"ply": str(src), "export": str(tmp_path / "out.ply"),
             "export_transformed": str(tmp_path / "moved.ply"),
-            "export_nonuniform": str(tmp_path / "nonuniform.ply")}
+            "export_nonuniform": str(tmp_path / "nonuniform.ply"),
+            "ply_background": str(tmp_path / "over.ply"), "export_background": str(tmp_path / "over_out.ply")}
     res = run_scenario("io", tmp_path, extension_zip, block_torch=True, **args)
 
     # Installed and enabled from the zip; the bundled core is the one in use; no torch needed.
@@ -214,6 +217,13 @@ def test_import_instances_display_export_round_trip(extension_zip, tmp_path):
 
     # Axis conversion is an object rotation, not a change of the data.
     np.testing.assert_allclose(res["y_down_rotation"], [-math.pi / 2, 0, 0], atol=1e-6)
+
+    # The background a splat was trained over: the world's colour (linear, so that the Standard view
+    # transform shows it), kept through export byte for byte.
+    linear = srgb_to_linear(np.array(background))
+    np.testing.assert_allclose(res["world_colour"], linear, atol=1e-6)
+    assert res["world_node_colour"] and all(np.allclose(c[:3], linear, atol=1e-6) for c in res["world_node_colour"])
+    assert (tmp_path / "over_out.ply").read_bytes() == (tmp_path / "over.ply").read_bytes()
 
     # Sockets by name and type: Random Value's float output (the second of four outputs up to 5.1,
     # the only one from 5.2); a missing socket is named with the node and the Blender version.

@@ -1,0 +1,50 @@
+"""Captures: the cameras and photos a splat is trained from, read through one door.
+
+`read_capture(path, test_every)` reads a COLMAP capture (binary or text; `colmap`), a
+`transforms*.json` of instant-ngp or nerfstudio, or a NeRF-Synthetic folder (`transforms`) into
+one `Capture` (`dataset`): per frame a pinhole camera in the OpenCV convention of DESIGN.md with
+lens distortion undone (`lens`, as COLMAP's undistorter), its image, name and split (held-out
+views every `test_every`-th by name), and the SfM points when there are any. Every command that
+takes a capture (`train`, `render`, `refine --images/--cameras`, `compact --cameras/--images`)
+reads it here: `load_cameras` (the training cameras), `load_capture_images` (the training images),
+`load_nerf_synthetic` (a NeRF-Synthetic split). `views` places the views a cloud is scored from.
+Files that cannot be read raise `DatasetError` (a ValueError) naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+from ..camera import Camera
+from ..datasets import DatasetError, Views
+from .colmap import COLMAP_MODELS, SfMPoints, read_colmap_cameras, read_colmap_points
+from .dataset import SPLITS, TEST_EVERY, Capture, find_capture, read_capture
+from .lens import Lens, undistort_image, undistorted_camera
+from .views import (DEFAULT_RESOLUTION, DEFAULT_VIEWS, PlacedViews, Surround, default_views, inside_views,
+                    outside_views, placed_views, scoring_views, surround, surround_radius)
+
+__all__ = ["Capture", "read_capture", "find_capture", "load_cameras", "load_capture_images", "load_nerf_synthetic",
+           "SfMPoints", "Lens", "undistort_image", "undistorted_camera", "read_colmap_cameras", "read_colmap_points",
+           "COLMAP_MODELS", "SPLITS", "TEST_EVERY", "DatasetError", "scoring_views", "default_views", "placed_views",
+           "PlacedViews", "outside_views", "inside_views", "surround", "surround_radius", "Surround", "DEFAULT_VIEWS",
+           "DEFAULT_RESOLUTION"]
+
+
+def load_cameras(path, test_every: int | None = None) -> list[Camera]:
+    """The cameras a cloud was trained from: the training views of the capture at `path` (every
+    frame of one transforms file or COLMAP model, but the held-out ones), without their images."""
+    return read_capture(path, test_every, images=False).split_cameras("train")
+
+
+def load_capture_images(path, resolution: int | None = None, test_every: int | None = None) -> Views:
+    """The capture's training images with their cameras (for fitting a cloud trained from them),
+    scaled to `resolution` pixels high (None: as stored; never up)."""
+    capture = read_capture(path, test_every)
+    height = capture.cameras[capture.indices("train")[0]].height if len(capture.indices("train")) else None
+    return capture.load("train", None if resolution is None or height is None else min(int(resolution), height))
+
+
+def load_nerf_synthetic(root, split: str = "train", resolution: int | None = None) -> Views:
+    """`root/transforms_{split}.json` of a NeRF-Synthetic folder and its images, at `resolution`
+    pixels high (None: as stored; the width keeps the aspect ratio, rounded like `Camera.scaled`)."""
+    if resolution is not None and int(resolution) <= 0:
+        raise ValueError(f"load_nerf_synthetic: resolution must be a positive height, got {resolution}")
+    return read_capture(root, splits=(split,), kind="nerf-synthetic").load(split, resolution)

@@ -1,0 +1,287 @@
+"""`Capture`: what every reader returns, and the one door every command reads a capture through.
+
+`read_capture(path)` finds the format (as nerfstudio's dataparsers do: one small reader each) and
+returns a `Capture`: per frame its pinhole camera (lens distortion undone, `capture.lens`), its
+image file, name and split, and the capture's SfM points when it has them. Formats:
+
+- a NeRF-Synthetic folder (`transforms_train.json`, `transforms_test.json`, `transforms_val.json`:
+  their frames are the splits) or one `transforms*.json` file (instant-ngp, nerfstudio: all its
+  frames train), `capture.transforms`;
+- a COLMAP capture (`sparse/0` and `images/` as the reference 3DGS, gsplat and nerfstudio read it,
+  or the model folder or one of its files), `capture.colmap`.
+
+Frames whose image is missing are dropped, and counted (`Capture.skipped`, with a warning); an
+image whose size differs from its camera's is read as a scaled copy when its aspect agrees (an
+`images_4` folder beside a full-size model), else refused. `held_out(every)` marks every
+`every`-th frame sorted by image name as a test view (the LLFF / Mip-NeRF 360 convention, 8).
+`Capture.load(split, height)` reads the images: straight RGBA (alpha 1 for photos), undistorted
+into the frame's pinhole, area-averaged to `height` in premultiplied space (`datasets`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from ..camera import Camera
+from ..datasets import DatasetError, Views, read_rgba, resize_rgba
+from .colmap import ColmapModel, SfMPoints, colmap_files, read_colmap
+from .lens import Lens, undistort_image, undistorted_camera
+from .transforms import read_transforms
+
+__all__ = ["Capture", "read_capture", "find_capture", "SPLITS", "TEST_EVERY"]
+
+#: NeRF-Synthetic's split files, in the order their frames are listed.
+SPLITS = ("train", "test", "val")
+#: The LLFF / Mip-NeRF 360 convention: every 8th image, sorted by name, is held out.
+TEST_EVERY = 8
+#: Folders under a capture where the COLMAP model may be (the first found is read).
+_MODEL_FOLDERS = ("sparse/0", "sparse", "colmap/sparse/0", "distorted/sparse/0")
+
+
+@dataclass
+class Capture:
+    """Posed images of one scene (module docstring). Per frame: `cameras` (pinhole, OpenCV
+    convention, at the size of its image as stored, distortion undone), `files` (None: a frame
+    read for its camera only names no image), `names`,
+    `splits` ("train", "test" or "val"), `lenses` (the distortion its photo was taken through) and
+    `photo_cameras` (the pinhole part of that camera, at the stored size). `points`: the SfM points
+    (None without); `skipped`: frames dropped because their image is missing."""
+
+    source: Path
+    kind: str
+    cameras: list[Camera]
+    files: list[Path | None]
+    names: list[str]
+    splits: list[str]
+    lenses: list[Lens]
+    photo_cameras: list[Camera]
+    points: SfMPoints | None = None
+    skipped: list[str] = dataclasses.field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    @property
+    def distorted(self) -> int:
+        """How many frames were taken through a distorting lens (undone on load)."""
+        return sum(not lens.is_pinhole for lens in self.lenses)
+
+    def indices(self, split: str = "train") -> np.ndarray:
+        """Frames of a split, in capture order."""
+        return np.array([i for i, s in enumerate(self.splits) if s == split], np.int64)
+
+    def split_cameras(self, split: str = "train") -> list[Camera]:
+        return [self.cameras[i] for i in self.indices(split)]
+
+    def held_out(self, every: int | None) -> Capture:
+        """The same frames with every `every`-th one, sorted by image name, a test view and the
+        rest training views (None: as read). A NeRF-Synthetic folder has its own test split."""
+        if every is None:
+            return self
+        every = int(every)
+        if every < 2:
+            raise ValueError(f"{self.source}: --test-every must be 2 or more, got {every}")
+        if self.kind == "nerf-synthetic":
+            raise ValueError(f"{self.source}: a NeRF-Synthetic folder has its own test split "
+                             f"(transforms_test.json); --test-every is for captures with one set of images")
+        order = sorted(range(len(self)), key=lambda i: self.files[i].name if self.files[i] else self.names[i])
+        splits = ["train"] * len(self)
+        for rank, i in enumerate(order):
+            if rank % every == 0:
+                splits[i] = "test"
+        if "train" not in splits:
+            raise ValueError(f"{self.source}: holding out every {every}th of {len(self)} images leaves none to "
+                             f"train on")
+        return dataclasses.replace(self, splits=splits)
+
+    def load(self, split: str = "train", height: int | None = None) -> Views:
+        """The images of a split with their cameras, scaled to `height` pixels high (None: as
+        stored), undistorted first where the photo was taken through a lens."""
+        if height is not None and int(height) <= 0:
+            raise ValueError(f"{self.source}: the image height must be positive, got {height}")
+        pick = self.indices(split)
+        if len(pick) == 0:
+            raise DatasetError(f"{self.source}: no {split!r} views")
+        images = alphas = None  # allocated once the first image gives the size (no list + stack copy)
+        cams, names = [], []
+        for k, i in enumerate(pick):
+            rgba = read_rgba(self.files[i])
+            if not self.lenses[i].is_pinhole:
+                rgba = _undistort_rgba(rgba, self.photo_cameras[i], self.lenses[i], self.cameras[i])
+            cam = self.cameras[i]
+            if height is not None and int(height) != cam.height:
+                cam = cam.scaled(int(height))
+                rgba = resize_rgba(rgba, cam.height, cam.width)
+            if images is None:
+                images = np.empty((len(pick), cam.height, cam.width, 3), np.float32)
+                alphas = np.empty((len(pick), cam.height, cam.width), np.float32)
+            elif rgba.shape[:2] != images.shape[1:3]:
+                raise DatasetError(f"{self.files[i]}: {rgba.shape[1]}x{rgba.shape[0]} differs from the "
+                                   f"{images.shape[2]}x{images.shape[1]} of the first {split} image (one image size "
+                                   f"per capture)")
+            images[k], alphas[k] = rgba[..., :3], rgba[..., 3]
+            cams.append(cam)
+            names.append(self.names[i])
+        return Views(cams, images, alphas, names)
+
+    def summary(self) -> str:
+        """One line: format, frames per split, size, distortion, points, skipped frames."""
+        counts = ", ".join(f"{len(self.indices(s))} {s}" for s in SPLITS if len(self.indices(s)))
+        cam = self.cameras[0]
+        parts = [f"{self.kind} capture {self.source}: {counts} views of {cam.width}x{cam.height}"]
+        if self.distorted:
+            parts.append(f"lens distortion of {self.distorted} undone on load")
+        parts.append(f"{len(self.points)} SfM points" if self.points is not None else "no SfM points")
+        if self.skipped:
+            parts.append(f"{len(self.skipped)} frame(s) skipped: image missing")
+        return "; ".join(parts)
+
+
+def find_capture(path: Path) -> tuple[str, Path | tuple[Path, Path]]:
+    """What `path` names: ("nerf-synthetic", folder), ("transforms", file) or ("colmap", (cameras
+    file, images file)); DatasetError when it is none of them."""
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(f"{path}: no such file or folder (expected a capture: a COLMAP sparse model with its "
+                           f"images, a transforms*.json file, or a NeRF-Synthetic folder)")
+    if path.is_file() and path.suffix.lower() == ".json":
+        return "transforms", path
+    folder = path if path.is_dir() else path.parent
+    if path.is_dir() and not colmap_files(folder):
+        if (folder / "transforms_train.json").is_file():
+            return "nerf-synthetic", folder
+        if (folder / "transforms.json").is_file():
+            return "transforms", folder / "transforms.json"
+        for sub in _MODEL_FOLDERS:
+            if colmap_files(folder / sub):
+                folder = folder / sub
+                break
+        else:
+            found = sorted(folder.glob("transforms*.json"))
+            if len(found) == 1:
+                return "transforms", found[0]
+            raise DatasetError(f"{path}: no cameras found (no transforms*.json and no COLMAP cameras/images "
+                               f".bin or .txt)")
+    files = colmap_files(folder)
+    if not files:
+        raise DatasetError(f"{path}: not a COLMAP sparse model (needs cameras.bin and images.bin, or cameras.txt "
+                           f"and images.txt, in {folder})")
+    return "colmap", files
+
+
+def read_capture(path, test_every: int | None = None, *, splits: Sequence[str] | None = None,
+                 kind: str | None = None, images: bool = True) -> Capture:
+    """The capture at `path` (module docstring), with every `test_every`-th image held out when
+    given. `splits`: for a NeRF-Synthetic folder, which split files to read (default all there are;
+    a split asked for whose file is missing is an error). `kind` "nerf-synthetic" reads `path` as
+    such a folder without looking for other formats. `images` False: the cameras only, every frame
+    whether its image is there or not (nothing can be loaded)."""
+    kind, found = ("nerf-synthetic", Path(path)) if kind == "nerf-synthetic" else find_capture(Path(path))
+    if kind == "colmap":
+        cameras_file, images_file = found
+        model = read_colmap(cameras_file, images_file)
+        folder = _images_folder(images_file) if images else images_file.parent
+        frames = [(model, [folder / n for n in model.names], ["train"] * len(model.names))]
+        source = images_file.parent
+    elif kind == "transforms":
+        t = read_transforms(found)
+        frames = [(t, t.files, ["train"] * len(t.files))]
+        source = found
+    else:
+        frames = []
+        for split in splits or SPLITS:
+            file = found / f"transforms_{split}.json"
+            if not file.is_file():
+                if splits is not None:
+                    raise DatasetError(f"{file}: missing (no {split!r} split in {found})")
+                continue
+            t = read_transforms(file)
+            frames.append((t, t.files, [split] * len(t.files)))
+        source = found
+    capture = _assemble(Path(path), source, kind, frames, images)
+    return capture.held_out(test_every)
+
+
+def _images_folder(images_file: Path) -> Path:
+    """The folder of a COLMAP model's images: `images` beside the model or up to three folders up
+    (`input` for the distorted model of the reference 3DGS's layout)."""
+    model = images_file.parent
+    names = ("input", "images") if model.parts[-3:-1] == ("distorted", "sparse") else ("images",)
+    for d in (model, *model.parents[:3]):
+        for name in names:
+            if (d / name).is_dir():
+                return d / name
+    raise DatasetError(f"{model}: no 'images' folder beside the COLMAP model")
+
+
+def _assemble(path: Path, source: Path, kind: str, parts, images: bool) -> Capture:
+    """A Capture from (reader output, image files, splits) parts: missing images dropped and
+    counted, cameras scaled to images stored at another size (`images` False: every frame as the
+    model states it), lens distortion undone."""
+    cams, files, names, splits, lenses, photo = [], [], [], [], [], []
+    skipped, missing = [], []
+    points = None
+    for model, paths, labels in parts:
+        points = points if model.points is None else model.points
+        for cam, lens, file, name, label in zip(model.cameras, model.lenses, paths, model.names, labels):
+            if images and (file is None or not file.is_file()):
+                skipped.append(name)
+                missing.append(file)
+                continue
+            if images:
+                cam = _at_image_size(cam, file, model)
+            cams.append(undistorted_camera(cam, lens))
+            files.append(file)
+            names.append(Path(name).stem)
+            splits.append(label)
+            lenses.append(lens)
+            photo.append(cam)
+    if not cams:
+        first = next((m for m in missing if m is not None), None)
+        raise DatasetError(f"{first or path}: image not found; none of the {len(skipped)} frames of {source} has "
+                           f"its image")
+    if skipped:
+        shown = ", ".join(str(m) for m in missing[:3] if m is not None)
+        warnings.warn(f"{source}: {len(skipped)} of {len(skipped) + len(cams)} frames skipped: image missing"
+                      + (f" ({shown}{', ...' if len(missing) > 3 else ''})" if shown else ""), stacklevel=3)
+    return Capture(source, kind, cams, files, names, splits, lenses, photo, points, skipped)
+
+
+def _at_image_size(cam: Camera, file: Path, model) -> Camera:
+    """`cam` scaled to the size its image is stored at, where the model states a size and the
+    image is a scaled copy (a downscaled copy of the images); other sizes are refused by name."""
+    try:
+        with Image.open(file) as im:
+            width, height = im.size
+    except (UnidentifiedImageError, OSError) as exc:
+        raise DatasetError(f"{file}: cannot read image: {exc}") from None
+    if (width, height) == (cam.width, cam.height):
+        return cam
+    sx, sy = width / cam.width, height / cam.height
+    if isinstance(model, ColmapModel):
+        of = f"the model {model.images_file.with_name('cameras' + model.images_file.suffix)}"
+    else:
+        of = "its frame in the transforms file" if model.stated_size else "the first image"
+    # A copy scaled by one factor, each side rounded: within a pixel of that factor on both sides.
+    if not model.stated_size or abs(sx * cam.height - height) > 1.0 or abs(sy * cam.width - width) > 1.0:
+        raise DatasetError(f"{file}: size {width}x{height} differs from the {cam.width}x{cam.height} of {of} "
+                           f"(and is not a scaled copy of it)")
+    return Camera(cam.world_to_cam, cam.fx * sx, cam.fy * sy, cam.cx * sx, cam.cy * sy, width, height)
+
+
+def _undistort_rgba(rgba: np.ndarray, photo: Camera, lens: Lens, target: Camera) -> np.ndarray:
+    """Straight RGBA resampled into the pinhole `target`, in premultiplied space (as resizing)."""
+    alpha = rgba[..., 3:4]
+    if (alpha == 1).all():
+        return undistort_image(rgba, photo, lens, target)
+    out = undistort_image(np.concatenate([rgba[..., :3] * alpha, alpha], -1), photo, lens, target)
+    a = np.clip(out[..., 3:4], 0.0, 1.0)
+    rgb = np.where(a > 0, out[..., :3] / np.where(a > 0, a, 1.0), 0.0)
+    return np.concatenate([np.clip(rgb, 0.0, 1.0), a], -1).astype(np.float32)
