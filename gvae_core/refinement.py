@@ -48,7 +48,7 @@ from .octaves import has_octaves, octave_fields, with_octaves
 from .rendering.frames import Frame, make_frame
 from .resources import check_image_fit_memory, check_refine_memory, reuse_freed_memory
 from .superres import SuperResConfig, SuperResFit, capture_images, fit_octaves
-from .vae import GaussianVAE, load_default_model
+from .vae import GaussianVAE, load_default_model, load_model
 from .vae.features import FEATURE_LOG_SCALE_RANGE, FEATURE_POSITION_LIMIT
 
 
@@ -473,7 +473,7 @@ def refine_steps(cloud: GaussianCloud | RefineInput, *, steps: int = 1, budget: 
     if model is None:
         model = load_default_model()
     elif not isinstance(model, GaussianVAE):
-        model = GaussianVAE.load(model)
+        model = load_model(model)
     timings["load"] = time.perf_counter() - t0
 
     # progress: scoring (when there is any) takes most of the time
