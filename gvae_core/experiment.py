@@ -588,7 +588,7 @@ def run_experiment(protocol: Protocol | str, *, model=None, detail=None, scenes=
                                           "scene_dir": str(run.scene_dir), "run_dir": str(run.run_dir),
                                           "log": run.log(), "seconds": run.seconds}
     doc["seconds"] = time.perf_counter() - t0
-    return _finite(doc)
+    return json_safe(doc)
 
 
 def _common_split(names) -> str:
@@ -648,12 +648,12 @@ def _one_thread() -> None:
     torch.set_num_threads(1)
 
 
-def _finite(obj):
-    """JSON-safe copy: NaN and infinities become None."""
+def json_safe(obj):
+    """JSON-safe copy of results (dicts, lists, numpy numbers): NaN and infinities become None."""
     if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
+        return {k: json_safe(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
+        return [json_safe(v) for v in obj]
     if isinstance(obj, (np.floating, float)):
         return float(obj) if math.isfinite(obj) else None
     if isinstance(obj, np.integer):
