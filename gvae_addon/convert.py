@@ -25,7 +25,7 @@ import bpy
 import numpy as np
 
 from gvae_core.cloud import GaussianCloud
-from gvae_core.conventions import LOG_SCALE_RANGE, OPACITY_LOGIT_RANGE, SH_REST_COUNTS
+from gvae_core.conventions import LOG_SCALE_RANGE, OPACITY_LOGIT_RANGE, SH_REST_COUNTS, sigmoid
 
 LAYOUT_KEY = "gvae_ply"
 STEP_ATTR = "gvae_step"
@@ -286,7 +286,7 @@ def pointcloud_from_cloud(cloud: GaussianCloud, name: str) -> bpy.types.PointClo
     q = np.where(good[:, None], q / np.where(good, norm, 1.0)[:, None], (1.0, 0.0, 0.0, 0.0))
     base = np.empty((n, 4), np.float32)
     base[:, :3] = c.sh_dc
-    base[:, 3] = 1.0 / (1.0 + np.exp(-c.opacities.astype(np.float64)))
+    base[:, 3] = sigmoid(c.opacities.astype(np.float64))
     with np.errstate(over="ignore"):
         linear = np.exp(c.scales.astype(np.float64)).astype(np.float32)
     pc = bpy.data.pointclouds.new(name)

@@ -26,7 +26,8 @@ EXTREME_LOG_SCALE = (-20.0, 12.0)
 EXTREME_OPACITY_LOGIT = 30.0
 EXTREME_POSITION = 1e6
 
-_FIELDS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
+#: The six per-Gaussian parameters (DESIGN.md, Conventions), in the constructor's order.
+PARAMETER_FIELDS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 
 
 def _torch():
@@ -106,7 +107,7 @@ class GaussianCloud:
             if len(bg) != 3 or not all(math.isfinite(v) for v in bg):
                 raise ValueError(f"GaussianCloud.background must be 3 finite numbers, got {self.background!r}")
             self.background = bg
-        for name in _FIELDS:
+        for name in PARAMETER_FIELDS:
             value = getattr(self, name)
             if value is None and name == "sh_rest":
                 n = len(self.means)
@@ -128,7 +129,7 @@ class GaussianCloud:
         for k, v in self.extra.items():
             if v.shape[:1] != (n,):
                 raise ValueError(f"GaussianCloud.extra[{k!r}] must have {n} rows, got shape {tuple(v.shape)}")
-        kinds = {is_torch(getattr(self, f)) for f in _FIELDS}
+        kinds = {is_torch(getattr(self, f)) for f in PARAMETER_FIELDS}
         if len(kinds) > 1:
             raise ValueError("GaussianCloud fields must be all numpy arrays or all torch tensors")
 
@@ -151,7 +152,7 @@ class GaussianCloud:
 
     def arrays(self) -> dict[str, Any]:
         """The six parameter arrays by field name (not `extra`)."""
-        return {name: getattr(self, name) for name in _FIELDS}
+        return {name: getattr(self, name) for name in PARAMETER_FIELDS}
 
     def replace(self, **changes) -> GaussianCloud:
         """A copy with some fields replaced (arrays are shared, not copied)."""
@@ -196,7 +197,7 @@ class GaussianCloud:
             index = index.detach().cpu().numpy() if is_torch(index) else np.asarray(index)
             if index.dtype != bool:
                 index = index.astype(np.int64, copy=False)
-        fields = {name: getattr(self, name)[index] for name in _FIELDS}
+        fields = {name: getattr(self, name)[index] for name in PARAMETER_FIELDS}
         extra = {}
         for k, v in self.extra.items():
             if is_torch(v):
@@ -218,7 +219,7 @@ class GaussianCloud:
         clouds = [c.with_sh_degree(degree) for c in clouds]
         torch_mode = clouds[0].is_torch
         cat = _torch().cat if torch_mode else np.concatenate
-        fields = {name: cat([getattr(c, name) for c in clouds], 0) for name in _FIELDS}
+        fields = {name: cat([getattr(c, name) for c in clouds], 0) for name in PARAMETER_FIELDS}
         keys: list[str] = []
         for c in clouds:
             keys += [k for k in c.extra if k not in keys]
@@ -265,7 +266,7 @@ class GaussianCloud:
                 t = t.to(dtype=float_dtype)
             return t.to(device) if device is not None else t
 
-        fields = {name: conv(getattr(self, name), dtype) for name in _FIELDS}
+        fields = {name: conv(getattr(self, name), dtype) for name in PARAMETER_FIELDS}
         extra = {k: conv(v, None) for k, v in self.extra.items()}
         return GaussianCloud(**fields, extra=extra, background=self.background)
 
@@ -278,21 +279,21 @@ class GaussianCloud:
             a = x.detach().cpu().numpy() if is_torch(x) else np.asarray(x)
             return np.ascontiguousarray(a.astype(np.float32, copy=False) if float32 else a)
 
-        fields = {name: conv(getattr(self, name), True) for name in _FIELDS}
+        fields = {name: conv(getattr(self, name), True) for name in PARAMETER_FIELDS}
         extra = {k: conv(v, False) for k, v in self.extra.items()}
         return GaussianCloud(**fields, extra=extra, background=self.background)
 
     def detach(self) -> GaussianCloud:
         if not self.is_torch:
             return self
-        return GaussianCloud(**{n: getattr(self, n).detach() for n in _FIELDS},
+        return GaussianCloud(**{n: getattr(self, n).detach() for n in PARAMETER_FIELDS},
                              extra={k: v.detach() if is_torch(v) else v for k, v in self.extra.items()},
                              background=self.background)
 
     def copy(self) -> GaussianCloud:
         """Deep copy of every array."""
         dup = (lambda x: x.clone()) if self.is_torch else (lambda x: x.copy())
-        return GaussianCloud(**{n: dup(getattr(self, n)) for n in _FIELDS},
+        return GaussianCloud(**{n: dup(getattr(self, n)) for n in PARAMETER_FIELDS},
                              extra={k: (v.clone() if is_torch(v) else v.copy()) for k, v in self.extra.items()},
                              background=self.background)
 
@@ -364,7 +365,7 @@ class GaussianCloud:
     def nonfinite_rows(self) -> np.ndarray:
         """Rows (ascending) with a NaN or an infinity in any parameter."""
         c = self.numpy()
-        arrays = [getattr(c, name) for name in _FIELDS]
+        arrays = [getattr(c, name) for name in PARAMETER_FIELDS]
         with np.errstate(over="ignore", invalid="ignore"):  # a finite sum: every value is finite (cheap)
             if all(np.isfinite(a.sum()) for a in arrays):  # the usual case, without per-row bookkeeping
                 return np.zeros(0, np.int64)

@@ -1,10 +1,11 @@
 """The conventions of raw 3DGS parameters (DESIGN.md), defined once for the whole project.
 
 Parameters are stored raw, as the reference 3DGS PLY stores them, and activated on use with the
-functions here: log-scales through `exp`, opacity logits through the sigmoid, the SH DC term
-through `SH_C0 * dc + 0.5`. Each function takes numpy arrays or torch tensors and returns the
-same kind; torch is never imported here. (The float64 reference renderer keeps its own copies on
-purpose: it is the check on the fast path.)
+functions here: log-scales through `exp`, opacity logits through the sigmoid (`activate_opacities`
+clamped, `sigmoid` as it is), the SH DC term through `SH_C0 * dc + 0.5`. Each function takes numpy
+arrays or torch tensors and returns the same kind; torch is never imported here. (The float64
+reference renderer keeps its own copies on purpose: it is the check on the fast path; so do the
+compiled kernels, which call no Python.)
 """
 
 from __future__ import annotations
@@ -65,10 +66,24 @@ def activate_scales(log_scales):
     return x.exp() if is_torch(x) else np.exp(x)
 
 
+def sigmoid(x):
+    """The logistic 1 / (1 + exp(-x)) of opacity logits, unclamped: a logit of +inf is opacity 1 and
+    -inf opacity 0 exactly (DESIGN.md, Numerical guards), a large finite one rounds to 0 or 1 without
+    a warning. The project's one sigmoid (tests/test_layout.py): the formats and the add-on apply it
+    to the raw logits, `activate_opacities` to the clamped ones. torch: `Tensor.sigmoid`. numpy:
+    float32 stays float32, computed as Niantic's spz encoder does it (exp correctly rounded, via
+    float64, then 1 / (1 + e) in float32: the formats' 8-bit codes match its); the rest in float64."""
+    if is_torch(x):
+        return x.sigmoid()
+    dtype = np.float32 if np.asarray(x).dtype == np.float32 else np.float64
+    with np.errstate(over="ignore"):
+        e = np.exp(-np.asarray(x, np.float64)).astype(dtype, copy=False)
+    return dtype(1.0) / (dtype(1.0) + e)
+
+
 def activate_opacities(logits):
     """Opacities in [0, 1]: the sigmoid of the clamped logits."""
-    x = clip(logits, *OPACITY_LOGIT_RANGE)
-    return x.sigmoid() if is_torch(x) else 1.0 / (1.0 + np.exp(-x))
+    return sigmoid(clip(logits, *OPACITY_LOGIT_RANGE))
 
 
 def opacity_logit(p: float) -> float:

@@ -63,7 +63,7 @@ from .scenes import SPLITS, cache_dir, make_scene
 from .scenes.faults import FAULTS, faulted_scene
 from .superres import CHILD_GRADIENT, EXPOSURE_WEIGHT, POSE_WEIGHT, SuperResConfig, fit_octaves
 from .train import TrainConfig, fine_tune, scene_extent, train_progressive
-from .vae import GaussianVAE, default_model_dir
+from .vae import default_model_dir, load_model
 
 #: Methods in result rows.
 BASELINE, KNOB, REAL = "3dgs", "3dgs_knob", "3dgs_real"
@@ -552,7 +552,7 @@ def run_experiment(protocol: Protocol | str, *, model=None, detail=None, scenes=
     p = PROTOCOLS[protocol] if isinstance(protocol, str) else protocol
     model_dir = Path(model) if model is not None else default_model_dir()
     detail_dir = Path(detail) if detail is not None else model_dir
-    loaded = GaussianVAE.load(model_dir)
+    loaded = load_model(model_dir)
     detail_model = load_detail(detail_dir)
     pairs = [(name, seed) for name in (scenes or p.scenes) for seed in (seeds or p.seeds)]
     knob_pairs = [(name, p.seeds[0]) for name in p.knob_scenes]
@@ -594,7 +594,7 @@ def run_experiment(protocol: Protocol | str, *, model=None, detail=None, scenes=
                                           "scene_dir": str(run.scene_dir), "run_dir": str(run.run_dir),
                                           "log": run.log(), "seconds": run.seconds}
     doc["seconds"] = time.perf_counter() - t0
-    return _finite(doc)
+    return json_safe(doc)
 
 
 def _common_split(names) -> str:
@@ -609,7 +609,7 @@ def prepare_job(name: str, seed: int, protocol: Protocol, cache=None, device=Non
 def evaluate_job(run: SceneRun, model_dir, knob: float, extrapolation: float, detail_dir=None, device=None,
                  say=None) -> list[dict]:
     detail = load_detail(detail_dir) if detail_dir is not None else None
-    return run_scene(run, GaussianVAE.load(model_dir), knob, extrapolation, detail=detail, device=device,
+    return run_scene(run, load_model(model_dir), knob, extrapolation, detail=detail, device=device,
                      say=say or _print)
 
 
@@ -654,12 +654,12 @@ def _one_thread() -> None:
     torch.set_num_threads(1)
 
 
-def _finite(obj):
-    """JSON-safe copy: NaN and infinities become None."""
+def json_safe(obj):
+    """JSON-safe copy of results (dicts, lists, numpy numbers): NaN and infinities become None."""
     if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
+        return {k: json_safe(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
+        return [json_safe(v) for v in obj]
     if isinstance(obj, (np.floating, float)):
         return float(obj) if math.isfinite(obj) else None
     if isinstance(obj, np.integer):

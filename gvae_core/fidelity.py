@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from .antialias import DILATION_KEY, FILTER_KEY, max_sampling_rate
 from .budget import DEFAULT_FIDELITY
 from .camera import Camera
-from .cloud import _FIELDS, GaussianCloud
+from .cloud import PARAMETER_FIELDS, GaussianCloud
 from .conventions import NEAR_PLANE
 from .octaves import LIMIT_KEY, stored_keys, training_rate
 from .rendering import RenderSettings
@@ -92,7 +92,7 @@ def changed_rows(before: GaussianCloud, after: GaussianCloud) -> np.ndarray:
     if len(after) < n:
         raise ValueError(f"fidelity: the refined cloud has fewer rows ({len(after)}) than the input ({n})")
     diff = np.zeros(n, bool)
-    for name in _FIELDS:
+    for name in PARAMETER_FIELDS:
         diff |= (np.asarray(getattr(after, name))[:n] != np.asarray(getattr(before, name))).reshape(n, -1).any(1)
     for key in dict.fromkeys((FILTER_KEY, DILATION_KEY, *stored_keys(before), *stored_keys(after))):
         if key in before.extra and key in after.extra:
@@ -142,7 +142,7 @@ def revert_lineages(before: GaussianCloud, after: GaussianCloud, n_input: int, a
     keep_added = ~np.isin(added_roots, reverted)
     rows = np.concatenate([np.arange(n_input), n_input + np.flatnonzero(keep_added)])
     out = after.select(rows)
-    for name in _FIELDS:
+    for name in PARAMETER_FIELDS:
         getattr(out, name)[reverted] = getattr(before, name)[reverted]
     for key in stored_keys(out):  # their changes per octave too
         if key != LIMIT_KEY:

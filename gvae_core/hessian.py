@@ -43,8 +43,8 @@ from .conventions import LOG_SCALE_RANGE, SH_C1 as SH_C1_, SH_C2 as SH_C2_, SH_C
 from .rendering import RenderSettings, compiled, render
 from .rendering import projection as pj
 from .rendering.projection import Projected, project
-from .rendering.rasterize import (ALPHA_MAX, T_MIN, _alpha_and_transmittance, _tile_centres, _weights, composite,
-                                  live_blocks, pack, pair_table, tiles_to_image)
+from .rendering.rasterize import (ALPHA_MAX, T_MIN, alpha_and_transmittance, composite, compositing_weights,
+                                  live_blocks, pack, pair_table, tile_centres, tiles_to_image)
 from .rendering.frames import Frame
 from .rendering.tiles import bin_gaussians
 
@@ -121,7 +121,7 @@ def _gauss_newton_sweep(pairs: torch.Tensor, binning, acc: torch.Tensor, block: 
     local = torch.arange(p)
     for tiles, kmax in _tile_groups(binning, block, budget):
         b = tiles.shape[0]
-        cx, cy = _tile_centres(tiles, binning, dt)
+        cx, cy = tile_centres(tiles, binning, dt)
         inside = (((tiles % binning.tiles_x)[:, None] * ts + local % ts < width)
                   & ((tiles // binning.tiles_x)[:, None] * ts + local // ts < height)).to(dt)  # (B, P)
         start, count = binning.offsets[tiles], binning.counts[tiles]
@@ -135,8 +135,8 @@ def _gauss_newton_sweep(pairs: torch.Tensor, binning, acc: torch.Tensor, block: 
             was_done = done[active]
             t_prev = trans[active]
             t0 = torch.where(was_done, torch.zeros_like(t_prev), t_prev)
-            alpha, tr, mu, mv = _alpha_and_transmittance(gd, cx[active], cy[active], mono2t, t0)
-            w, kept = _weights(tr)  # (kb, B, P)
+            alpha, tr, mu, mv = alpha_and_transmittance(gd, cx[active], cy[active], mono2t, t0)
+            w, kept = compositing_weights(tr)  # (kb, B, P)
             if k0 + block < kmax:
                 trans[active] = torch.where(was_done, t_prev, torch.minimum(tr[0], kept.amin(0)))
                 done[active] = was_done | (tr[-1] < T_MIN)

@@ -37,7 +37,7 @@ from .antialias import DILATION_KEY, FILTER_KEY, with_dilation_3d
 from .budget import select_budget
 from .camera import Camera
 from .capture import default_views, scoring_views
-from .cloud import _FIELDS, GaussianCloud
+from .cloud import PARAMETER_FIELDS, GaussianCloud
 from .detail import DetailModel, detail_inputs, load_detail
 from .detail.persistence import CONFIG as DETAIL_CONFIG
 from .fidelity import DEFAULT_TOLERANCES, lineage_changes, revert_lineages, training_rate_views
@@ -48,7 +48,7 @@ from .octaves import has_octaves, octave_fields, with_octaves
 from .rendering.frames import Frame, make_frame
 from .resources import check_image_fit_memory, check_refine_memory, reuse_freed_memory
 from .superres import SuperResConfig, SuperResFit, capture_images, fit_octaves
-from .vae import GaussianVAE, load_default_model
+from .vae import GaussianVAE, load_default_model, load_model
 from .vae.features import FEATURE_LOG_SCALE_RANGE, FEATURE_POSITION_LIMIT
 
 
@@ -481,7 +481,7 @@ def refine_steps(cloud: GaussianCloud | RefineInput, *, steps: int = 1, budget: 
     if model is None:
         model = load_default_model()
     elif not isinstance(model, GaussianVAE):
-        model = GaussianVAE.load(model)
+        model = load_model(model)
     timings["load"] = time.perf_counter() - t0
 
     # progress: scoring (when there is any) takes most of the time
@@ -670,7 +670,7 @@ class _Growth:
         added = GaussianCloud.concat(self.new_parts) if self.new_parts else GaussianCloud.empty(self.src.sh_degree)
         out = self.src.append_children(added, np.concatenate([np.zeros(0, np.int64)] + self.born_from))  # copies
         for rows, values in self.updates:
-            for name in _FIELDS:
+            for name in PARAMETER_FIELDS:
                 getattr(out, name)[rows] = getattr(values, name)
         timings.update(model=self.model_time, assemble=time.perf_counter() - t0)
         timings["total"] = time.perf_counter() - t_start

@@ -25,7 +25,7 @@ from scipy import stats
 from .atomic import atomic_write_text
 from .experiment import (BASELINE, CONTROLS, DEFAULT, DUPLICATE, EXTRAPOLATION, FINETUNE, FOUR_X, IMAGES,
                          IMAGES_CHILDREN, IMAGES_NO_CHILDREN, KNOB, ORACLE, ORACLE_IMAGES, OURS, OURS_H, RANDOM, REAL,
-                         SPLIT, _finite)
+                         SPLIT, json_safe)
 
 METHOD_NAMES = {BASELINE: "3DGS, unrefined", KNOB: "global scale knob per octave", REAL: "3DGS on the real images",
                 OURS: "Ours (every Gaussian)", OURS_H: "Ours-∇²", SPLIT: "plain split", RANDOM: "random + model",
@@ -417,7 +417,7 @@ def write_report(doc: dict, out, *, command: str = "") -> Path:
     """results.json, README.md and the plots into `out`."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    doc = _finite(doc)
+    doc = json_safe(doc)
     atomic_write_text(out / "results.json", json.dumps(doc, indent=1) + "\n")
     split = doc.get("split", "test")
     res = Results(doc, split)

@@ -4,7 +4,10 @@ the same Hessian blocks, in every anti-aliasing mode and on the hard cases; thei
 
 from __future__ import annotations
 
+import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -190,3 +193,24 @@ def test_compiling_is_announced(monkeypatch):
     monkeypatch.setattr(compiled, "kernels_cached", lambda: True)
     compiled.compile_kernels(lambda fraction, message: said.append((fraction, message)))
     assert len(said) == 1
+
+
+_WARMED = ("import json; from gvae_core.rendering import compiled; compiled.compile_kernels(); k = compiled.kernels(); "
+           "print(json.dumps({n: [str(s) for s in getattr(k, n).signatures] for n in k.KERNELS}))")
+
+
+def test_compile_kernels_makes_ready_what_render_and_the_hessian_run():
+    """`compile_kernels` alone (in a fresh process) makes every kernel ready, with the argument types
+    that `render` (forward and backward, in each anti-aliasing mode) and the Hessian's sweep give it:
+    one set each, so nothing compiles again on first use. It drives the renderer's own steps (the
+    renderer imports nothing above it), so this is what ties it to the Hessian's use of them."""
+    proc = subprocess.run([sys.executable, "-c", _WARMED], capture_output=True, text=True, check=True)
+    warmed = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert all(len(s) == 1 for s in warmed.values()), warmed
+    for keys in ((), (FILTER_KEY,), (DILATION_KEY,)):
+        cloud = _with_sizes(random_cloud(30, 3, seed=5), *keys)
+        drawn = torch_cloud(cloud).replace(extra=cloud.extra)
+        render(drawn, camera(), settings=FAST).image.sum().backward()
+        hessian_blocks(cloud, [camera()], views=0, render_settings=RenderSettings(tile_size=4, kernels="compiled"))
+    k = compiled.kernels()
+    assert {n: [str(s) for s in getattr(k, n).signatures] for n in k.KERNELS} == warmed

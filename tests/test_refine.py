@@ -23,7 +23,7 @@ from gvae_core.refinement import RefineResult
 from gvae_core.refinement import refine as checked_refine
 from gvae_core.refinement import refine_steps as checked_refine_steps
 from gvae_core.rendering import render
-from gvae_core.vae import GaussianVAE
+from gvae_core.vae import GaussianVAE, load_model, save_model
 
 
 refine = functools.partial(checked_refine, fidelity=None)
@@ -266,7 +266,7 @@ def test_a_cloud_too_large_for_the_memory_is_refused_before_any_work(monkeypatch
 
 def test_cli_refine_and_fit(tmp_path, capsys):
     model_dir = tmp_path / "model"
-    _model(exist_logit=30.0).save(model_dir)
+    save_model(_model(exist_logit=30.0), model_dir)
     write_ply(_cloud(n=50), tmp_path / "in.ply")
     code = gvae(["refine", str(tmp_path / "in.ply"), str(tmp_path / "out.ply"), "--steps", "2", "--budget", "4",
                  "--model", str(model_dir), "--views", "1", "--resolution", "16", "--fidelity", "off"])
@@ -295,7 +295,7 @@ def test_cli_refine_and_fit(tmp_path, capsys):
                  str(tmp_path / "fitted"), "--steps", "3", "--batch", "8", "--quiet", "--d-model", "16",
                  "--layers", "1", "--decoder-hidden", "24"])
     assert code == 0
-    fitted = GaussianVAE.load(tmp_path / "fitted")
+    fitted = load_model(tmp_path / "fitted")
     assert fitted.meta["steps"] == 3 and "holdout" in fitted.meta["metrics"]
     for vae in (fitted.geometry, fitted.appearance):
         assert (vae.config.d_model, vae.config.layers, vae.config.decoder_hidden) == (16, 1, 24)
@@ -368,7 +368,7 @@ def test_cli_refines_a_stage_of_a_longer_run_with_the_capture_cameras(tmp_path, 
     """`gvae refine RUN/stage_1.ply out.ply --lineage RUN/lineage.npz --cameras transforms.json` on
     a run that went on to stage 2."""
     model_dir = tmp_path / "model"
-    _model(exist_logit=30.0).save(model_dir)
+    save_model(_model(exist_logit=30.0), model_dir)
     lin = _three_stage_lineage()
     run = tmp_path / "run"
     run.mkdir()

@@ -31,6 +31,7 @@ import gsply
 import numpy as np
 import ply2splat
 
+from gvae_core.conventions import sigmoid
 from gvae_core.examples import random_cloud
 from gvae_core.formats import read_splat_file, write_compressed_ply, write_splat, write_spz
 from gvae_core.formats.splat import RECORD
@@ -95,7 +96,7 @@ def diff(a, b) -> dict:
             x, y = normalize(x), normalize(y)
             d = np.minimum(np.abs(x - y).max(1), np.abs(x + y).max(1))
         elif k == "opacities":
-            d = np.abs(1 / (1 + np.exp(-x)) - 1 / (1 + np.exp(-y)))
+            d = np.abs(sigmoid(x) - sigmoid(y))
         elif x.shape != y.shape:
             out[k] = "shape"
             continue

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cloud import GaussianCloud
+from ..conventions import sigmoid
 from ..examples import random_cloud
 from ..formats import read_splat_file, write_compressed_ply, write_splat, write_spz
 from ..ply import PlyError, read_ply, write_ply
@@ -78,10 +79,10 @@ def run(args) -> None:
 def _errors(cloud: GaussianCloud, back: GaussianCloud) -> str:
     """Largest error of each parameter: quaternions normalised and sign-aligned, opacity after the sigmoid."""
     q, r = normalize(cloud.quats.astype(np.float64)), normalize(back.quats.astype(np.float64))
-    sig = lambda x: 1 / (1 + np.exp(-x.astype(np.float64)))  # noqa: E731
+    o, p = (sigmoid(c.opacities.astype(np.float64)) for c in (cloud, back))
     parts = {"means": np.abs(back.means - cloud.means), "log-scales": np.abs(back.scales - cloud.scales),
              "quats": np.minimum(np.abs(q - r).max(1), np.abs(q + r).max(1)),
-             "opacity": np.abs(sig(back.opacities) - sig(cloud.opacities)), "f_dc": np.abs(back.sh_dc - cloud.sh_dc)}
+             "opacity": np.abs(p - o), "f_dc": np.abs(back.sh_dc - cloud.sh_dc)}
     if back.sh_degree:
         parts["f_rest"] = np.abs(back.sh_rest - cloud.sh_rest)
     return ", ".join(f"{k} {float(v.max(initial=0)):.2g}" for k, v in parts.items())

@@ -31,13 +31,14 @@ from ..refinement import DEFAULT_BUDGETS, refine
 from ..rendering import RenderSettings
 from ..resources import estimate_refine_memory
 from ..scenes import cache_dir, scene_key
-from ..vae import GaussianVAE, copy_parent_baseline, default_model_dir, evaluate, load_runs, synthetic_transitions
+from ..vae import (GaussianVAE, copy_parent_baseline, default_model_dir, evaluate, load_model, load_runs,
+                   synthetic_transitions)
 
 
 def _load_model():
     directory = default_model_dir()
     if (directory / "config.json").is_file():
-        return GaussianVAE.load(directory), str(directory)
+        return load_model(directory), str(directory)
     return GaussianVAE.create(seed=0), "untrained (no bundled model)"
 
 

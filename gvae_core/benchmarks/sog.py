@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..cloud import GaussianCloud
+from ..conventions import sigmoid
 from ..examples import random_cloud
 from ..formats import read_splat_file, write_sog
 from ..formats.sog import morton_order
@@ -36,12 +37,12 @@ def errors(cloud: GaussianCloud, back: GaussianCloud) -> dict[str, tuple[float, 
     """(RMS, largest) error of each attribute of `back` against `cloud` (rows in the same order):
     quaternion components after normalising and aligning signs, opacity after the sigmoid."""
     q, r = normalize(cloud.quats.astype(np.float64)), normalize(back.quats.astype(np.float64))
-    sig = lambda x: 1 / (1 + np.exp(-x.astype(np.float64)))  # noqa: E731
+    o, p = (sigmoid(c.opacities.astype(np.float64)) for c in (cloud, back))
     same_sign = (np.abs(q - r).max(1) <= np.abs(q + r).max(1))[:, None]
     parts = {"position": np.abs(back.means - cloud.means),
              "rotation": np.where(same_sign, np.abs(q - r), np.abs(q + r)),
              "log-scale": np.abs(back.scales - cloud.scales),
-             "opacity": np.abs(sig(back.opacities) - sig(cloud.opacities)),
+             "opacity": np.abs(p - o),
              "f_dc": np.abs(back.sh_dc - cloud.sh_dc), "f_rest": np.abs(back.sh_rest - cloud.sh_rest)}
     return {k: (float(np.sqrt(np.mean(v.astype(np.float64) ** 2))), float(v.max(initial=0))) for k, v in parts.items()}
 

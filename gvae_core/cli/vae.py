@@ -103,7 +103,8 @@ def register(subparsers) -> None:
 
 
 def run_fit(args: argparse.Namespace) -> int:
-    from ..vae import FitConfig, GaussianVAE, copy_parent_baseline, evaluate, fit, load_runs, synthetic_transitions
+    from ..vae import (FitConfig, GaussianVAE, copy_parent_baseline, evaluate, fit, load_runs, save_model,
+                       synthetic_transitions)
 
     if not args.runs and args.synthetic <= 0:
         raise ValueError("fit-vae: give at least one RUN_DIR (or --synthetic N)")
@@ -155,7 +156,7 @@ def run_fit(args: argparse.Namespace) -> int:
         "train_scenes": [_scene_name(r) for r in args.runs], "held_out_scenes": [_scene_name(r) for r in args.holdout],
         "seed": args.seed, "seconds": round(result.seconds, 1), "metrics": metrics,
     }
-    model.save(args.out)
+    save_model(model, args.out)
     sizes = model.sizes()
     print(f"existence probabilities from: {existence}")
     print(f"trained in {result.seconds:.1f} s (+{time.perf_counter() - t0:.1f} s evaluation); saved to {args.out}: "

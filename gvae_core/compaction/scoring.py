@@ -21,8 +21,8 @@ from ..conventions import LOG_SCALE_RANGE
 from ..hessian import hessian_scores
 from ..rendering import RenderSettings, prepare_view
 from ..rendering.frames import Frame
-from ..rendering.rasterize import (T_MIN, _alpha_and_transmittance, _pixel_monomials, _tile_centres, _weights,
-                                   live_blocks, pair_table, tile_groups)
+from ..rendering.rasterize import (T_MIN, alpha_and_transmittance, compositing_weights, live_blocks, pair_table,
+                                   pixel_monomials, tile_centres, tile_groups)
 
 #: Per-Gaussian scores `compact` can rank by: the default, then the baselines.
 SCORES = ("hessian", "lightgaussian", "opacity", "random")
@@ -79,10 +79,10 @@ def _table_hits(table: torch.Tensor, binning, settings: RenderSettings, cam: Cam
     ts = binning.tile_size
     p = ts * ts
     local = torch.arange(p)
-    mono = _pixel_monomials(ts, pairs.dtype, pairs.device)
+    mono = pixel_monomials(ts, pairs.dtype, pairs.device)
     for tiles, kmax in tile_groups(binning, settings.block, settings.budget):
         b = tiles.shape[0]
-        cx, cy = _tile_centres(tiles, binning, pairs.dtype)
+        cx, cy = tile_centres(tiles, binning, pairs.dtype)
         inside = (((tiles % binning.tiles_x)[:, None] * ts + local % ts < cam.width)
                   & ((tiles // binning.tiles_x)[:, None] * ts + local // ts < cam.height))
         start, count = binning.offsets[tiles], binning.counts[tiles]
@@ -93,8 +93,8 @@ def _table_hits(table: torch.Tensor, binning, settings: RenderSettings, cam: Cam
             was_done = done[active]
             t_prev = trans[active]
             t0 = torch.where(was_done, torch.zeros_like(t_prev), t_prev)
-            _, tr, _, _ = _alpha_and_transmittance(gd, cx[active], cy[active], mono, t0)
-            w, kept = _weights(tr)
+            _, tr, _, _ = alpha_and_transmittance(gd, cx[active], cy[active], mono, t0)
+            w, kept = compositing_weights(tr)
             if k0 + settings.block < kmax:
                 trans[active] = torch.where(was_done, t_prev, torch.minimum(t0, kept.amin(0)))
                 done[active] = was_done | (tr[-1] < T_MIN)

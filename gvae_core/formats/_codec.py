@@ -14,6 +14,7 @@ import warnings
 import numpy as np
 
 from ..cloud import GaussianCloud
+from ..conventions import sigmoid
 from ..ply import PlyError
 
 #: Decoded opacity of the end codes 0 and 255, in steps of 1/255 from their end of [0, 1].
@@ -48,11 +49,8 @@ def byte_codes(values) -> np.ndarray:
 
 def opacity_codes(logits) -> np.ndarray:
     """8-bit codes of the activated opacities, round(255 * sigmoid(logit)), computed as Niantic's
-    encoder does in float32: 1 / (1 + expf(-x)), expf correctly rounded (via float64)."""
-    x = np.asarray(logits, np.float32)
-    with np.errstate(over="ignore"):
-        e = np.exp(-x.astype(np.float64)).astype(np.float32)
-    return byte_codes(np.float32(1.0) / (np.float32(1.0) + e) * np.float32(255.0))
+    encoder does in float32 (`conventions.sigmoid` of float32 logits)."""
+    return byte_codes(sigmoid(np.asarray(logits, np.float32)) * np.float32(255.0))
 
 
 def _opacity_table() -> np.ndarray:

@@ -74,7 +74,7 @@ import numpy as np
 from .. import quaternions
 from ..atomic import atomic_write
 from ..cloud import GaussianCloud
-from ..conventions import SH_C0, SH_REST_COUNTS, srgb_to_linear
+from ..conventions import SH_C0, SH_REST_COUNTS, sigmoid, srgb_to_linear
 from ..ply import PlyError, drop_nonfinite
 from ..transform import affine, flip_axes, sh_rotation
 from ._codec import writable
@@ -806,7 +806,7 @@ def _encode(c: GaussianCloud, start: int, stop: int, sh_signs: np.ndarray, huge:
     xyzw[~good, 3] = 1.0
     with np.errstate(over="ignore"):
         linear = np.exp(c.scales[start:stop].astype(np.float64)).astype(f32)
-        alpha = (1.0 / (1.0 + np.exp(-c.opacities[start:stop].astype(np.float64)))).astype(f32)
+        alpha = sigmoid(c.opacities[start:stop].astype(np.float64)).astype(f32)
     inf = np.isinf(linear)
     huge.append(int(inf.sum()))
     linear[inf] = np.finfo(f32).max

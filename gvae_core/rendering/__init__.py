@@ -3,10 +3,12 @@
 `render(cloud, camera)` follows "Rendering semantics" in DESIGN.md; `reference.render_reference`
 is the slow float64 per-pixel loop it is tested against. Stages: `projection` (per Gaussian;
 positions relative to the camera in float64, the rest in the working dtype), `tiles` (exact
-footprint-tile binning, depth order), `rasterize` (blocked compositing, recomputing backward);
+footprint-tile binning, depth order), `rasterize` (blocked compositing, recomputing backward;
+its steps are public for the sweeps that recompute it: the Hessian's, compaction's scoring);
 `frames` keeps a view's table and tile lists to redraw it after a few Gaussians changed.
 On the CPU in float32 the stages run as compiled kernels (`compiled`, `kernels`: Numba), which
-the torch code is the reference for; `RenderSettings.kernels` chooses.
+the torch code is the reference for; `RenderSettings.kernels` chooses; `compiled.compile_kernels`
+makes them all ready at once. The renderer imports nothing above it (tests/test_layout.py).
 
 On a machine shared with other work, run with OMP_WAIT_POLICY=PASSIVE in the environment (set
 before torch is imported): spinning OpenMP threads otherwise stall each other (measured 20x).

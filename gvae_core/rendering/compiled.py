@@ -1,7 +1,8 @@
 """The renderer's compiled CPU path: `kernels` (Numba) driven from torch tensors.
 
 What runs here: the projection (and its backward, `ProjectFunction`), tile binning, the
-compositing (and its backward, through `rasterize.RasterizeFunction`) and the Hessian's sweep,
+compositing (and its backward, through `rasterize.RasterizeFunction`) and the Gauss-Newton sweep
+(each Gaussian's moments of its pixel derivatives and its blocks, what `gvae_core.hessian` scores),
 for float32 tensors on the CPU. The torch code beside it (`projection`, `tiles`, `rasterize`) is
 the reference these are tested against and what runs on a GPU, in float64 and with
 `RenderSettings(kernels="torch")`.
@@ -11,6 +12,7 @@ there is no threading layer of Numba's, and nothing global is set; `torch.get_nu
 threads, as the torch path uses. The first call of each kernel in a process loads it from the
 on-disk cache (`kernels.kernel_cache_dir`, a user cache directory) or, the first time on a machine,
 compiles it (`compile_kernels` does all of it at once and says so; `kernels.KERNELS` lists them).
+Nothing here imports a module above the renderer (tests/test_layout.py).
 """
 
 from __future__ import annotations
@@ -291,7 +293,7 @@ def composite_backward(table: torch.Tensor, binning: Binning, acc: torch.Tensor,
     return torch.from_numpy(grad_table)
 
 
-# ------------------------------------------------------------------------------ the Hessian's sweep
+# ------------------------------------------------------------------------------ the Gauss-Newton sweep
 
 def gauss_newton_moments(table: torch.Tensor, binning: Binning, acc: torch.Tensor, width: int, height: int,
                          out: np.ndarray) -> None:
@@ -340,27 +342,31 @@ def kernels_cached() -> bool:
 
 
 def compile_kernels(progress: Callable[[float, str], None] | None = None) -> float:
-    """Make every kernel ready in this process: loaded from the on-disk cache, or compiled where it
-    is not there (the first run on a machine or after an update). Calls progress(0, message) first
-    when something must be compiled. Returns the seconds it took."""
-    from ..cloud import GaussianCloud  # noqa: PLC0415 - (a tiny scene drives every kernel once)
-    from ..hessian import hessian_blocks  # noqa: PLC0415
-    from . import RenderSettings, render  # noqa: PLC0415
+    """Make every kernel (`kernels.KERNELS`) ready in this process: loaded from the on-disk cache, or
+    compiled where it is not there (the first run on a machine or after an update). Calls
+    progress(0, message) first when something must be compiled. Returns the seconds it took.
 
+    A tiny scene goes once through each step of this module, forward and backward, with the argument
+    types that `render` and the Gauss-Newton sweep give the kernels (one set each: tests/test_kernels.py
+    holds them to it), so that what is made ready here is what they run."""
     t0 = time.perf_counter()
     if progress is not None and not kernels_cached():
         progress(0.0, "Compiling the renderer's CPU kernels (first run only, up to a minute)")
+    n, degree = 8, 3
     rng = np.random.default_rng(0)
-    cloud = GaussianCloud(means=rng.normal(0, 0.3, (8, 3)), scales=np.full((8, 3), -2.0),
-                          quats=rng.normal(size=(8, 4)), opacities=np.zeros(8), sh_dc=np.zeros((8, 3)),
-                          sh_rest=np.zeros((8, 15, 3)))
+    fields = (torch.tensor(rng.normal(0, 0.3, (n, 3)), dtype=torch.float32, requires_grad=True),
+              torch.full((n, 3), -2.0), torch.tensor(rng.normal(size=(n, 4)), dtype=torch.float32), torch.zeros(n),
+              torch.zeros((n, 3)), torch.zeros((n, 15, 3)))
     cam = Camera.look_at((2.0, 0.5, 1.0), width=8, height=8)
-    means = torch.tensor(cloud.means, dtype=torch.float32, requires_grad=True)
-    drawn = cloud.to_torch().replace(means=means)
-    render(drawn, cam, settings=RenderSettings(kernels="compiled")).image.sum().backward()
-    hessian_blocks(cloud, [cam], render_settings=RenderSettings(kernels="compiled", tile_size=4))
+    proj, table = project(*fields, cam, degree)
+    binning = bin_gaussians(table, proj.footprint, proj.visible, cam.width, cam.height, tile_size=4)
+    acc = composite_forward(table, binning)
+    table.backward(composite_backward(table, binning, acc, torch.ones_like(acc)))
+    moments = np.zeros((n, kernels().NMOM), np.float32)
+    gauss_newton_moments(table, binning, acc, cam.width, cam.height, moments)
+    blocks = np.zeros((n, 21), np.float64)  # a packed 6x6 block each
+    gaussian_blocks(Inputs(*fields), cam, degree, 1.0, table, moments, blocks)
     return time.perf_counter() - t0
-
 
 
 def main() -> None:

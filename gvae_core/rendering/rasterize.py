@@ -19,6 +19,11 @@ budget. On the CPU in float32 the same Function runs the compiled kernels instea
 (`compiled.composite_forward` / `composite_backward`: tile by tile, pixel by pixel), which this
 code is the reference for. `differentiable_composite` is an independent formulation with plain autograd ops
 (it stores everything): a cross-check for the hand-written backward and a fallback.
+
+Other sweeps over the tile lists recompute the compositing with its steps, which are public for
+them (the Hessian's Gauss-Newton sweep, compaction's scoring): `tile_groups`, `pair_table`,
+`live_blocks` (the blocks front to back), `pixel_monomials`, `tile_centres`,
+`alpha_and_transmittance` and `compositing_weights` (every rule above, the cap, skip and stop).
 """
 
 from __future__ import annotations
@@ -72,7 +77,7 @@ def tile_groups(binning: Binning, block: int, budget: int) -> list[tuple[torch.T
     return groups
 
 
-def _pixel_monomials(ts: int, dtype, device) -> torch.Tensor:
+def pixel_monomials(ts: int, dtype, device) -> torch.Tensor:
     """(6, P): 1, u, v, u², uv, v² of each pixel centre relative to its tile's centre."""
     r = torch.arange(ts, dtype=dtype, device=device) - (ts - 1) / 2.0
     u = r.repeat(ts)
@@ -80,7 +85,8 @@ def _pixel_monomials(ts: int, dtype, device) -> torch.Tensor:
     return torch.stack([torch.ones_like(u), u, v, u * u, u * v, v * v], 0)
 
 
-def _tile_centres(tiles, binning: Binning, dtype):
+def tile_centres(tiles, binning: Binning, dtype):
+    """(cx, cy): the pixel coordinates of the centres of `tiles` (indices, row-major), in `dtype`."""
     ts = binning.tile_size
     cx = (tiles % binning.tiles_x).to(dtype) * ts + ts / 2.0
     cy = (tiles // binning.tiles_x).to(dtype) * ts + ts / 2.0
@@ -117,9 +123,12 @@ def pair_table(table: torch.Tensor, binning: Binning) -> torch.Tensor:
     return out
 
 
-def _alpha_and_transmittance(gd, cx, cy, mono, t0):
-    """alpha (kb,B,P), transmittance T (kb+1,B,P) with T[0] = t0, and the quadratic's
-    per-pair offsets mu, mv (kb,B) of the Gaussian centre from the tile centre."""
+def alpha_and_transmittance(gd, cx, cy, mono, t0):
+    """One block of the compositing of B tiles: from the pairs' table rows gd (kb,B,11) (`pair_table`
+    rows at `live_blocks`' indices), the tiles' centres cx, cy (B,) (`tile_centres`), the pixel
+    monomials (6,P) (`pixel_monomials`) and the transmittance t0 (B,P) before the block: alpha
+    (kb,B,P) (capped at ALPHA_MAX, 0 below ALPHA_MIN), transmittance T (kb+1,B,P) with T[0] = t0,
+    and the quadratic's per-pair offsets mu, mv (kb,B) of the Gaussian centre from the tile centre."""
     kb, b = gd.shape[:2]
     p = mono.shape[1]
     mu = gd[..., MX] - cx
@@ -137,8 +146,10 @@ def _alpha_and_transmittance(gd, cx, cy, mono, t0):
     return alpha, trans, mu, mv
 
 
-def _weights(trans):
-    """w (kb,B,P) = alpha*T of kept contributions, and T_kept = T after each, or 2 past the stop."""
+def compositing_weights(trans):
+    """The stop rule on a block's transmittance T (kb+1,B,P) (`alpha_and_transmittance`): w (kb,B,P)
+    = alpha*T of the kept contributions (0 from the Gaussian that would take T below T_MIN on), and
+    T_kept = T after each, or 2 past the stop."""
     kept = F.threshold(trans[1:], _below(T_MIN, trans.dtype), 2.0)
     return torch.sub(trans[:-1], kept).clamp_(min=0.0), kept
 
@@ -152,10 +163,10 @@ def _run_group(pairs, binning, tiles, kmax, block, gvec=None, grad_pairs=None, a
     table = pairs
     dt, dev = table.dtype, table.device
     ts = binning.tile_size
-    mono = _pixel_monomials(ts, dt, dev)
+    mono = pixel_monomials(ts, dt, dev)
     p = ts * ts
     b = tiles.shape[0]
-    cx_all, cy_all = _tile_centres(tiles, binning, dt)
+    cx_all, cy_all = tile_centres(tiles, binning, dt)
     start = binning.offsets[tiles]
     count = binning.counts[tiles]
     trans = torch.ones((b, p), dtype=dt, device=dev)
@@ -171,8 +182,8 @@ def _run_group(pairs, binning, tiles, kmax, block, gvec=None, grad_pairs=None, a
         was_done = done[active]
         t_prev = trans[active]
         t0 = torch.where(was_done, torch.zeros_like(t_prev), t_prev)
-        alpha, tr, mu, mv = _alpha_and_transmittance(gd, cx_all[active], cy_all[active], mono, t0)
-        w, kept = _weights(tr)
+        alpha, tr, mu, mv = alpha_and_transmittance(gd, cx_all[active], cy_all[active], mono, t0)
+        w, kept = compositing_weights(tr)
         if k0 + block < kmax:  # carried to the next block
             trans[active] = torch.where(was_done, t_prev, torch.minimum(t0, kept.amin(0)))
             done[active] = was_done | (tr[-1] < T_MIN)

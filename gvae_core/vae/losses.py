@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from scipy.optimize import linear_sum_assignment
 
 from .. import quaternions
-from ..conventions import SH_C0
+from ..conventions import SH_C0, sigmoid
 from ..lineage import (APP_OPACITY, APP_SH_DC, APP_SH_REST, APPEARANCE_DIM, GEO_LOG_SCALE, GEO_POSITION, GEO_QUAT,
                        GEOMETRY_DIM)
 from ..lineage import Transition
@@ -82,8 +82,7 @@ def appearance_error(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
     coefficients and the opacity (activated); the true values are bounded as the model's inputs."""
     colour = ((SH_C0 * (pred[..., APP_SH_DC] - true[..., APP_SH_DC])) ** 2).sum(-1)
     sh = ((pred[..., APP_SH_REST] - true[..., APP_SH_REST].clamp(-SH_REST_LIMIT, SH_REST_LIMIT)) ** 2).sum(-1)
-    opacity = (torch.sigmoid(pred[..., APP_OPACITY])
-               - torch.sigmoid(true[..., APP_OPACITY].clamp(*FEATURE_OPACITY_RANGE))) ** 2
+    opacity = (sigmoid(pred[..., APP_OPACITY]) - sigmoid(true[..., APP_OPACITY].clamp(*FEATURE_OPACITY_RANGE))) ** 2
     return colour + sh + opacity
 
 

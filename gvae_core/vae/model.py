@@ -12,13 +12,14 @@ Decoding: a child's centre is the last node's centre plus an offset in its local
 of its per-axis standard deviations (how 3DGS itself places split children), bounded by tanh;
 its rotation is the last node's composed with a predicted relative rotation (so the geometry
 model is rotation-equivariant); log-scale and appearance changes are bounded.
+
+Files are `persistence`'s: `save_model` and `load_model` (this module knows none).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -279,19 +280,6 @@ class GaussianVAE:
         p = {"geometry": g[..., GEO_EXIST], "appearance": a[..., APP_EXIST]}.get(
             source, 0.5 * (g[..., GEO_EXIST] + a[..., APP_EXIST]))
         return g, a, p.clone(), flags
-
-    def save(self, directory) -> Path:
-        """Write the weights and config into `directory` (`persistence.save_model`)."""
-        from .persistence import save_model  # noqa: PLC0415 - persistence imports this module
-
-        return save_model(self, directory)
-
-    @classmethod
-    def load(cls, directory) -> GaussianVAE:
-        """A model written by `save` (`persistence.load_model`)."""
-        from .persistence import load_model  # noqa: PLC0415 - persistence imports this module
-
-        return load_model(directory)
 
     def sizes(self) -> dict[str, int]:
         return {"geometry": model_bytes(self.geometry), "appearance": model_bytes(self.appearance)}

@@ -1,5 +1,6 @@
 """Saving and loading a `GaussianVAE`: safetensors weights plus a JSON config, so that nothing is
-unpickled on load; and where the bundled model lives."""
+unpickled on load; and where the bundled model lives. The model's one door to files: `save_model`
+and `load_model` (`model` imports nothing of this module)."""
 
 from __future__ import annotations
 

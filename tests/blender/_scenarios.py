@@ -179,7 +179,7 @@ def scenario_install(bpy, args: dict) -> dict:
     if args.get("model_dir"):
         try:
             import gvae_core.refinement  # noqa: F401
-            from gvae_core.vae import GaussianVAE, load_default_model
+            from gvae_core.vae import GaussianVAE, load_default_model, save_model
         except Exception as exc:
             res.update(model=None, what=f"gvae_core.refinement is not importable: {exc}")
             return res
@@ -187,7 +187,7 @@ def scenario_install(bpy, args: dict) -> dict:
             load_default_model()
             res.update(model="", what="bundled model")
         except Exception:
-            path = GaussianVAE.create(seed=0).save(args["model_dir"])
+            path = save_model(GaussianVAE.create(seed=0), args["model_dir"])
             res.update(model=str(path), what="untrained weights")
     return res
 

@@ -18,12 +18,12 @@ pytestmark = requires_bpy
 def test_refine_job_progress_cancel_failure_and_modal_events(extension_zip, tmp_path):
     pytest.importorskip("torch", reason="the real refine needs PyTorch (an optional runtime in Blender)")
     requires_blender_torch()
-    from gvae_core.vae import GaussianVAE  # noqa: PLC0415 - after the check for torch
+    from gvae_core.vae import GaussianVAE, save_model  # noqa: PLC0415 - after the check for torch
 
     n = 48
     src = tmp_path / "in.ply"
     write_ply(make_cloud(n, degree=1), src)
-    model = GaussianVAE.create(seed=0).save(tmp_path / "model")  # untrained: the data path, not the model
+    model = save_model(GaussianVAE.create(seed=0), tmp_path / "model")  # untrained: the data path, not the model
     res = run_scenario("refine_job", tmp_path, extension_zip, ply=str(src), model=str(model))
     k = n // 4
     # success: progress rose while the main thread kept working; the object changed only at finish
