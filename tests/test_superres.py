@@ -25,7 +25,7 @@ from gvae_core.scenes.faults import FAULTS, faulted_scene
 from gvae_core.superres import ImageMismatchError, SuperResConfig, capture_images, fit_octaves
 from gvae_core.detail.fit import crop
 from gvae_core.superres.children import CHILD_LOGIT
-from gvae_core.superres.fit import _reach, _reaching
+from gvae_core.superres.fit import _reach, _reaching, _tiles, holdout_rows
 from gvae_core.superres.guards import ExposureCorrection, PoseCorrection, _skew
 
 H = 24  # training height of the synthetic capture
@@ -265,16 +265,17 @@ def test_visible_adam_is_adam_on_rows_seen_and_leaves_the_others_where_they_are(
 
 
 def test_a_fit_the_held_out_images_do_not_like_is_not_kept():
-    """Every 8th image judges the fit instead of being fitted; a fit that draws them worse than the
-    changes it started from (and than the input) is not kept, and the summary says so; with too few
-    images to hold any out, its own images judge it."""
+    """Every 8th image judges the fit instead of being fitted; a fit that draws them far worse than
+    its best is stopped and taken back; one that does not draw them better than its step 0 is not
+    kept (the better of the detail model's changes and the input instead), and the summary says so;
+    with too few images to hold any out, its own images judge it."""
     _, trained, views = _capture(n_views=16, n=150)
     detail = refine(trained, fidelity=None).cloud
     for start in ("detail", "zero"):
         r = refine(trained, images=views, fit=SuperResConfig(steps=6, start=start, lr=300.0, check_every=0.1))
         fit = r.fit
         assert fit.holdout_views == 2 and fit.images == 14 and fit.kept != "fit" and not fit.improves
-        assert fit.steps_best == 0  # no check after a step drew them better than where it started
+        assert fit.fit_step == 0 and fit.steps_run < fit.steps_planned  # stopped, back at its step 0
         assert "so not kept" in r.summary() and "held-out images" in r.summary()
         # the better of the two on the held-out images, drawn at 2x exactly as it is
         same_as = detail if start == "detail" and fit.holdout_start > fit.holdout_input else trained
@@ -285,5 +286,32 @@ def test_a_fit_the_held_out_images_do_not_like_is_not_kept():
     r = refine(trained, images=few, fit=SuperResConfig(steps=4, start="zero", lr=300.0))
     assert r.fit.holdout_views == 0 and r.fit.kept == "start" and "no images held out" in r.summary()
     good = refine(trained, images=views, fit=SuperResConfig(steps=24, start="zero", lr=3.0, check_every=0.2))
-    assert good.fit.kept == "fit" and good.fit.holdout_fit > good.fit.holdout_input
+    assert good.fit.kept == "fit" and good.fit.holdout_fit > good.fit.holdout_begin
+    assert good.fit.fit_step == good.fit.steps_run == good.fit.steps_planned  # ran its steps: the last state kept
     assert [s for s, _ in good.fit.checks][0] == 0 and len(good.fit.checks) > 2
+
+
+def test_tiles_cover_each_image_and_held_out_rows_are_spread():
+    for width, height, patch in ((100, 75, 32), (64, 48, 0), (40, 30, 64), (33, 17, 16)):
+        covered = np.zeros((height, width), int)
+        for x0, y0, w, h in _tiles(width, height, patch):
+            assert 0 <= x0 and x0 + w <= width and 0 <= y0 and y0 + h <= height
+            covered[y0:y0 + h, x0:x0 + w] += 1
+        assert covered.min() >= 1, (width, height, patch)
+    assert holdout_rows(84, 8).tolist() == [4, 12, 20, 28, 36, 44, 52, 60, 68, 76]
+    assert len(holdout_rows(15, 8)) == 0 and len(holdout_rows(84, 0)) == 0
+
+
+def test_several_views_a_step_tiles_and_the_pull_towards_the_start():
+    """The steps a fit plans are its passes over the (image, tile) pairs over the views a step sums;
+    pulling the changes back towards their start keeps them smaller."""
+    _, trained, views = _capture(n_views=6, n=200)
+    plain = fit_octaves(trained, views, 1, SuperResConfig(epochs=2, patch=12, views_per_step=2, start="zero",
+                                                          holdout=0))
+    assert plain.steps_planned == plain.steps_run == math.ceil(2 * 6 * 4 / 2)  # four 12 px tiles a 24 px image
+    assert all(np.isfinite(v).all() for v in plain.changes.values())
+    pulled = fit_octaves(trained, views, 1, SuperResConfig(epochs=2, patch=12, views_per_step=2, start="zero",
+                                                           holdout=0, pull=0.5))
+    size = {name: sum(float(np.abs(f.changes[k]).sum()) for k in ("scales", "means", "sh_dc")) for name, f in
+            (("plain", plain), ("pulled", pulled))}
+    assert size["pulled"] < 0.7 * size["plain"], size

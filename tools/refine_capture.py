@@ -75,6 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     where.add_argument("--run", type=Path, help="a finished `gvae train --test-every` run")
     where.add_argument("--scene", help="a benchmark scene, trained with the quick protocol to its training resolution")
     p.add_argument("--seed", type=int, default=0, help="--scene: the 3DGS seed of its run")
+    p.add_argument("--cloud", type=Path, help="the cloud to refine instead of the run's last stage (the same run's "
+                   "stage trained further: `gvae train RUN --more N`)")
     p.add_argument("--out", type=Path, required=True, help="JSON of the rows (rewritten after each)")
     p.add_argument("--rows", nargs="+", default=list(ROWS[:5]), choices=ROWS)
     p.add_argument("--real-run", type=Path, help="a run trained at 2H for the `real` row")
@@ -94,13 +96,14 @@ def main(argv: list[str] | None = None) -> int:
     stage = int(run["stages_done"]) - 1
     height = config.resolutions[stage]
     capture = read_capture(run["data"], config.test_every)
-    cloud = read_ply(args.run / f"stage_{stage}.ply")
+    cloud = read_ply(args.cloud or args.run / f"stage_{stage}.ply")
     train = capture.load("train", height)
     test = {2 * height: capture.load("test", 2 * height), height: capture.load("test", height)}
     fit = SuperResConfig(**{k: _value(v) for k, v in (kv.split("=", 1) for kv in args.fit)})
     print(f"{capture.summary()}\ncloud {len(cloud)} Gaussians at {height} px; held-out photos at {2 * height} and "
           f"{height} px; fit {fit}", flush=True)
-    doc = {"run": str(args.run), "height": height, "gaussians": len(cloud), "fit": repr(fit), "rows": {}}
+    doc = {"run": str(args.run), "cloud": str(args.cloud or ""), "height": height, "gaussians": len(cloud),
+           "fit": repr(fit), "rows": {}}
     clouds = {}
 
     def record(name: str, result, seconds: float, **info) -> None:

@@ -48,8 +48,11 @@ def register(subparsers) -> None:
                    help="merge Gaussians pairwise, after dropping the lowest-scoring tenth (default), or drop the "
                    "lowest scores only")
     c.add_argument("--images", type=Path, default=None, metavar="DATASET",
-                   help="the capture's training images (a NeRF-Synthetic folder with transforms_train.json, or a "
-                   "COLMAP capture: sparse model and images/): compact in rounds, fine-tuning after each")
+                   help="the capture's training images (a COLMAP capture, a transforms.json with its images or a "
+                   "NeRF-Synthetic folder: what gvae train reads): compact in rounds, fine-tuning after each")
+    c.add_argument("--test-every", type=int, default=None, metavar="N",
+                   help="with --cameras/--images: every N-th image of the capture (by name) was held out from "
+                   "training (gvae train --test-every N): not used here either (default: none)")
     c.add_argument("--distill", type=_distill, default="auto", metavar="ITERATIONS",
                    help="without images: fine-tune this many iterations a round against the input's own renders "
                    "(32 views of --cameras, else placed around the cloud, at the training resolution); 0: score, drop "
@@ -92,7 +95,7 @@ def parse_keep(text: str) -> float:
     return value
 
 
-def _image_height(cloud, images_path: Path) -> int | None:
+def _image_height(cloud, images_path: Path, test_every: int | None = None) -> int | None:
     """The height at which the capture's cameras sample the cloud as its training did (the median
     over the cameras of `fidelity.training_rate_views`), or None when the cloud does not say."""
     import numpy as np  # noqa: PLC0415
@@ -103,7 +106,7 @@ def _image_height(cloud, images_path: Path) -> int | None:
 
     if not {FILTER_KEY, DILATION_KEY} & set(cloud.extra):
         return None
-    cams = load_cameras(images_path)
+    cams = load_cameras(images_path, test_every)
     pick = np.linspace(0, len(cams) - 1, min(len(cams), 8)).round().astype(int)
     heights = [c.height for c in training_rate_views(cloud, [cams[i] for i in pick])]
     return int(np.median(heights))
@@ -120,13 +123,15 @@ def run_compact(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.output}: OUT must not be IN (the input is left as it is)")
     if args.images is None and (args.image_height is not None or args.iterations is not None):
         raise ValueError("--iterations and --image-height need --images")
+    if args.test_every is not None and args.images is None and args.cameras is None:
+        raise ValueError("--test-every needs --cameras or --images")
     t0 = time.perf_counter()
     cloud = read_splat_file(args.input, sanitize=args.sanitize)
-    cameras = load_cameras(args.cameras) if args.cameras is not None else None
+    cameras = load_cameras(args.cameras, args.test_every) if args.cameras is not None else None
     images = None
     if args.images is not None:
-        height = args.image_height or _image_height(cloud, args.images)
-        images = load_capture_images(args.images, height)
+        height = args.image_height or _image_height(cloud, args.images, args.test_every)
+        images = load_capture_images(args.images, height, args.test_every)
     t_read = time.perf_counter() - t0
     progress = progress_lines()
     result = compact(cloud, keep=keep, count=args.count, tolerance=args.tolerance, cameras=cameras, views=args.views,

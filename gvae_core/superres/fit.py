@@ -10,11 +10,16 @@ finer than any one of them resolves. At the training resolution nothing is drawn
 construction), so the picture the images were fitted with stays the input's.
 
 A fit is judged on images it did not fit: every `holdout`-th image is held out, the fit runs on
-the rest, and the held-out ones, drawn at 2x and averaged down, say how it is going (checked every
-`check_every` passes, the best state kept, stopped after `patience` checks without a gain) and
-which of the fit, the changes it started from and the input as it was is kept (`SuperResFit.kept`).
-A fit that reproduces its own images better proves nothing: on a real capture it reproduced them
-2.7 dB better and the photos it did not see no better.
+the rest, and the held-out ones, drawn at 2x and averaged down, are checked every `check_every`
+passes: a fit that draws them more than `tolerance` dB worse than its best is stopped and taken back
+to its best; and the fit is kept only if it draws them better than the changes it started from
+(its step 0), else the better of the detail model's changes and the input as it was
+(`SuperResFit.kept`). A fit that reproduces its own images better proves nothing: on a real capture
+it reproduced them 2.7 dB better and the photos it did not see no better. The held-out images are at
+the training resolution: what they see of a fit is its changes' side effects there, not the detail
+it adds above it (on the validation objects their figure peaks early or falls while the 2x picture
+keeps improving, BENCHMARKS.md), so they guard against a fit that goes wrong, and do not choose
+the step it stops at: it runs its steps unless they trip the guard.
 
 Each step draws `views_per_step` (image, tile) pairs (whole images by default; tiles that cover
 each image with `patch`; every pixel visited once a pass), an octave k, renders at 2^k times the
@@ -81,7 +86,8 @@ class SuperResConfig:
     share of its distance from where it started a seen change gives back each step (0: none);
     holdout: every n-th image (of the images given, in their order) judges the fit instead of being
     fitted (0, or fewer than 16 images: none, the fitted images judge it); check_every: passes between
-    checks on them; patience: checks without a gain before the fit stops; pose / exposure: the penalty weight
+    checks on them; tolerance: how far (dB) below their best figure the fit may draw them before it is
+    stopped and taken back to its best; pose / exposure: the penalty weight
     of the per-image guard (`guards`), None: off; children: the view-space gradient (NDC, the
     reference's units) at which a Gaussian densifies (`CHILD_GRADIENT`, the reference 3DGS's), None
     (the default): no children; densify_at: when, as fractions of the steps; max_children: at most
@@ -101,7 +107,7 @@ class SuperResConfig:
     pull: float = 0.0
     holdout: int = 8
     check_every: float = 0.5
-    patience: int = 2
+    tolerance: float = 1.0
     lambda_dssim: float = 0.2
     pose: float | None = None
     exposure: float | None = None
@@ -125,9 +131,9 @@ class SuperResConfig:
             raise ValueError(f"superres: steps, epochs and patch must be >= 0, got {self.steps}, {self.epochs}, "
                              f"{self.patch}")
         if int(self.views_per_step) < 1 or not 0 <= self.pull < 1 or int(self.holdout) < 0 \
-                or not self.check_every > 0 or int(self.patience) < 1:
-            raise ValueError("superres: views_per_step and patience must be >= 1, holdout >= 0, check_every > 0 "
-                             f"and pull in [0, 1), got {self.views_per_step}, {self.patience}, {self.holdout}, "
+                or not self.check_every > 0 or not self.tolerance >= 0:
+            raise ValueError("superres: views_per_step must be >= 1, holdout and tolerance >= 0, check_every > 0 "
+                             f"and pull in [0, 1), got {self.views_per_step}, {self.holdout}, {self.tolerance}, "
                              f"{self.check_every}, {self.pull}")
 
 
@@ -137,11 +143,13 @@ class SuperResFit:
     what `kept` says), the children (a numpy cloud of their parameters at their training rate,
     with their changes per octave as `gvae_octave_*` extras, and each one's input row it came from),
     the loss of every step, PSNR (dB, octave 1: drawn at 2x and averaged down) on the held-out
-    images (`holdout_views` of them; NaN without) of the input as it was, of the changes the fit
-    started from and of the fit's best state, and the same on `psnr_views` of the fitted images
-    before and after; which state was kept ("fit", "start" or "input": the best on the held-out
-    images, else on the fitted ones), the step of the fit's best state, the steps run and planned,
-    every check on the held-out images (step, PSNR), the per-image guards' state, and seconds."""
+    images (`holdout_views` of them; NaN without) of the input as it was, of the detail model's
+    changes (`start`), of the fit at its step 0 (those changes and the anti-aliasing of the rate it
+    is refined to) and at the state it ends in, and the same on `psnr_views` of the fitted images
+    before and after; which state was kept ("fit" when it draws the held-out images better than its
+    step 0, else the better of "start" and "input"; without held-out images the fitted ones decide),
+    the step of the fit's state, the steps run and planned, every check on the held-out images
+    (step, PSNR), the per-image guards' state, and seconds."""
 
     changes: dict[str, np.ndarray]
     losses: list[float]
@@ -153,9 +161,10 @@ class SuperResFit:
     holdout_views: int = 0
     holdout_input: float = float("nan")
     holdout_start: float = float("nan")
+    holdout_begin: float = float("nan")
     holdout_fit: float = float("nan")
     kept: str = "fit"
-    steps_best: int = 0
+    fit_step: int = 0
     steps_run: int = 0
     steps_planned: int = 0
     checks: list[tuple[int, float]] = field(default_factory=list)
@@ -176,9 +185,9 @@ class SuperResFit:
         """One line: what judged the fit and what it said."""
         if self.holdout_views:
             return (f"{self.holdout_views} held-out images drawn at 2x and averaged down: input "
-                    f"{self.holdout_input:.2f}, start {self.holdout_start:.2f}, fit {self.holdout_fit:.2f} dB PSNR "
-                    f"(its best at step {self.steps_best}; {self.steps_run} of {self.steps_planned} steps run); "
-                    f"kept: {self.kept}")
+                    f"{self.holdout_input:.2f}, detail model {self.holdout_start:.2f}, the fit at step 0 "
+                    f"{self.holdout_begin:.2f} and at step {self.fit_step} {self.holdout_fit:.2f} dB PSNR "
+                    f"({self.steps_run} of {self.steps_planned} steps run); kept: {self.kept}")
         return (f"no images held out: its own images {self.psnr_start:.2f} (start) -> {self.psnr_after:.2f} dB; "
                 f"kept: {self.kept}")
 
@@ -472,8 +481,10 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     before, start_psnr = judge(model.cloud(limit)[0], check_rows), judge(given, check_rows)
     holdout = {"input": judge(src, held), "start": judge(given, held)}
     best = judge(model.cloud(limit)[0], held)  # the fit's own start: the changes and the halved anti-aliasing
-    best_state, best_step, bad = model.snapshot(), 0, 0
+    begin, best_state, best_step, stopped = best, model.snapshot(), 0, False
     checks = [(0, best)] if len(held) else []
+    if on_check is not None:
+        on_check(0, model.cloud(limit)[0].detach())
     timings = {"check": time.perf_counter() - t0}
     losses: list[float] = []
     height, width = views.cameras[0].height, views.cameras[0].width
@@ -555,27 +566,29 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
             if on_check is not None:
                 on_check(step + 1, model.cloud(limit)[0].detach())
             if now > best:
-                best, best_state, best_step, bad = now, model.snapshot(), step + 1, 0
-            else:
-                bad += 1
-                if bad >= int(config.patience):
-                    break
+                best, best_state, best_step = now, model.snapshot(), step + 1
+            elif now < best - config.tolerance:
+                stopped = True
+                break
     steps_run = step + 1 if total else 0
     timings["fit"] = time.perf_counter() - t0 - checking
     t0 = time.perf_counter()
-    if len(held):
-        model.restore(best_state)  # (the fit's own start when no check gained: step 0)
+    fit_step, fit_psnr = steps_run, checks[-1][1] if checks else math.nan
+    if stopped:
+        model.restore(best_state)
+        fit_step, fit_psnr = best_step, best
     after = judge(model.cloud(limit)[0], check_rows)
     timings["check"] += checking + time.perf_counter() - t0
-    # (a fit that never drew the held-out images better than at its step 0 is no candidate)
-    candidates = ({"fit": best if best_step else -math.inf, "start": holdout["start"], "input": holdout["input"]}
-                  if len(held) else {"fit": after, "start": start_psnr})
-    kept = max(candidates, key=candidates.get)  # (a tie keeps the first)
+    if len(held):
+        fallback = "start" if holdout["start"] >= holdout["input"] else "input"
+        kept = "fit" if fit_step and fit_psnr > begin else fallback
+    else:
+        kept = "fit" if after > start_psnr else "start"
     changes, children, roots = model.result(limit)
     return SuperResFit(changes=changes, losses=losses, psnr_before=before, psnr_after=after, psnr_start=start_psnr,
                        psnr_views=len(check_rows), images=len(fitted_rows), holdout_views=len(held),
-                       holdout_input=holdout["input"], holdout_start=holdout["start"],
-                       holdout_fit=best if len(held) else math.nan, kept=kept, steps_best=best_step,
+                       holdout_input=holdout["input"], holdout_start=holdout["start"], holdout_begin=begin,
+                       holdout_fit=fit_psnr, kept=kept, fit_step=fit_step,
                        steps_run=steps_run, checks=checks,
                        steps_planned=total, children=children, child_roots=roots,
                        pose_pixels=None if pose is None else pose.pixels(),
