@@ -49,7 +49,8 @@ def register(subparsers) -> None:
                    "lowest scores only")
     c.add_argument("--images", type=Path, default=None, metavar="DATASET",
                    help="the capture's training images (a NeRF-Synthetic folder with transforms_train.json, or a "
-                   "COLMAP capture: sparse model and images/): compact in rounds, fine-tuning after each")
+                   "COLMAP capture: sparse model and images/): compact in rounds, fine-tuning after each "
+                   "(default: none; see --distill)")
     c.add_argument("--distill", type=_distill, default="auto", metavar="ITERATIONS",
                    help="without images: fine-tune this many iterations a round against the input's own renders "
                    "(32 views of --cameras, else placed around the cloud, at the training resolution); 0: score, drop "
@@ -62,7 +63,7 @@ def register(subparsers) -> None:
     c.add_argument("--image-height", type=int, default=None, metavar="H",
                    help="height the images are fine-tuned at (default: the training resolution the cloud's "
                    "anti-aliasing size says, else the images as they are)")
-    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
     c.add_argument("--sanitize", action="store_true", help="drop non-finite Gaussians of IN first")
     c.set_defaults(func=run_compact)
 

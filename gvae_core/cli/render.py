@@ -29,7 +29,8 @@ def register(subparsers) -> None:
     p.add_argument("file", type=Path, help="the .ply file")
     p.add_argument("--out", type=Path, required=True, help="folder for the PNGs (created if missing)")
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--transforms", type=Path, help="NeRF-Synthetic transforms_*.json with the cameras")
+    src.add_argument("--transforms", type=Path,
+                     help="NeRF-Synthetic transforms_*.json with the cameras (default: none: --orbit's cameras)")
     src.add_argument("--orbit", type=int, metavar="K", help="K cameras on a circle around the cloud (default 8)")
     p.add_argument("--height", type=int, help="image height in pixels (default: the transforms' image "
                    "size, or 400 for --orbit); the width keeps the aspect ratio")
@@ -45,10 +46,12 @@ def register(subparsers) -> None:
                    f"else matched with gvae_dilation_3D, else classic (default: {DEFAULT_ANTIALIAS})")
     p.add_argument("--train-cameras", type=Path, metavar="JSON",
                    help="transforms JSON of the cameras the cloud was trained with: sets the size --trained "
-                   "calls for (replacing one in the file), for a PLY from a tool that does not store it")
+                   "calls for (replacing one in the file), for a PLY from a tool that does not store it "
+                   "(default: none: the sizes the file holds)")
     p.add_argument("--train-resolution", type=int, metavar="H",
                    help="the image height the cloud was trained at: the --train-cameras scaled to it, or "
-                   "without --train-cameras the rendering cameras at that height stand in for the training ones")
+                   "without --train-cameras the rendering cameras at that height stand in for the training ones "
+                   "(default: none: the --train-cameras as they are)")
     p.add_argument("--trained", choices=("classic", "mip"), default="classic",
                    help="with --train-cameras/--train-resolution: how the cloud was trained, classic (the "
                    "reference 3DGS: sets gvae_dilation_3D) or mip (Mip-Splatting: sets filter_3D); default classic")

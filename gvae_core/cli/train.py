@@ -20,18 +20,22 @@ def register(subparsers) -> None:
     p.add_argument("--profile", choices=("tiny", "default", "full"), default="default",
                    help="preset of resolutions, iterations and sizes (default: %(default)s)")
     p.add_argument("--resolutions", type=int, nargs="+", metavar="H",
-                   help="training image heights, coarse to fine (overrides the profile)")
+                   help="training image heights, coarse to fine (default: the profile's: 100 150 200; tiny: 32 48 64; "
+                   "full: 100 200 400 800)")
     p.add_argument("--iterations", type=int, nargs="+", metavar="N",
-                   help="iterations per stage: one number for all stages or one per stage")
-    p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), help="largest SH degree")
+                   help="iterations per stage: one number for all stages or one per stage (default: the profile's: "
+                   "600 400 400; tiny: 200 150 150; full: 7000 7000 7000 30000)")
+    p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3),
+                   help="largest SH degree (default: the profile's: 3; tiny: 1)")
     p.add_argument("--background", type=float, nargs=3, metavar=("R", "G", "B"),
                    help="background colour images are composited on (default: white)")
     p.add_argument("--init-points", type=Path, metavar="FILE",
-                   help="initial points instead of random ones: .npy (N,3) or (N,6 with RGB), or a PLY")
+                   help="initial points instead of --init's: .npy (N,3) or (N,6 with RGB), or a PLY (default: none)")
     p.add_argument("--init", choices=("random", "hull"),
                    help="random points in the scene bounds (the reference) or inside the visual hull of "
-                        "the training masks")
-    p.add_argument("--init-count", type=int, metavar="N", help="number of initial points")
+                        "the training masks (default: the profile's: hull; random with --profile full)")
+    p.add_argument("--init-count", type=int, metavar="N",
+                   help="number of initial points (default: the profile's: 10000; tiny: 2000; full: 100000)")
     p.add_argument("--seed", type=int, help="random seed (default 0)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; 1 is "
                    "often fastest on a busy machine)")
