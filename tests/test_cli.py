@@ -142,8 +142,8 @@ def test_demo_refines_the_trained_example_without_and_with_its_images(tmp_path, 
     sheet = Image.open(tmp_path / "out" / "comparison.png")
     crop = demo.ZOOM * int(demo.CROP * 2 * H)
     assert sheet.size == (4 * 2 * H + 4 * crop, 3 * max(2 * H, crop))  # a row per view: 4 panels, 4 crops
-    picture = Image.open(tmp_path / "out" / "demo.png")  # the README's: the first view's row, 256 colours
-    assert picture.size == (sheet.size[0], max(2 * H, crop)) and picture.mode == "P"
+    picture = Image.open(tmp_path / "out" / "demo.png")  # the README's: the first view, panels over crops
+    assert picture.size == (4 * max(2 * H, crop), 2 * H + crop) and picture.mode == "P"
 
 
 #: Run in a fresh interpreter: each `gvae` call given, then fail when torch or Numba got imported.

@@ -65,7 +65,7 @@ def _sheet(rows: list[list]):
     """The images of each row side by side, the rows one under another, on white."""
     from PIL import Image
 
-    width = sum(img.width for img in rows[0])
+    width = max(sum(img.width for img in row) for row in rows)
     sheet = Image.new("RGB", (width, sum(max(img.height for img in row) for row in rows)), (255, 255, 255))
     top = 0
     for row in rows:
@@ -124,8 +124,8 @@ def run_trained(folder: Path, args: argparse.Namespace) -> int:
         ImageDraw.Draw(row[0]).rectangle([x, y, x + size, y + size], outline=(255, 0, 0))
         rows.append(row)
     _sheet(rows).save(out / "comparison.png")
-    # the README's picture (docs/demo.png): the first view, in 256 colours
-    _sheet(rows[:1]).quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
+    # the README's picture (docs/demo.png): the first view, its four panels over their crops, in 256 colours
+    _sheet([rows[0][:4], rows[0][4:]]).quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
         out / "demo.png", optimize=True)
     print(f"\nPSNR against the ground truth at {views.cameras[0].height} px (twice the training resolution), "
           f"rendered with the anti-aliasing filter:")
