@@ -22,17 +22,27 @@ $(STAMP): pyproject.toml
 lint: install
 	$(PY) -m ruff check .
 
-# The Blender tests run beside the rest (they mostly wait on Blender subprocesses; together they
-# share the 2 cores well), each suite in its own temporary folder; the Blender log follows. The
-# compiled CPU kernels are made ready first (compiled once per machine, ~20 s; then loaded), so that
-# the Blender subprocesses load them instead of each compiling its own.
+# Four streams keep the 2 cores busy to the end, each suite in its own temporary folder, the logs of
+# the three in the background following: the tests that never render (file formats, the Blender-made
+# scenes, the documents) start at once, beside the compiled CPU kernels being made ready (compiled
+# once per machine, ~20 s on one core; then loaded), so that no later process compiles its own; then
+# the rest of the core suite, and beside it the Blender tests in two halves (what Cycles and EEVEE
+# show; the rest).
+NO_RENDER := tests/test_splat_transform.py tests/test_scenes.py tests/test_ply.py tests/test_formats.py \
+	tests/test_sog.py tests/test_docs.py
+BLENDER_DISPLAY := tests/blender/test_display.py
 test: install
 	@mkdir -p build
-	@$(PY) -c "from gvae_core.rendering.compiled import main; main()"
-	@$(PY) -m pytest -q --basetemp=build/pytest-blender tests/blender > build/test-blender.log 2>&1 & bg=$$!; \
-	$(PY) -m pytest -q --basetemp=build/pytest-core --ignore=tests/blender; core=$$?; \
-	wait $$bg; blender=$$?; echo "--- tests/blender (ran beside the above):"; cat build/test-blender.log; \
-	test $$core -eq 0 && test $$blender -eq 0
+	@$(PY) -m pytest -q --basetemp=build/pytest-files $(NO_RENDER) > build/test-files.log 2>&1 & b0=$$!; \
+	$(PY) -c "from gvae_core.rendering.compiled import main; main()"; \
+	$(PY) -m pytest -q --basetemp=build/pytest-blender tests/blender --ignore=$(BLENDER_DISPLAY) \
+		> build/test-blender.log 2>&1 & b1=$$!; \
+	$(PY) -m pytest -q --basetemp=build/pytest-display $(BLENDER_DISPLAY) > build/test-display.log 2>&1 & b2=$$!; \
+	$(PY) -m pytest -q --basetemp=build/pytest-core --ignore=tests/blender $(NO_RENDER:%=--ignore=%); core=$$?; \
+	wait $$b0; files=$$?; wait $$b1; blender=$$?; wait $$b2; display=$$?; \
+	echo "--- $(NO_RENDER) and tests/blender (ran beside the above):"; \
+	cat build/test-files.log build/test-blender.log build/test-display.log; \
+	test $$core -eq 0 && test $$files -eq 0 && test $$blender -eq 0 && test $$display -eq 0
 
 # The Blender tests (tests/blender) against each Blender version the manifest claims: the everyday
 # 5.0.1 in .venv, the others each in a venv under build/ with that bpy wheel from PyPI (~0.4 GB each)

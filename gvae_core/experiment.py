@@ -177,6 +177,13 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
 ]}
 
 
+#: The experiment's drivers (tools/, `gvae_core.benchmarks`) at the smallest size, to show that they run
+#: (minutes from nothing): `tiny` scenes of 64 px, training 16 -> 24 -> 32 px, four test views.
+SMOKE = Protocol("smoke", scene_profile="tiny", resolutions=(16, 24, 32), iterations=(60, 40, 40),
+                 higher=(48, 64), higher_iterations=(40, 40), train_overrides=dict(init_count=1000, max_gaussians=5000),
+                 test_views=4, seeds=(0,), oracle_steps=10)
+
+
 # ----------------------------------------------------------------------------- per scene
 
 @dataclass
@@ -574,10 +581,10 @@ def run_experiment(protocol: Protocol | str, *, model=None, detail=None, scenes=
     results = _map(evaluate_job, [(runs[pair], model_dir, knob["factor"], extrapolation["factor"], detail_dir, device)
                                   for pair in pairs], jobs, say)
     doc = {"protocol": {**asdict(p), "train_config": p.train_config().to_dict()},
-           "model": {"dir": str(model_dir), "sizes": loaded.sizes(),
+           "model": {"dir": portable_path(model_dir, cache), "sizes": loaded.sizes(),
                      "train_scenes": loaded.meta.get("train_scenes", []),
                      "held_out_scenes": loaded.meta.get("held_out_scenes", []),
-                     "detail": {"dir": str(detail_dir), "bytes": detail_model.size_bytes(),
+                     "detail": {"dir": portable_path(detail_dir, cache), "bytes": detail_model.size_bytes(),
                                 "config": asdict(detail_model.config), "meta": detail_model.meta}},
            "knob": knob, "extrapolation": extrapolation,
            "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(started)), "runs": {},
@@ -591,10 +598,22 @@ def run_experiment(protocol: Protocol | str, *, model=None, detail=None, scenes=
         run = runs[(name, seed)]
         doc["rows"] += rows
         doc["runs"][f"{name}/s{seed}"] = {"scene": name, "seed": seed, "split": scene_split(name),
-                                          "scene_dir": str(run.scene_dir), "run_dir": str(run.run_dir),
+                                          "scene_dir": portable_path(run.scene_dir, cache),
+                                          "run_dir": portable_path(run.run_dir, cache),
                                           "log": run.log(), "seconds": run.seconds}
     doc["seconds"] = time.perf_counter() - t0
     return json_safe(doc)
+
+
+def portable_path(path, cache=None) -> str:
+    """`path` as a report can show it on any machine: inside the repository relative to it, inside the
+    cache as `<cache>/...`, else as it is."""
+    path = Path(path).resolve()
+    for base, label in ((Path(__file__).resolve().parents[1], None), (cache_dir(cache).resolve(), "<cache>")):
+        if path.is_relative_to(base):
+            rel = path.relative_to(base).as_posix()
+            return rel if label is None else f"{label}/{rel}"
+    return str(path)
 
 
 def _common_split(names) -> str:

@@ -449,9 +449,9 @@ def write_report(doc: dict, out, *, command: str = "") -> Path:
           f"**Rendering**: images are scored with the `{p['antialias']}` anti-aliasing mode (every cloud carries "
           f"the anti-aliasing size of the cameras it was trained with, `gvae_core.antialias`); the classic "
           f"render (+0.3 px², which ignores the changes per octave) is beside it.", "",
-          f"**Models**: detail model {detail.get('dir', '?')} ({detail.get('bytes', 0) / 1e3:.0f} kB float32, "
+          f"**Models**: detail model `{detail.get('dir', '?')}` ({detail.get('bytes', 0) / 1e3:.0f} kB float32, "
           f"trained on {', '.join(detail.get('meta', {}).get('train_scenes') or ['?'])}); lineage VAEs "
-          f"{model.get('dir')}, geometry {model['sizes']['geometry'] / 1e6:.2f} MB + appearance "
+          f"`{model.get('dir')}`, geometry {model['sizes']['geometry'] / 1e6:.2f} MB + appearance "
           f"{model['sizes']['appearance'] / 1e6:.2f} MB (float32), trained on "
           f"{', '.join(model.get('train_scenes') or ['?'])}.", "",
           "**Metrics**: Chamfer = mean of accuracy (Gaussian centres to the ground-truth mesh) and completeness "

@@ -553,7 +553,7 @@ def _optimise(model: GaussianModel, cams: list[Camera], targets: torch.Tensor, c
                 filt = _model_filter(model, cams)  # after densification, and as the centres move
         if it % 10 == 0 or it == n_iter:
             if bar is not None:
-                bar.set_postfix(loss=f"{float(loss):.4f}", psnr=f"{psnr(result.image, targets[v]):.2f}",
+                bar.set_postfix(loss=f"{float(loss.detach()):.4f}", psnr=f"{psnr(result.image, targets[v]):.2f}",
                                 n=len(model))
                 bar.update(10 if it % 10 == 0 else it % 10)
             if progress is not None:

@@ -4,6 +4,7 @@ import argparse
 import json
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -141,3 +142,102 @@ def test_demo_refines_the_trained_example_without_and_with_its_images(tmp_path, 
     sheet = Image.open(tmp_path / "out" / "comparison.png")
     crop = demo.ZOOM * int(demo.CROP * 2 * H)
     assert sheet.size == (4 * 2 * H + 4 * crop, 3 * max(2 * H, crop))  # a row per view: 4 panels, 4 crops
+    picture = Image.open(tmp_path / "out" / "demo.png")  # the README's: the first view, panels over crops
+    assert picture.size == (4 * max(2 * H, crop), 2 * H + crop) and picture.mode == "P"
+
+
+#: Run in a fresh interpreter: each `gvae` call given, then fail when torch or Numba got imported.
+_LIGHT = """
+import sys
+from gvae_core.cli import main
+for argv in {calls!r}:
+    try:
+        main(argv)
+    except SystemExit as exc:
+        assert exc.code in (0, None), (argv, exc.code)
+    heavy = [m for m in ("torch", "numba") if m in sys.modules]
+    assert not heavy, f"gvae {{' '.join(argv)}} imported {{heavy}}"
+"""
+
+
+def test_commands_that_read_or_convert_files_import_neither_torch_nor_numba(tmp_path):
+    from gvae_core.formats import write_compressed_ply  # noqa: PLC0415
+
+    ply = write_ply(example_cloud(300), tmp_path / "c.ply")
+    compressed = write_compressed_ply(example_cloud(300), tmp_path / "c.compressed.ply")
+    calls = [["--help"], ["info", str(ply)], ["info", str(compressed)], ["list-scenes"]]
+    calls += [["convert", str(ply), str(tmp_path / f"out{ext}")] for ext in (".compressed.ply", ".spz", ".sog",
+                                                                             ".splat", ".glb")]
+    calls += [["convert", str(tmp_path / "out.sog"), str(tmp_path / "back.ply")]]
+    for name in subcommands():
+        calls.append([name, "--help"])
+    proc = subprocess.run([sys.executable, "-c", _LIGHT.format(calls=calls)], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert len(read_ply(tmp_path / "back.ply")) == 300
+
+
+def test_each_subcommand_is_registered_by_the_module_commands_names():
+    """`gvae COMMAND` imports only `COMMANDS[COMMAND]`: that module must register it."""
+    from gvae_core.cli import COMMAND_MODULES, COMMANDS  # noqa: PLC0415
+
+    assert sorted(COMMANDS) == subcommands()
+    assert set(COMMANDS.values()) == set(COMMAND_MODULES)
+    for name, module in COMMANDS.items():
+        actions = [a for a in build_parser(name)._actions if isinstance(a, argparse._SubParsersAction)]
+        assert name in actions[0].choices, (name, module)
+
+
+def test_report_profiles_are_the_experiment_protocols():
+    from gvae_core.cli.report import PROFILES  # noqa: PLC0415
+    from gvae_core.experiment import PROTOCOLS  # noqa: PLC0415
+
+    assert PROFILES == tuple(PROTOCOLS)
+
+
+def test_every_option_states_its_default():
+    """Every optional argument of every subcommand says in its --help what it is when not given
+    (flags are off when not given, and one of a required group is always given)."""
+    missing = []
+    for name in subcommands():
+        sub = next(a for a in build_parser(name)._actions if isinstance(a, argparse._SubParsersAction))
+        parser = sub.choices[name]
+        one_required = {a for g in parser._mutually_exclusive_groups if g.required for a in g._group_actions}
+        for action in parser._actions:
+            if not action.option_strings or action.required or action in one_required or isinstance(
+                    action, (argparse._HelpAction, argparse._StoreTrueAction, argparse._StoreFalseAction)):
+                continue
+            if "default" not in (action.help or ""):
+                missing.append(f"gvae {name} {action.option_strings[-1]}")
+    assert not missing, "--help does not state the default of:\n" + "\n".join(missing)
+
+
+def test_train_help_states_the_profiles_defaults(capsys):
+    from gvae_core.train import PROFILES, TrainConfig  # noqa: PLC0415
+
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for name in PROFILES:
+        c = TrainConfig.profile(name)
+        for numbers in (c.resolutions, c.iterations):
+            assert " ".join(map(str, numbers)) in text, (name, numbers)
+        assert str(c.init_count) in text and c.init in text
+    assert "default: the profile's: auto; random with --profile full" in text
+
+
+def test_train_refine_and_compact_warn_nothing_from_the_project(tmp_path, capsys):
+    """`gvae train`, `refine` (without and with the images) and `compact`, tiny, on the bundled
+    example's images, with every warning raised in the project's own code an error."""
+    scene = Path(__file__).resolve().parents[1] / "examples" / "trained"
+    run = tmp_path / "run"
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", module=r"gvae_core(\.|$)")
+        assert main(["train", str(scene), "--out", str(run), "--resolutions", "16", "24", "--iterations", "40",
+                     "--init-count", "500", "--threads", "1"]) == 0
+        stage = run / "stage_1.ply"
+        assert main(["refine", str(stage), str(tmp_path / "r.ply"), "--lineage", str(run / "lineage.npz")]) == 0
+        assert main(["refine", str(stage), str(tmp_path / "ri.ply"), "--images", str(scene), "--fit-steps", "4"]) == 0
+        assert main(["compact", str(stage), str(tmp_path / "c.ply"), "--keep", "0.5", "--distill", "5"]) == 0
+    out = capsys.readouterr()
+    assert "Warning" not in out.err, out.err

@@ -265,13 +265,25 @@ def test_cached_second_call_and_reproducible_renders(tiny_scene, tmp_path, monke
         assert (again / rel).read_bytes() == (root / rel).read_bytes(), rel
 
 
+#: The scenes built without rendering, all in one Blender process (each `generate` starts from an empty
+#: scene; bpy's start-up is most of a build's time).
+BUILT = [n for n in scenes.list_scenes() if n != FULL_SCENE]
+
+
+@pytest.fixture(scope="module")
+def built_scenes(tmp_path_factory):
+    root = tmp_path_factory.mktemp("built")
+    code = ("import sys; from pathlib import Path; from gvae_core.scenes.build import generate\n"
+            "for name in sys.argv[2:]:\n    generate(name, Path(sys.argv[1]) / name, render=False, log=print)")
+    subprocess.run([sys.executable, "-c", code, str(root), *BUILT], check=True, capture_output=True)
+    return root
+
+
 @requires_bpy
-@pytest.mark.parametrize("name", [n for n in scenes.list_scenes() if n != FULL_SCENE])
-def test_every_scene_builds_and_fits_the_views(name, tmp_path):
+@pytest.mark.parametrize("name", BUILT)
+def test_every_scene_builds_and_fits_the_views(name, built_scenes):
     """Each scene without rendering (cheap): ground truth written, object inside every view."""
-    out = tmp_path / name
-    subprocess.run([sys.executable, "-m", "gvae_core.scenes.build", name, str(out), "--no-render"], check=True,
-                   capture_output=True)
+    out = built_scenes / name
     verts, tris = _read_mesh(out / "mesh.ply")
     assert len(tris) > 1000 and np.isfinite(verts).all()
     assert np.linalg.norm(verts, axis=1).max() <= cameras.OBJECT_RADIUS + 1e-5

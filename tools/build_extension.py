@@ -17,10 +17,12 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import os
 import re
 import shutil
 import subprocess
 import sys
+import tempfile
 import tomllib
 from pathlib import Path
 
@@ -66,16 +68,19 @@ def blender_ext() -> Path:
 
 
 def fetch_wheel(name: str, cache: Path) -> Path:
-    """A wheel named in the manifest: from the cache, else `pip download` of that exact pin."""
+    """A wheel named in the manifest: from the cache, else `pip download` of that exact pin (into a
+    folder of its own, then moved into the cache: builds side by side never see half a wheel)."""
     path = cache / name
     if path.exists():
         return path
     dist, version = name.split("-")[:2]
     cache.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--only-binary=:all:",
-           "--dest", str(cache), f"{dist}=={version}"]
-    if subprocess.run(cmd).returncode != 0 or not path.exists():
-        raise SystemExit(f"could not get wheel {name} (tried: {' '.join(cmd)})")
+    with tempfile.TemporaryDirectory(dir=cache) as tmp:
+        cmd = [sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--only-binary=:all:",
+               "--dest", tmp, f"{dist}=={version}"]
+        if subprocess.run(cmd).returncode != 0 or not (Path(tmp) / name).exists():
+            raise SystemExit(f"could not get wheel {name} (tried: {' '.join(cmd)})")
+        os.replace(Path(tmp) / name, path)
     return path
 
 

@@ -1,12 +1,12 @@
 """Measure the PyPI splat codecs against gvae_core.formats on the same files (BENCHMARKS.md, "Splat
 formats: own codecs or a package"). Not part of the project: run it in a throwaway venv.
 
-    python3 -m venv /tmp/pkgvenv
-    /tmp/pkgvenv/bin/pip install "numpy>=2" gsply==0.4.6 gaussforge==0.6.0 ply2splat==0.6.0 zstandard==0.25.0
+    python3 -m venv build/pkgvenv
+    build/pkgvenv/bin/pip install "numpy>=2" gsply==0.4.6 gaussforge==0.6.0 ply2splat==0.6.0 zstandard==0.25.0
     # alspz 0.2.0 (Cython bindings of Niantic's own C++ spz library) is an sdist only: it builds with g++,
     # zlib and libzstd-dev (apt), scikit-build-core and Cython, after two CMake fixes (link the system
     # libzstd; -fPIC for its object library): pip install --no-build-isolation ./alspz-0.2.0
-    PYTHONPATH=. /tmp/pkgvenv/bin/python tools/compare_splat_packages.py --n 1000000
+    PYTHONPATH=. build/pkgvenv/bin/python tools/compare_splat_packages.py --n 1000000
 
 Every row: the median read time of the same file, and the largest difference between what the package
 decoded and what gvae_core decoded from that file (quaternions normalised and sign-aligned, opacity

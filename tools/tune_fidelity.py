@@ -8,7 +8,7 @@ detail model's +1 (every Gaussian); then the check `refine` makes (its default v
 tolerance, applied to those same results; PSNR at 1x and 2x (the protocol's render) and weighted
 accuracy against the unrefined cloud. One JSON line per pair, then a table.
 
-    python tools/tune_fidelity.py --method vae --out /tmp/fidelity.jsonl   # about 10 min on 2 cores
+    python tools/tune_fidelity.py --method vae --out build/fidelity.jsonl   # about 10 min on 2 cores
 """
 
 from __future__ import annotations

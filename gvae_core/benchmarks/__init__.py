@@ -6,6 +6,7 @@ are never asserted on (speed goals live here, not in tests).
 """
 
 BENCHMARKS = (
+    "cli",
     "ply",
     "sog",
     "gltf",

@@ -21,11 +21,15 @@ for LightGaussian's score.
 `python -m gvae_core.benchmarks compact` (environment: GVAE_COMPACT_SPLIT=test|validation,
 GVAE_COMPACT_SEEDS=0,1,2, GVAE_COMPACT_OUT=folder for results.json and the plot;
 GVAE_COMPACT_SPEED=0 skips the speed rows, GVAE_COMPACT_VIEWS=0 the placed views' table);
-`--quick`: one validation scene, one seed, the speed at 100k only.
+`--quick`: one validation scene, one seed, the speed at 100k only. `python -m
+gvae_core.benchmarks.compact --help` runs parts of it with options (the scenes, fractions and rows of
+docs/benchmarks/compact.md's tables; `--smoke`: the smallest size, to show that it runs).
 """
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import json
 import os
 import resource
@@ -40,10 +44,10 @@ from pathlib import Path
 import numpy as np
 
 from ..antialias import DILATION_KEY, with_training_cameras
-from ..compaction import PRUNE_FRACTION, compact
 from ..capture import load_nerf_synthetic
+from ..compaction import PRUNE_FRACTION, compact, moments
 from ..examples import example_cloud
-from ..experiment import PROTOCOLS, Evaluator, prepare_scene
+from ..experiment import PROTOCOLS, SMOKE, Evaluator, prepare_scene
 from ..metrics.image import image_scores
 from ..ply import read_ply, write_ply
 from ..resources import estimate_compact_memory
@@ -61,8 +65,8 @@ MERGING_ONLY = "ours, merging only"
 class Method:
     """A `compact` row: its label, score, removal, the fraction dropped before merging, the
     fine-tuning against the input's own renders (`compact(distill=)`: "auto", the default, or
-    iterations) and whether it is scored from VIEWS of the training cameras (else from placed
-    views, as without cameras)."""
+    iterations; in `rounds`, default one) and whether it is scored from VIEWS of the training cameras
+    (else from placed views, as without cameras)."""
 
     label: str
     score: str = "hessian"
@@ -70,6 +74,7 @@ class Method:
     prune: float = PRUNE_FRACTION
     distill: int | str = 0
     cameras: bool = True
+    rounds: int | None = None
 
 
 #: The `compact` rows; splat-transform's come after these. "ours" is the default (fine-tuned
@@ -120,12 +125,13 @@ def _decimate(command: list[str], cloud, mode: str, count: int, work: Path):
 
 
 def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, methods=METHODS, images: bool = True,
-                   image_methods=IMAGE_METHODS, distill: bool = True, splat: bool = True, say=print) -> list[dict]:
-    """Every method (`methods`) at every fraction on one (scene, seed) of the quick protocol; one
-    row each. `images`: also the rows with fine-tuning (`image_methods`, and the input fine-tuned
-    as long); `distill`: also ours fine-tuned against the input's own renders (no images) at
-    DISTILL_FRACTIONS; `splat`: splat-transform's rows."""
-    p = PROTOCOLS["quick"]
+                   image_methods=IMAGE_METHODS, distill: bool = True, splat: bool = True, say=print,
+                   protocol=None) -> list[dict]:
+    """Every method (`methods`) at every fraction on one (scene, seed) of the quick protocol (or
+    `protocol`); one row each. `images`: also the rows with fine-tuning (`image_methods`, and the
+    input fine-tuned as long); `distill`: also ours fine-tuned against the input's own renders (no
+    images) at DISTILL_FRACTIONS; `splat`: splat-transform's rows."""
+    p = protocol or PROTOCOLS["quick"]
     run = prepare_scene(name, p, seed=seed, threads=1, say=say)
     k = p.train_stage
     train = load_nerf_synthetic(run.scene_dir, "train", resolution=p.resolutions[k])
@@ -154,7 +160,7 @@ def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, methods=METHODS
         for m in methods:
             t0 = time.perf_counter()
             r = compact(base, keep=fraction, cameras=train.cameras if m.cameras else None, views=VIEWS, score=m.score,
-                        removal=m.removal, seed=seed, prune=m.prune, distill=m.distill)
+                        removal=m.removal, seed=seed, prune=m.prune, distill=m.distill, rounds=m.rounds)
             add(m.label, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr, unseen=r.unseen,
                 rounds=len(r.rounds))
     if distill:
@@ -358,3 +364,72 @@ def run(args) -> None:
         views_coverage(2000, 128, seeds=(0,)) if quick else views_coverage()
     if os.environ.get("GVAE_COMPACT_SPEED", "1") != "0":
         _speed((100_000,) if quick else (100_000, 1_000_000))
+
+
+def main(argv=None) -> int:
+    """`python -m gvae_core.benchmarks.compact`: the benchmark's parts, with options."""
+    parser = argparse.ArgumentParser(prog="python -m gvae_core.benchmarks.compact",
+                                     description=__doc__.split("\n\n")[0])
+    parser.add_argument("--split", choices=list(SPLITS), default="test", help="scenes (default: %(default)s)")
+    parser.add_argument("--scenes", nargs="*", default=None,
+                        help="only these scenes, none: no scene rows (default: the split's)")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="3DGS seeds (default: 0 1 2)")
+    parser.add_argument("--fractions", nargs="+", type=float, default=list(FRACTIONS),
+                        help=f"kept fractions (default: {' '.join(map(str, FRACTIONS))})")
+    parser.add_argument("--methods", type=int, default=len(METHODS),
+                        help=f"the first K of the compact rows ({', '.join(m.label for m in METHODS)}) "
+                        "(default: all)")
+    parser.add_argument("--distill", default=None, metavar="ITERATIONS",
+                        help="fine-tuning of the fine-tuned rows (ours, placed views): 'auto' or iterations a round "
+                        "(default: auto)")
+    parser.add_argument("--rounds", type=int, default=None, help="their rounds (default: one)")
+    parser.add_argument("--prune", type=float, default=None,
+                        help=f"fraction dropped before merging, in the merging rows (default: {PRUNE_FRACTION:g})")
+    parser.add_argument("--colour-weight", type=float, default=None,
+                        help=f"the merge cost's colour weight (default: {moments.COLOUR_WEIGHT:g})")
+    parser.add_argument("--images", action="store_true", help="also the rows fine-tuned with the training images")
+    parser.add_argument("--distilled", action="store_true", help=f"also the rows {DISTILLED!r}")
+    parser.add_argument("--no-splat-transform", action="store_true", help="without splat-transform's rows")
+    parser.add_argument("--views-table", action="store_true", help="also the placed views' table")
+    parser.add_argument("--speed", nargs="*", type=int, default=None, metavar="N",
+                        help="also the speed of compact on example_cloud(N) (default: none)")
+    parser.add_argument("--speed-fractions", nargs="+", type=float, default=[0.5, 0.1],
+                        help="kept fractions of the speed rows (default: 0.5 0.1)")
+    parser.add_argument("--repeats", type=int, default=3, help="speed repeats (default: %(default)s)")
+    parser.add_argument("--out", type=Path, default=None, help="folder for results_SPLIT.json (default: none)")
+    parser.add_argument("--smoke", action="store_true",
+                        help="the smallest size (experiment.SMOKE: 64 px scenes), to show that it runs")
+    args = parser.parse_args(argv)
+    if args.colour_weight is not None:
+        moments.COLOUR_WEIGHT = args.colour_weight
+    methods = list(METHODS[:args.methods])
+    if args.prune is not None:
+        methods = [dataclasses.replace(m, prune=args.prune) if m.removal == "merge" and m.prune else m for m in methods]
+    if args.distill is not None or args.rounds is not None:
+        distill = args.distill if args.distill in (None, "auto") else int(args.distill)
+        methods = [dataclasses.replace(m, distill=m.distill if distill is None else distill, rounds=args.rounds)
+                   if m.label in (OURS, PLACED) else m for m in methods]
+    protocol = SMOKE if args.smoke else PROTOCOLS["quick"]
+    scenes = SPLITS[args.split] if args.scenes is None else args.scenes
+    print(f"compaction, {protocol.name} protocol, scenes {', '.join(scenes)}, seeds {args.seeds}; load "
+          f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
+    rows = []
+    for name in scenes:
+        for seed in args.seeds:
+            rows += evaluate_scene(name, seed, tuple(args.fractions), methods=tuple(methods), images=args.images,
+                                   distill=args.distilled, splat=not args.no_splat_transform, protocol=protocol,
+                                   say=lambda msg: print(msg, flush=True))
+    if rows:
+        print("\n".join(["", *tables(rows)]))
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / f"results_{args.split}.json").write_text(json.dumps(rows, indent=1))
+    if args.views_table:
+        views_coverage(2000, 128, seeds=(0,)) if args.smoke else views_coverage()
+    if args.speed:
+        _speed(args.speed, tuple(args.speed_fractions), args.repeats)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -8,11 +8,19 @@ The capture is synthetic, so that any size can be made: `example_cloud(N)` (SH 3
 its renders at twice the image height averaged down as the training images (from cameras on a ring
 around it, looking at it), and the same cloud with every Gaussian 25% larger, carrying the cameras'
 anti-aliasing size, as the trained cloud. Each size runs in a fresh process (its peak memory is its
-own). Quality is measured on the benchmark scenes (`make report`), not here."""
+own). Quality is measured on the benchmark scenes (`make report`), not here.
+
+`python -m gvae_core.benchmarks.superres [--sizes N:VIEWS:HEIGHT ...] [--fit KEY=VALUE ...]
+[--optimizer adam] [--crop-check]` runs the table for other sizes and fits (BENCHMARKS' capture-scale
+rows: `--fit lr=0.3`, `--fit patch=0 --fit steps=100`, `--fit fields=scales,opacities,sh_dc,means`,
+`--fit children=0.0002`, `--optimizer adam` for plain Adam instead of `superres.optim.VisibleAdam`),
+or with `--crop-check` instead the largest difference between a patch's render and the same region of
+the whole image."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -60,15 +68,16 @@ def synthetic_capture(n: int, views: int, height: int, seed: int = 1):
     return trained, Views(cams, images)
 
 
-def one(n: int, views: int, height: int, steps: int | None = None) -> dict:
+def one(n: int, views: int, height: int, fit: dict | None = None, optimizer: str = "visible") -> dict:
     """The child process: make the capture, refine one octave from its images; times and checks."""
     t0 = time.perf_counter()
     trained, images = synthetic_capture(n, views, height)
     made = time.perf_counter() - t0
-    config = {} if steps is None else {"steps": steps}
+    config = dict(fit or {})
     c0 = resource.getrusage(resource.RUSAGE_SELF)
     t0 = time.perf_counter()
-    r = refine(trained, images=images, fit=config)
+    with optimizer_used(optimizer):
+        r = refine(trained, images=images, fit=config)
     seconds = time.perf_counter() - t0
     c1 = resource.getrusage(resource.RUSAGE_SELF)
     fit = r.fit
@@ -83,41 +92,143 @@ def one(n: int, views: int, height: int, steps: int | None = None) -> dict:
     return {"n": n, "views": views, "height": height, "width": cam.width, "made_s": made, "seconds": seconds,
             "fit_s": r.timings.get("fit", float("nan")), "steps": len(fit.losses),
             "cpu": c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime, "before": fit.psnr_before,
-            "after": fit.psnr_after, "holdout": [fit.holdout_input, fit.holdout_start, fit.holdout_fit],
+            "after": fit.psnr_after,
+            "holdout": [fit.holdout_input, fit.holdout_start, fit.holdout_begin, fit.holdout_fit],
             "kept": fit.kept, "checks": fit.checks, "added": len(r.added), "kept_1x": kept, "peak": peak,
             "estimate": estimate, "nonfinite": len(r.cloud.nonfinite_rows()), "timings": r.timings}
 
 
+@contextlib.contextmanager
+def optimizer_used(name: str):
+    """The fit's optimiser: "visible" (`superres.optim.VisibleAdam`, the default) or "adam" (torch's
+    plain Adam, what the fit used before it: the earlier rows of BENCHMARKS' capture-scale table)."""
+    if name == "visible":
+        yield
+        return
+    if name != "adam":
+        raise ValueError(f"unknown optimizer {name!r}; choose visible or adam")
+    from ..superres import fit as fit_module  # noqa: PLC0415
+
+    saved = fit_module.VisibleAdam
+    fit_module.VisibleAdam = torch.optim.Adam
+    try:
+        yield
+    finally:
+        fit_module.VisibleAdam = saved
+
+
+def crop_check(n: int, views: int, height: int, patches: int = 8, patch: int = 96, seed: int = 0) -> float:
+    """Largest difference between a `patch`-pixel patch drawn at 2x through a cropped camera (as
+    the fit draws one) and the same region of the whole 2x render, over `patches` patches of the
+    synthetic capture's trained cloud."""
+    from ..detail.fit import crop  # noqa: PLC0415
+
+    trained, images = synthetic_capture(n, views, height)
+    rng = np.random.default_rng(seed)
+    worst = 0.0
+    with torch.no_grad():
+        for k in range(patches):
+            big = images.cameras[k % views].scaled(2 * height)
+            whole = render(trained, big).image
+            size = min(2 * patch, big.height // 2)  # (a patch of `patch` image pixels, or half a small image)
+            x0, y0 = int(rng.integers(big.width - size + 1)), int(rng.integers(big.height - size + 1))
+            part = render(trained, crop(big, x0, y0, size, size)).image
+            worst = max(worst, float((part - whole[y0:y0 + size, x0:x0 + size]).abs().max()))
+    return worst
+
+
+def parse_fit(items) -> dict:
+    """`KEY=VALUE` overrides of `SuperResConfig` (numbers, "none", comma-separated field lists)."""
+    fit = {}
+    for item in items or ():
+        key, _, text = item.partition("=")
+        if key not in SuperResConfig.__dataclass_fields__ or not text:
+            raise ValueError(f"--fit {item!r}: expected KEY=VALUE with KEY a SuperResConfig field")
+        if key in ("fields", "densify_at"):
+            value = tuple(v for v in text.split(",") if v)
+        elif text.lower() == "none":
+            value = None
+        else:
+            try:
+                value = int(text)
+            except ValueError:
+                try:
+                    value = float(text)
+                except ValueError:
+                    value = text
+        fit[key] = value
+    SuperResConfig(**fit)  # refuse a bad value before any child process starts
+    return fit
+
+
 def run(args) -> None:
     quick = bool(getattr(args, "quick", False))
-    sizes = ((20_000, 12, 200),) if quick else SIZES
+    sizes = getattr(args, "sizes", None) or (((20_000, 12, 200),) if quick else SIZES)
+    fit, optimizer = getattr(args, "fit", None) or {}, getattr(args, "optimizer", "visible")
+    if getattr(args, "crop_check", False):
+        for n, views, height in sizes:
+            print(f"{n:,} Gaussians: patches drawn at 2x through a cropped camera against the same region "
+                  f"of the whole render: largest difference {crop_check(n, views, height):.2g}")
+        return
     threads = os.environ.get("OMP_NUM_THREADS") or torch.get_num_threads()
-    print(f"Refine from the capture's images, one octave, the default fit ({SuperResConfig()}), synthetic captures "
-          f"(module docstring), torch threads {threads}; each size in a fresh process:")
+    print(f"Refine from the capture's images, one octave, the fit {SuperResConfig(**fit)} "
+          f"({'plain Adam' if optimizer == 'adam' else 'VisibleAdam'}), synthetic captures (module docstring), "
+          f"torch threads {threads}; each size in a fresh process:")
     print("\n| Gaussians | images | refine s (fit s; steps; s/step) | process CPU s | held-out images, 2x averaged "
-          "down: input / start -> fit (kept) | added | 1x largest change | peak RSS (estimate) | non-finite rows | "
-          "load |")
+          "down: input / detail model / fit at step 0 -> its end (kept) | added | 1x largest change | "
+          "peak RSS (estimate) | non-finite rows | load |")
     print("|---:|---|---|---:|---|---:|---:|---|---:|---|")
     for n, views, height in sizes:
         load0 = os.getloadavg()[0]
-        proc = subprocess.run([sys.executable, "-m", "gvae_core.benchmarks.superres", "--one", str(n), str(views),
-                               str(height)], capture_output=True, text=True, timeout=6 * 3600)
+        command = [sys.executable, "-m", "gvae_core.benchmarks.superres", "--one", str(n), str(views), str(height),
+                   "--optimizer", optimizer, *(a for k, v in fit.items() for a in ("--fit", f"{k}={_text(v)}"))]
+        proc = subprocess.run(command, capture_output=True, text=True, timeout=6 * 3600)
         if proc.returncode != 0:
             why = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else proc.returncode
             print(f"| {n:,} | {views} x {height} px | failed: {why} |")
             continue
         r = json.loads(proc.stdout.strip().splitlines()[-1])
         ho = r["holdout"]
-        print(f"| {n:,} | {views} x {r['width']}x{height} px | **{r['seconds']:.1f}** ({r['fit_s']:.1f}; {r['steps']}; "
-              f"{r['fit_s'] / max(r['steps'], 1):.3f}) | {r['cpu']:.1f} | {ho[0]:.2f} / {ho[1]:.2f} -> {ho[2]:.2f} dB "
-              f"({r['kept']}) | "
+        print(f"| {n:,} | {views} x {r['width']}x{height} px | **{r['seconds']:.1f}** ({r['fit_s']:.1f}; "
+              f"{r['steps']}; {r['fit_s'] / max(r['steps'], 1):.3f}) | {r['cpu']:.1f} | {ho[0]:.2f} / {ho[1]:.2f} / "
+              f"{ho[2]:.2f} -> {ho[3]:.2f} dB ({r['kept']}) | "
               f"{r['added']:,} | {r['kept_1x']:.1e} | {r['peak'] / 2 ** 30:.2f} GiB ({r['estimate'] / 2 ** 30:.2f}) | "
               f"{r['nonfinite']} | {load0:.1f}-{os.getloadavg()[0]:.1f} |", flush=True)
 
 
+def _text(value) -> str:
+    return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
+
+
+def _size(text: str) -> tuple[int, int, int]:
+    try:
+        n, views, height = (int(v.replace("_", "")) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected N:VIEWS:HEIGHT, got {text!r}") from None
+    return n, views, height
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m gvae_core.benchmarks.superres",
+                                     description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", nargs="+", type=_size, metavar="N:VIEWS:HEIGHT",
+                        help="synthetic captures to run (default: SIZES, 50000:43:240 100000:100:375 "
+                        "1000000:40:540; with --quick 20000:12:200)")
+    parser.add_argument("--fit", action="append", metavar="KEY=VALUE",
+                        help="a SuperResConfig field for the fit, repeatable (default: none: the default fit)")
+    parser.add_argument("--optimizer", choices=("visible", "adam"), default="visible",
+                        help="visible: superres.optim.VisibleAdam; adam: plain Adam, as before it (default: visible)")
+    parser.add_argument("--crop-check", action="store_true", help="the patch-against-whole-image check instead")
+    parser.add_argument("--quick", action="store_true", help="one 20k capture (default: SIZES)")
+    parser.add_argument("--one", nargs=3, type=int, metavar=("N", "VIEWS", "HEIGHT"), help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    args.fit = parse_fit(args.fit)
+    if args.one:
+        print(json.dumps(one(*args.one, fit=args.fit, optimizer=args.optimizer)))
+    else:
+        run(args)
+    return 0
+
+
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--one", nargs=3, type=int, metavar=("N", "VIEWS", "HEIGHT"), required=True)
-    parser.add_argument("--steps", type=int, default=None)
-    a = parser.parse_args()
-    print(json.dumps(one(*a.one, steps=a.steps)))
+    raise SystemExit(main())

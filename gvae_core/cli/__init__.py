@@ -1,7 +1,9 @@
 """The `gvae` command line: one subcommand per module in this package.
 
 Each module listed in `COMMAND_MODULES` defines `register(subparsers)`, which adds its
-subparser and sets `func` (called with the parsed namespace; returns an exit code).
+subparser(s) (`COMMANDS` says which) and sets `func` (called with the parsed namespace; returns an
+exit code). A module imports at its top only what `--help` needs; `run` imports the rest, so that
+`gvae --help`, `info`, `convert` and `list-scenes` start without torch or Numba (a test checks).
 """
 
 from __future__ import annotations
@@ -22,6 +24,10 @@ COMMAND_MODULES = (
     "report",
     "compact",
 )
+#: subcommand -> the module that registers it: `gvae COMMAND ...` imports that module alone.
+COMMANDS = {"info": "info", "convert": "convert", "render": "render", "demo": "demo", "fit-vae": "vae",
+            "refine": "vae", "train": "train", "make-scene": "scenes", "list-scenes": "scenes", "report": "report",
+            "compact": "compact"}
 
 #: --device help of the commands that train or render.
 DEVICE_HELP = "torch device: cpu (default) or cuda[:N] (needs a CUDA build of torch and a GPU)"
@@ -41,18 +47,20 @@ def progress_lines():
     return progress
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every subcommand, or only of the module that registers `command`."""
     parser = argparse.ArgumentParser(prog="gvae", description="GaussianVAE: refine 3D Gaussian Splatting "
                                      "scenes past their training resolution.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for name in COMMAND_MODULES:
+    for name in (COMMANDS[command],) if command in COMMANDS else COMMAND_MODULES:
         importlib.import_module(f"{__name__}.{name}").register(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(next((a for a in argv if not a.startswith("-")), None))
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)

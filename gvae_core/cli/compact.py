@@ -49,7 +49,8 @@ def register(subparsers) -> None:
                    "lowest scores only")
     c.add_argument("--images", type=Path, default=None, metavar="DATASET",
                    help="the capture's training images (a COLMAP capture, a transforms.json with its images or a "
-                   "NeRF-Synthetic folder: what gvae train reads): compact in rounds, fine-tuning after each")
+                   "NeRF-Synthetic folder: what gvae train reads): compact in rounds, fine-tuning after each "
+                   "(default: none; see --distill)")
     c.add_argument("--test-every", type=int, default=None, metavar="N",
                    help="with --cameras/--images: every N-th image of the capture (by name) was held out from "
                    "training (gvae train --test-every N): not used here either (default: none)")
@@ -65,7 +66,7 @@ def register(subparsers) -> None:
     c.add_argument("--image-height", type=int, default=None, metavar="H",
                    help="height the images are fine-tuned at (default: the training resolution the cloud's "
                    "anti-aliasing size says, else the images as they are)")
-    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
     c.add_argument("--sanitize", action="store_true", help="drop non-finite Gaussians of IN first")
     c.set_defaults(func=run_compact)
 

@@ -61,6 +61,22 @@ def _crop_box(a, b, size: int) -> tuple[int, int]:
     return corner
 
 
+def _sheet(rows: list[list]):
+    """The images of each row side by side, the rows one under another, on white."""
+    from PIL import Image
+
+    width = max(sum(img.width for img in row) for row in rows)
+    sheet = Image.new("RGB", (width, sum(max(img.height for img in row) for row in rows)), (255, 255, 255))
+    top = 0
+    for row in rows:
+        left = 0
+        for img in row:
+            sheet.paste(img, (left, top))
+            left += img.width
+        top += max(img.height for img in row)
+    return sheet
+
+
 def run_trained(folder: Path, args: argparse.Namespace) -> int:
     """Refine the trained example; write the refined PLY and the comparison, print the PSNRs."""
     import numpy as np
@@ -107,17 +123,10 @@ def run_trained(folder: Path, args: argparse.Namespace) -> int:
             ImageDraw.Draw(img).text((3, 2), label, fill=(0, 0, 0))
         ImageDraw.Draw(row[0]).rectangle([x, y, x + size, y + size], outline=(255, 0, 0))
         rows.append(row)
-    width = sum(img.width for img in rows[0])
-    height = sum(max(img.height for img in row) for row in rows)
-    sheet = Image.new("RGB", (width, height), (255, 255, 255))
-    top = 0
-    for row in rows:
-        left = 0
-        for img in row:
-            sheet.paste(img, (left, top))
-            left += img.width
-        top += max(img.height for img in row)
-    sheet.save(out / "comparison.png")
+    _sheet(rows).save(out / "comparison.png")
+    # the README's picture (docs/demo.png): the first view, its four panels over their crops, in 256 colours
+    _sheet([rows[0][:4], rows[0][4:]]).quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
+        out / "demo.png", optimize=True)
     print(f"\nPSNR against the ground truth at {views.cameras[0].height} px (twice the training resolution), "
           f"rendered with the anti-aliasing filter:")
     print("| view | unrefined | detail model (no images) | change | with the images | change |\n"
@@ -134,7 +143,7 @@ def run_trained(folder: Path, args: argparse.Namespace) -> int:
           f"carries its Gaussians' changes per octave, drawn by `gvae render` and the Blender add-on (`gvae refine "
           f"--bake 2` writes a plain PLY for other tools); and {out / 'comparison.png'} (per view: unrefined, the "
           f"detail model, with the images, ground truth; then the same four zoomed {ZOOM}x where the images changed "
-          f"the picture most, red box)")
+          f"the picture most, red box), {out / 'demo.png'} (its first view, small: the README's picture)")
     return 0
 
 

@@ -56,7 +56,8 @@ def register(subparsers) -> None:
                    "store it (default: none)")
     p.add_argument("--train-resolution", type=int, metavar="H",
                    help="the image height the cloud was trained at: the --train-cameras scaled to it, or "
-                   "without --train-cameras the rendering cameras at that height stand in for the training ones")
+                   "without --train-cameras the rendering cameras at that height stand in for the training ones "
+                   "(default: none: the --train-cameras as they are)")
     p.add_argument("--trained", choices=("classic", "mip"), default="classic",
                    help="with --train-cameras/--train-resolution: how the cloud was trained, classic (the "
                    "reference 3DGS: sets gvae_dilation_3D) or mip (Mip-Splatting: sets filter_3D); default classic")

@@ -22,7 +22,8 @@ def register(subparsers) -> None:
                     "a finished run: its last stage is trained N more iterations (no densification).")
     p.add_argument("scene", type=Path, metavar="CAPTURE",
                    help="the capture folder (or its COLMAP model, or a transforms*.json); with --more, a run folder")
-    p.add_argument("--out", type=Path, help="run directory to write (created if needed; required but with --more)")
+    p.add_argument("--out", type=Path, help="run directory to write (created if needed; required, but with --more: "
+                   "no default)")
     p.add_argument("--more", type=int, metavar="N",
                    help="train the finished run CAPTURE's last stage N more iterations; writes "
                         "stage_<s>_more_<N>.ply and more.json there (default: off)")
@@ -30,7 +31,8 @@ def register(subparsers) -> None:
                    help="preset of resolutions, iterations and sizes (default: %(default)s)")
     size = p.add_mutually_exclusive_group()
     size.add_argument("--resolutions", type=int, nargs="+", metavar="H",
-                      help="training image heights, coarse to fine (default: the profile's, 100 150 200)")
+                      help="training image heights, coarse to fine (default: the profile's: 100 150 200; tiny: "
+                           "32 48 64; full: 100 200 400 800)")
     size.add_argument("--image-height", type=int, metavar="H",
                       help="the last stage's image height; earlier stages in the profile's proportions "
                            "(default: the profile's)")
@@ -38,12 +40,13 @@ def register(subparsers) -> None:
                       help="the last stage at the stored images' size divided by F (floor), e.g. 4 for 1/4; earlier "
                            "stages in the profile's proportions (default: the profile's heights)")
     p.add_argument("--iterations", type=int, nargs="+", metavar="N",
-                   help="iterations per stage: one number for all stages or one per stage (default: the profile's, "
-                        "600 400 400)")
+                   help="iterations per stage: one number for all stages or one per stage (default: the profile's: "
+                        "600 400 400; tiny: 200 150 150; full: 7000 7000 7000 30000)")
     p.add_argument("--test-every", type=int, metavar="N",
                    help="hold out every N-th image (sorted by name) as a test view, the LLFF / Mip-NeRF 360 "
                         "convention being 8 (default: none; a NeRF-Synthetic folder's own test split)")
-    p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), help="largest SH degree (default: 3)")
+    p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3),
+                   help="largest SH degree (default: the profile's: 3; tiny: 1)")
     p.add_argument("--background", type=float, nargs=3, metavar=("R", "G", "B"),
                    help="background colour images are composited on and the cloud is trained over, stored with "
                         "it (default: white, 1 1 1)")
@@ -53,10 +56,12 @@ def register(subparsers) -> None:
                    help="where training starts: sfm (the capture's SfM points, with random points where they leave "
                         "pixels uncovered), hull (inside the visual hull of transparent images' masks), random "
                         "(random points along the training rays) or auto: sfm, else hull for images with "
-                        "transparency, else random (default: auto)")
-    p.add_argument("--init-count", type=int, metavar="N", help="number of random initial points (default: 10000)")
+                        "transparency, else random (default: the profile's: auto; random with --profile full)")
+    p.add_argument("--init-count", type=int, metavar="N",
+                   help="number of random initial points (default: the profile's: 10000; tiny: 2000; full: 100000)")
     p.add_argument("--max-gaussians", type=int, metavar="N",
-                   help="cap on the number of Gaussians (default: none but what memory allows)")
+                   help="cap on the number of Gaussians (default: the profile's: none but what memory allows; tiny: "
+                        "10000)")
     p.add_argument("--seed", type=int, help="random seed (default 0)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; 1 is "
                    "often fastest on a busy machine)")

@@ -20,9 +20,9 @@ def register(subparsers) -> None:
     p.add_argument("runs", nargs="*", type=Path, metavar="RUN_DIR", help="training runs to learn from")
     p.add_argument("--out", type=Path, required=True, metavar="MODEL_DIR", help="where to save the model")
     p.add_argument("--holdout", nargs="*", type=Path, default=[], metavar="RUN_DIR",
-                   help="runs kept out of training, evaluated after it (written into config.json)")
+                   help="runs kept out of training, evaluated after it (written into config.json) (default: none)")
     p.add_argument("--synthetic", type=int, default=0, metavar="N",
-                   help="also train on N synthetic lineages per stage (for a start without runs)")
+                   help="also train on N synthetic lineages per stage, for a start without runs (default: %(default)s)")
     p.add_argument("--steps", type=int, default=3000, help="optimiser steps (default: %(default)s)")
     p.add_argument("--batch", type=int, default=256, help="lineages per step (default: %(default)s)")
     p.add_argument("--lr", type=float, default=2e-3, help="peak learning rate (default: %(default)s)")
@@ -31,7 +31,7 @@ def register(subparsers) -> None:
     p.add_argument("--layers", type=int, default=None, help="encoder layers (default: the bundled models')")
     p.add_argument("--decoder-hidden", type=int, default=None,
                    help="decoder hidden width (default: the bundled models')")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_fit)
 
@@ -80,7 +80,7 @@ def register(subparsers) -> None:
                    help="detail: the capture's training images (a COLMAP capture, a transforms.json with its images "
                    "or a NeRF-Synthetic folder: what gvae train reads): every Gaussian's changes per octave are fitted "
                    "so that the cloud drawn at 2^k times their resolution and averaged back down reproduces them "
-                   "(multi-view super-resolution; checked against the cloud first)")
+                   "(multi-view super-resolution; checked against the cloud first) (default: none: the detail model)")
     r.add_argument("--image-height", type=int, default=None, metavar="H",
                    help="the height the cloud was trained at, the images are fitted at (default: what the cloud's "
                    "anti-aliasing size says against the capture's cameras, else the images as they are)")
@@ -97,7 +97,7 @@ def register(subparsers) -> None:
                    "more off; on exact cameras it costs a little)")
     r.add_argument("--exposure-correction", action="store_true",
                    help="with --images: fit an affine colour per image (exposure or white balance that varies)")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
     r.add_argument("--sanitize", action="store_true", help="drop non-finite Gaussians of IN.ply first")
     r.set_defaults(func=run_refine)
 

@@ -11,6 +11,7 @@ distances in scene units, not squared. numpy + scipy only.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -94,11 +95,18 @@ def _dot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 class MeshDistance:
-    """Distance from points to a triangle mesh. Candidate triangles come from the `candidates`
-    nearest of dense surface samples (every triangle contributes its centroid and area-uniform
-    samples at spacing about `spacing`); the distance to each candidate is exact. The result is
-    never below the true distance and at most `spacing` above it (the true nearest triangle has
-    a sample within `spacing` of the true closest point); in practice it is exact."""
+    """Distance from points to a triangle mesh. Near the surface, candidate triangles come from the
+    `candidates` nearest of dense surface samples (every triangle contributes its centroid and
+    area-uniform samples at spacing about `spacing`); the distance to each candidate is exact. The
+    result is never below the true distance and at most `spacing` above it (the true nearest
+    triangle has a sample within `spacing` of the true closest point); in practice it is exact.
+    Points whose nearest samples are not all within `NEAR` spacings (far out, or deep inside a
+    closed mesh, where every sample is about as far and a nearest-sample search visits them all)
+    are measured exactly against every triangle whose bounding sphere can hold a closer point than
+    the nearest centroids' triangles do."""
+
+    #: Reach of the sample search, in spacings; points beyond it take the exact path.
+    NEAR = 8.0
 
     def __init__(self, verts, tris, spacing: float | None = None, seed: int = 0, max_samples: int = 2_000_000):
         self.verts = np.asarray(verts, np.float64).reshape(-1, 3)
@@ -118,6 +126,9 @@ class MeshDistance:
         rng = np.random.default_rng(seed)
         owner = np.arange(len(self.tris))
         points = v.mean(1)
+        self.centroids = points
+        self.radius = np.linalg.norm(v - points[:, None], axis=2).max(1)  # each triangle's bounding sphere
+        self.centroid_tree = cKDTree(points)
         if count:
             idx = rng.choice(len(v), size=count, p=area / total)
             r1, r2 = rng.random(count), rng.random(count)
@@ -128,18 +139,42 @@ class MeshDistance:
         self.owner = owner
         self.tree = cKDTree(points)
 
+    def _exact(self, q: np.ndarray, tri: np.ndarray) -> np.ndarray:
+        """Distances from points q (n,3) to their candidate triangles tri (n,k): the nearest of each row."""
+        k = tri.shape[1]
+        qq = np.repeat(q, k, axis=0)
+        t = self.tris[tri.reshape(-1)]
+        cp = closest_point_on_triangles(qq, self.verts[t[:, 0]], self.verts[t[:, 1]], self.verts[t[:, 2]])
+        return np.linalg.norm(qq - cp, axis=1).reshape(len(q), k).min(1)
+
+    def _far(self, q: np.ndarray, candidates: int) -> np.ndarray:
+        """Exact distances of points q (n,3): an upper bound from each one's nearest centroids'
+        triangles, then every triangle whose bounding sphere comes within it."""
+        _, near = self.centroid_tree.query(q, k=min(candidates, len(self.tris)))
+        bound = self._exact(q, near.reshape(len(q), -1))
+        found = self.centroid_tree.query_ball_point(q, bound + float(self.radius.max()), return_sorted=False)
+        sizes = np.fromiter(map(len, found), np.int64, len(q))
+        tri = np.fromiter(itertools.chain.from_iterable(found), np.int64, int(sizes.sum()))
+        row = np.repeat(np.arange(len(q)), sizes)
+        keep = np.linalg.norm(self.centroids[tri] - q[row], axis=1) - self.radius[tri] <= bound[row]
+        tri, row = tri[keep], row[keep]
+        np.minimum.at(bound, row, self._exact(q[row], tri[:, None]))
+        return bound
+
     def __call__(self, points, candidates: int = DEFAULT_CANDIDATES, chunk: int = 200_000) -> np.ndarray:
         p = np.asarray(points, np.float64).reshape(-1, 3)
         out = np.empty(len(p))
         k = int(min(max(candidates, 1), len(self.owner)))
+        reach = self.NEAR * self.spacing
         for i in range(0, len(p), chunk):
             q = p[i:i + chunk]
-            _, nn = self.tree.query(q, k=k)
-            tri = self.owner[nn.reshape(len(q), k)]                          # (n,k) candidate triangles
-            qq = np.repeat(q, k, axis=0)
-            t = self.tris[tri.reshape(-1)]
-            cp = closest_point_on_triangles(qq, self.verts[t[:, 0]], self.verts[t[:, 1]], self.verts[t[:, 2]])
-            out[i:i + chunk] = np.linalg.norm(qq - cp, axis=1).reshape(len(q), k).min(1)
+            dist, nn = self.tree.query(q, k=k, distance_upper_bound=reach if reach > 0 else np.inf)
+            dist, nn = dist.reshape(len(q), k), nn.reshape(len(q), k)
+            near = np.isfinite(dist).all(1)
+            out[i:i + chunk][near] = self._exact(q[near], self.owner[nn[near]])   # (n,k) candidate triangles
+            far = np.flatnonzero(~near)
+            for j in range(0, len(far), 1024):  # (bounded: a far point may have many candidates)
+                out[i + far[j:j + 1024]] = self._far(q[far[j:j + 1024]], k)
         return out
 
 

@@ -977,6 +977,11 @@ def scenario_eevee(bpy, args: dict) -> dict:
     bpy.ops.import_scene.gaussian_splat(filepath=args["ply"])
     scene.render.resolution_x, scene.render.resolution_y = args["width"], args["height"]
     scene.eevee.taa_render_samples = args["samples"]
+    # Nothing here casts or takes light (the splats emit): without shadows and ray tracing EEVEE
+    # draws the same pixels (checked: identical PNGs, 5.0.1) in a fifth of llvmpipe's time.
+    for name in ("use_shadows", "use_raytracing"):
+        if hasattr(scene.eevee, name):
+            setattr(scene.eevee, name, False)
     scene.render.film_transparent = True
     scene.render.image_settings.file_format = "PNG"
     scene.render.image_settings.color_mode = "RGBA"
