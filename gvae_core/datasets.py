@@ -16,7 +16,7 @@ from PIL import Image, UnidentifiedImageError
 
 from .camera import Camera
 
-__all__ = ["DatasetError", "Views", "read_rgba", "resize_rgba", "resize_area", "resize_area_reference"]
+__all__ = ["DatasetError", "Views", "read_rgba", "resize_rgba", "premultiplied", "resize_area", "resize_area_reference"]
 
 class DatasetError(ValueError):
     """A dataset folder that cannot be read: the message names the file and what is wrong."""
@@ -122,11 +122,16 @@ def resize_area_reference(image: np.ndarray, height: int, width: int) -> np.ndar
     return out.astype(np.float32)
 
 
-def resize_rgba(rgba: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Resize straight RGBA by area averaging in premultiplied space, then un-premultiply."""
+def premultiplied(rgba: np.ndarray, resample) -> np.ndarray:
+    """Straight RGBA resampled by `resample` ((H,W,4) -> (h,w,4), linear in the pixels) in
+    premultiplied space, then un-premultiplied: transparent pixels lend no colour to the result."""
     alpha = rgba[..., 3:4].astype(np.float64)
-    premult = np.concatenate([rgba[..., :3] * alpha, alpha], axis=-1)
-    out = resize_area(premult, height, width).astype(np.float64)
+    out = np.asarray(resample(np.concatenate([rgba[..., :3] * alpha, alpha], axis=-1)), np.float64)
     a = np.clip(out[..., 3:4], 0.0, 1.0)
     rgb = np.where(a > 0, out[..., :3] / np.where(a > 0, a, 1.0), 0.0)
     return np.concatenate([np.clip(rgb, 0.0, 1.0), a], axis=-1).astype(np.float32)
+
+
+def resize_rgba(rgba: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Resize straight RGBA by area averaging in premultiplied space (`premultiplied`)."""
+    return premultiplied(rgba, lambda x: resize_area(x, height, width))

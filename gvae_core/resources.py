@@ -65,7 +65,7 @@ IMAGE_FIT_PER_PIXEL = 28
 #: buffers of a step), and per pixel of the stage's training images (the images, their composites
 #: and one view's render buffers, spread over the views). Calibrated against the peaks of
 #: `gvae train` runs (BENCHMARKS.md, "Training on a real capture").
-TRAIN_PER_VALUE = 64
+TRAIN_PER_VALUE = 56
 TRAIN_PER_PIXEL = 40
 #: The share of the available memory a run may fill with Gaussians (`train_cap`).
 TRAIN_MEMORY_SHARE = 0.7

@@ -88,7 +88,7 @@ def _picture(run: Path, path: Path, count: int = 3) -> None:
     one = type(views)([views.cameras[i] for i in pick], views.images[pick], views.alphas[pick])
     renders = render_views(read_ply(run / f"stage_{stage}.ply"), one)
     sheet = np.concatenate([np.concatenate(list(one.images), 1), np.concatenate(list(renders), 1)], 0)
-    Image.fromarray((np.clip(sheet, 0, 1) * 255 + 0.5).astype(np.uint8)).save(path)
+    Image.fromarray((np.clip(sheet, 0, 1) * 255 + 0.5).astype(np.uint8)).save(path, quality=85)  # (.jpg: small)
     print(f"wrote {path}: held-out photos {', '.join(views.names[i] for i in pick)} (top), {run.name} (bottom)")
 
 

@@ -193,7 +193,7 @@ def _picture(path: Path, clouds: dict, views) -> None:
         col = np.concatenate([img, np.pad(crop, ((0, 0), (0, w - crop.shape[1]), (0, 0)))], 0)
         columns.append(col)
     sheet = np.concatenate(columns, 1)
-    Image.fromarray((np.clip(sheet, 0, 1) * 255 + 0.5).astype(np.uint8)).save(path)
+    Image.fromarray((np.clip(sheet, 0, 1) * 255 + 0.5).astype(np.uint8)).save(path, quality=85)  # (.jpg: small)
     print(f"wrote {path}: columns {', '.join(name for name, _ in panels)}")
 
 

@@ -30,7 +30,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from ..camera import Camera
-from ..datasets import DatasetError, Views, read_rgba, resize_rgba
+from ..datasets import DatasetError, Views, premultiplied, read_rgba, resize_rgba
 from .colmap import ColmapModel, SfMPoints, colmap_files, read_colmap
 from .lens import Lens, undistort_image, undistorted_camera
 from .transforms import read_transforms
@@ -278,10 +278,6 @@ def _at_image_size(cam: Camera, file: Path, model) -> Camera:
 
 def _undistort_rgba(rgba: np.ndarray, photo: Camera, lens: Lens, target: Camera) -> np.ndarray:
     """Straight RGBA resampled into the pinhole `target`, in premultiplied space (as resizing)."""
-    alpha = rgba[..., 3:4]
-    if (alpha == 1).all():
+    if (rgba[..., 3] == 1).all():
         return undistort_image(rgba, photo, lens, target)
-    out = undistort_image(np.concatenate([rgba[..., :3] * alpha, alpha], -1), photo, lens, target)
-    a = np.clip(out[..., 3:4], 0.0, 1.0)
-    rgb = np.where(a > 0, out[..., :3] / np.where(a > 0, a, 1.0), 0.0)
-    return np.concatenate([np.clip(rgb, 0.0, 1.0), a], -1).astype(np.float32)
+    return premultiplied(rgba, lambda x: undistort_image(x, photo, lens, target))
