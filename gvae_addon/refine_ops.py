@@ -210,7 +210,7 @@ class RefineJob(CoreJob):
                 "selected": len(getattr(r, "selected", ())), "put_back": len(getattr(r, "reverted", ())),
                 "not_refined": getattr(r, "notes", {}).get("not refined"),
                 "fit": None if fit is None else {"before": fit.psnr_before, "after": fit.psnr_after,
-                                                 "kept": fit.kept, "judged": fit.judged(),
+                                                 "kept": r.notes.get("kept"), "judged": fit.judged(),
                                                  "images": fit.images},
                 "training_resolution": getattr(r, "notes", {}).get("training resolution")}
 
@@ -425,9 +425,8 @@ class GVAE_OT_refine(JobOperator, Operator):
         fit = info.get("fit")
         if fit:
             added = f"; {info['added']} Gaussians added above the training resolution" if info["added"] else ""
-            if fit["kept"] != "fit":
-                instead = "the detail model's changes" if fit["kept"] == "start" else "the splat as it was"
-                added += f"; the fit was no better than {instead}: not kept, {instead} instead"
+            if fit["kept"]:  # what was kept instead of the fit
+                added += f"; the fit was no better than {fit['kept']}: not kept, {fit['kept']} instead"
             return (f"Refine: fitted to {fit['images']} training images ({info['training_resolution']}) in "
                     f"{info['seconds']:.1f} s: drawn at 2x and averaged down they are reproduced at "
                     f"{fit['before']:.2f} -> {fit['after']:.2f} dB ({fit['after'] - fit['before']:+.2f} dB); judged "

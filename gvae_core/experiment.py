@@ -142,6 +142,12 @@ class Protocol:
         (`make_scene(..., seed=)`), stopped at the training resolution."""
         return dataclasses.replace(self, name=f"{self.name}-data", train_higher=False, scene_seed=scene_seed)
 
+    def fits(self) -> Protocol:
+        """The runs the fits to the images are chosen and measured on (`tools/superres_choices.py`,
+        `tools/refine_capture.py --scene`): the same training of the scenes themselves, stopped at
+        the training resolution."""
+        return dataclasses.replace(self, name=f"{self.name}-val", train_higher=False)
+
     @property
     def train_stage(self) -> int:
         """Index of the training-resolution stage in the run."""

@@ -431,8 +431,8 @@ def refine_images(cloud: GaussianCloud | RefineInput, images: Any, *, steps: int
                          progress=lambda f, message: say(0.05 + 0.93 * f, message))
     timings["fit"] = time.perf_counter() - t0
     kept = fitted.improves  # else what the held-out images liked better: the changes it started from, or none
-    out = with_octaves(src, {"fit": fitted.changes, "start": start or {}, "input": {}}[fitted.kept],
-                       limit=float(steps))
+    out = with_octaves(src, fitted.changes if fitted.kept in ("fit", "begin") else
+                       {"start": start or {}, "input": {}}[fitted.kept], limit=float(steps))
     parents = fitted.child_roots if kept else np.zeros(0, np.int64)
     if len(parents):
         out = out.append_children(fitted.children, parents)
@@ -446,8 +446,11 @@ def refine_images(cloud: GaussianCloud | RefineInput, images: Any, *, steps: int
                     f"{np.mean(fitted.losses[-50:]) if fitted.losses else float('nan'):.4f}",
              "judged on": fitted.judged()}
     if not kept:
-        instead = "the detail model's changes" if fitted.kept == "start" and start else "the input as it was"
+        instead = {"begin": "the changes it began from, drawn with the anti-aliasing of the rate refined to",
+                   "start": "the detail model's changes" if start else "the input as it was",
+                   "input": "the input as it was"}[fitted.kept]
         notes["fit"] += f"; no better than {instead}, so not kept: {instead} instead"
+        notes["kept"] = instead
     result = RefineResult(cloud=out, added=np.arange(n, len(out), dtype=np.int64), parents=parents,
                           step=np.ones(len(parents), np.int64), scores=np.zeros(n, np.float32),
                           selected=np.arange(n, dtype=np.int64), timings=timings, notes=notes, fit=fitted)

@@ -28,7 +28,6 @@ Usage: python tools/refine_capture.py (--run RUNS/d4-sfm | --scene chair) --out 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -89,8 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.scene is not None:
         from gvae_core.experiment import PROTOCOLS, prepare_scene  # noqa: PLC0415
 
-        protocol = dataclasses.replace(PROTOCOLS["quick"], name="quick-val", train_higher=False)
-        args.run = prepare_scene(args.scene, protocol, seed=args.seed, threads=args.threads).run_dir
+        args.run = prepare_scene(args.scene, PROTOCOLS["quick"].fits(), seed=args.seed, threads=args.threads).run_dir
     run = json.loads((args.run / "run.json").read_text())
     config = TrainConfig(**run["config"])
     stage = int(run["stages_done"]) - 1
@@ -144,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
                 start = octave_fields(refine(cloud, fidelity=None).cloud)
             f = fit_octaves(cloud, real, 1, fit, start=start, background=cloud.background or (1.0, 1.0, 1.0),
                             images_scale=2)
-            chosen = {"fit": f.changes, "start": start or {}, "input": {}}[f.kept]
+            chosen = f.changes if f.kept in ("fit", "begin") else {"start": start or {}, "input": {}}[f.kept]
             record(name, with_octaves(cloud, chosen, limit=1.0), time.perf_counter() - t0, kept=f.kept,
                    steps=f.steps_run, holdout=[f.holdout_input, f.holdout_start, f.holdout_fit],
                    checks=[[s, round(v, 3)] for s, v in f.checks])

@@ -76,19 +76,18 @@ CHILD_MIN_OPACITY = 0.005
 
 @dataclass
 class SuperResConfig:
-    """epochs: passes over the fitted images (every pixel, each octave) at most; steps: optimiser
-    steps per octave instead (None: from `epochs`); patch: edge of the square tiles a step fits,
-    covering each image, in pixels at the images' resolution (0: whole images; at octave k the
-    render is 2^k times larger, so octaves above the first fit tiles 2^(k-1) times smaller);
-    views_per_step: (image, tile) pairs whose gradients one step sums; fields: what changes per
-    octave; lr: times the reference 3DGS learning rate of each field, decaying exponentially to
-    `lr_final` times that by the last step (the reference's schedule for positions); pull: the
-    share of its distance from where it started a seen change gives back each step (0: none);
-    holdout: every n-th image (of the images given, in their order) judges the fit instead of being
-    fitted (0, or fewer than 16 images: none, the fitted images judge it); check_every: passes between
-    checks on them; tolerance: how far (dB) below their best figure the fit may draw them before it is
-    stopped and taken back to its best; pose / exposure: the penalty weight
-    of the per-image guard (`guards`), None: off; children: the view-space gradient (NDC, the
+    """epochs: passes over the fitted images (every pixel, each octave), up to `max_steps` optimiser
+    steps per octave; steps: the steps per octave instead (None: from `epochs`); patch: edge of
+    the square tiles that cover each image, a step fitting one, in pixels at the images'
+    resolution (0: whole images); views_per_step: (image, tile) pairs whose gradients one step
+    sums; fields: what changes per octave; lr: times the reference 3DGS learning rate of each
+    field, decaying exponentially to `lr_final` times that by the last step (the reference's
+    schedule for positions); pull: the share of its distance from where it started a seen change
+    gives back each step (0: none); holdout: every n-th image (of the images given, in their order)
+    judges the fit instead of being fitted (0, or fewer than 16 images: none, the fitted images
+    judge it); check_every: passes between checks on them; tolerance: how far (dB) below their best
+    figure the fit may draw them before it is stopped and taken back to its best; pose / exposure:
+    the penalty weight of the per-image guard (`guards`), None: off; children: the view-space gradient (NDC, the
     reference's units) at which a Gaussian densifies (`CHILD_GRADIENT`, the reference 3DGS's), None
     (the default): no children; densify_at: when, as fractions of the steps; max_children: at most
     this many children per input Gaussian; start: where the changes start, "detail" (the detail
@@ -97,7 +96,8 @@ class SuperResConfig:
     the anti-aliasing of the rate it is refined to, halved per octave; None: the anti-aliasing it
     was trained with)."""
 
-    epochs: float = 4.0
+    epochs: float = 20.0
+    max_steps: int = 300
     steps: int | None = None
     patch: int = 0
     views_per_step: int = 1
@@ -147,7 +147,8 @@ class SuperResFit:
     changes (`start`), of the fit at its step 0 (those changes and the anti-aliasing of the rate it
     is refined to) and at the state it ends in, and the same on `psnr_views` of the fitted images
     before and after; which state was kept ("fit" when it draws the held-out images better than its
-    step 0, else the better of "start" and "input"; without held-out images the fitted ones decide),
+    step 0, else the best on them of "begin" (step 0: `changes` are then those), "start" and "input";
+    without held-out images the fitted ones decide between "fit" and "start"),
     the step of the fit's state, the steps run and planned, every check on the held-out images
     (step, PSNR), the per-image guards' state, and seconds."""
 
@@ -178,7 +179,7 @@ class SuperResFit:
     @property
     def improves(self) -> bool:
         """Whether the fit's changes are the ones kept (it draws the held-out images, else its own,
-        better than the changes it started from and than the input)."""
+        better than where it began)."""
         return self.kept == "fit"
 
     def judged(self) -> str:
@@ -428,7 +429,7 @@ def _tiles(width: int, height: int, patch: int) -> list[tuple[int, int, int, int
 
 def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: SuperResConfig | None = None, *,
                 start: dict | None = None, background=(1.0, 1.0, 1.0), images_scale: int = 1,
-                progress: Callable[[float, str], None] | None = None, check_views: int = 8,
+                progress: Callable[[float, str], None] | None = None, check_views: int = 4,
                 on_check: Callable[[int, GaussianCloud], None] | None = None) -> SuperResFit:
     """Fit `cloud`'s changes per octave (numpy cloud that knows its training rate: an anti-aliasing
     size) for octaves 1..`octaves` to `views` (the capture's images at the resolution the cloud
@@ -482,6 +483,7 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     holdout = {"input": judge(src, held), "start": judge(given, held)}
     best = judge(model.cloud(limit)[0], held)  # the fit's own start: the changes and the halved anti-aliasing
     begin, best_state, best_step, stopped = best, model.snapshot(), 0, False
+    initial_state = best_state
     checks = [(0, best)] if len(held) else []
     if on_check is not None:
         on_check(0, model.cloud(limit)[0].detach())
@@ -491,7 +493,8 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     octave_list = [k for k in range(1, octaves + 1) if 2 ** k >= images_scale]
     units = [(int(v), tile) for v in fitted_rows for tile in _tiles(width, height, int(config.patch))]
     per_step = int(config.views_per_step)
-    per_octave = config.steps if config.steps is not None else math.ceil(config.epochs * len(units) / per_step)
+    per_octave = (config.steps if config.steps is not None
+                  else min(int(config.max_steps), math.ceil(config.epochs * len(units) / per_step)))
     total = int(per_octave) * len(octave_list)
     check_interval = max(1, math.ceil(config.check_every * len(units) / per_step) * len(octave_list))
     densify_steps = {int(round(f * total)) for f in config.densify_at} if config.children is not None else set()
@@ -580,8 +583,13 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     after = judge(model.cloud(limit)[0], check_rows)
     timings["check"] += checking + time.perf_counter() - t0
     if len(held):
-        fallback = "start" if holdout["start"] >= holdout["input"] else "input"
-        kept = "fit" if fit_step and fit_psnr > begin else fallback
+        if fit_step and fit_psnr > begin:
+            kept = "fit"
+        else:  # not fitted: the best of where it began, the detail model's changes and the input
+            others = {"begin": begin, "start": holdout["start"], "input": holdout["input"]}
+            kept = max(others, key=others.get)
+            if kept == "begin":
+                model.restore(initial_state)
     else:
         kept = "fit" if after > start_psnr else "start"
     changes, children, roots = model.result(limit)

@@ -4,7 +4,11 @@ ever had one, by its decaying momentum (a row seen once travels about 30 learnin
 it), which on a 1M-Gaussian capture made the fit reproduce its own images 15 dB worse than it
 started. Here a row's moments and value change only in steps where its gradient is non-zero (the
 "selective" or "visible" Adam of the 3DGS literature); the bias correction counts the optimiser's
-steps, as Adam's does. On a small object, where a patch sees nearly every Gaussian, it is Adam."""
+steps, as Adam's does. On a small object, where a patch sees nearly every Gaussian, it is Adam.
+
+It keeps torch's optimiser interface (`param_groups`, `state`, `add_param_group`, `step`,
+`zero_grad`) without deriving from `torch.optim.Optimizer`, whose constructor imports torch's
+compiler on first use (several seconds of a refine that otherwise needs none of it)."""
 
 from __future__ import annotations
 
@@ -13,13 +17,31 @@ import torch
 __all__ = ["VisibleAdam"]
 
 
-class VisibleAdam(torch.optim.Optimizer):
+class VisibleAdam:
     """Adam (no weight decay, no amsgrad) over row-indexed parameters, updating only the rows
     (first index) with a non-zero gradient. State keys as torch's Adam: `step`, `exp_avg`,
-    `exp_avg_sq`."""
+    `exp_avg_sq`; parameters as torch's optimisers take them (tensors, or a list of groups: dicts
+    with "params" and optionally "lr")."""
 
     def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15):
-        super().__init__(params, {"lr": lr, "betas": betas, "eps": eps})
+        self.defaults = {"lr": lr, "betas": betas, "eps": eps}
+        self.param_groups: list[dict] = []
+        self.state: dict = {}
+        params = list(params)
+        for group in params if params and isinstance(params[0], dict) else [{"params": params}]:
+            self.add_param_group(group)
+
+    def add_param_group(self, group: dict) -> None:
+        self.param_groups.append({**self.defaults, **group, "params": list(group["params"])})
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        for group in self.param_groups:
+            for p in group["params"]:
+                if p.grad is not None:
+                    if set_to_none:
+                        p.grad = None
+                    else:
+                        p.grad.zero_()
 
     @torch.no_grad()
     def step(self, closure=None):
@@ -29,7 +51,7 @@ class VisibleAdam(torch.optim.Optimizer):
                 if p.grad is None:
                     continue
                 g = p.grad
-                state = self.state[p]
+                state = self.state.setdefault(p, {})
                 if not state:
                     state["step"] = torch.zeros((), dtype=torch.float64)
                     state["exp_avg"] = torch.zeros_like(p)
