@@ -414,7 +414,8 @@ def refine_images(cloud: GaussianCloud | RefineInput, images: Any, *, steps: int
     def memory(count: int, height: int, width: int) -> None:
         if check_memory:
             check_image_fit_memory(n, src.sh_degree, images=count, height=height, width=width, extra_values=extra,
-                                   children=config.max_children if config.children is not None else 0.0)
+                                   children=config.max_children if config.children is not None else 0.0,
+                                   octaves=steps, patch=config.patch, views_per_step=config.views_per_step)
 
     capture = capture_images(src, images, image_height, before_loading=memory, test_every=test_every)
     src, views = capture.cloud, capture.views

@@ -53,11 +53,19 @@ MERGE_PER_EDGE = 260
 MERGE_PER_GAUSSIAN = 400
 
 
-#: Bytes per value of a Gaussian (14 + 3 K, children included) of a fit to the capture's images: the
-#: cloud as torch tensors, its changes per octave with their gradients and Adam's two moments, and
-#: the copies each step draws from; per image pixel: the images and their composites (float32 RGB).
-IMAGE_FIT_PER_VALUE = 40
+#: A fit to the capture's images (`refine(images=...)`): the process before any cloud (it loads no
+#: model but the detail model); bytes per value of a Gaussian (14 + 3 K, children included): the
+#: cloud as torch tensors, its changes per octave with their gradients and Adam's two moments, the
+#: copies each step draws from and the render's per-Gaussian state; per image pixel: the images and
+#: their composites (float32 RGB); per pixel a step draws (at 2^octave times the images' size): the
+#: render's per-pixel state kept for the backward pass. Fitted to the peaks of `python -m
+#: gvae_core.benchmarks superres` (whole images, one a step): 50k Gaussians on 43 images of 320x240
+#: 0.86 GiB, 100k on 100 of 500x375 1.71 GiB (300 steps), 1M on 40 of 720x540 6.75 GiB (18 steps:
+#: the fit was stopped there); within 1% of each.
+IMAGE_FIT_BASE_BYTES = 400 << 20
+IMAGE_FIT_PER_VALUE = 85
 IMAGE_FIT_PER_PIXEL = 28
+IMAGE_FIT_PER_DRAWN_PIXEL = 440
 
 
 #: Training (`gvae_core.train`): bytes per Gaussian per value it holds (the parameters, their
@@ -175,14 +183,18 @@ def check_compact_memory(n: int, sh_degree: int = 3, **kwargs) -> int:
 
 
 def estimate_image_fit_memory(n: int, sh_degree: int = 3, *, images: int, height: int, width: int,
-                              extra_values: int = 0, children: float = 0.0) -> int:
+                              extra_values: int = 0, children: float = 0.0, octaves: int = 1, patch: int = 0,
+                              views_per_step: int = 1) -> int:
     """Estimated peak bytes of refining `n` Gaussians from `images` training images of `height` x
-    `width` pixels (`refine(images=...)`), with up to `children` added Gaussians per input one."""
+    `width` pixels (`refine(images=...)`) up to `octaves` octaves, drawing `views_per_step` tiles of
+    edge `patch` (0: whole images) a step, with up to `children` added Gaussians per input one."""
     k = SH_REST_COUNTS[min(int(sh_degree), 3)]
     values = 14 + 3 * k
     rows = int(n * (1.0 + max(float(children), 0.0)))
-    return int(BASE_BYTES + n * (values + int(extra_values)) * PER_VALUE + rows * values * IMAGE_FIT_PER_VALUE
-               + int(images) * int(height) * int(width) * IMAGE_FIT_PER_PIXEL)
+    tile = min(patch, width) * min(patch, height) if patch else width * height
+    drawn = max(int(views_per_step), 1) * int(tile) * 4 ** max(int(octaves), 1)
+    return int(IMAGE_FIT_BASE_BYTES + n * (values + int(extra_values)) * PER_VALUE + rows * values * IMAGE_FIT_PER_VALUE
+               + int(images) * int(height) * int(width) * IMAGE_FIT_PER_PIXEL + drawn * IMAGE_FIT_PER_DRAWN_PIXEL)
 
 
 def check_image_fit_memory(n: int, sh_degree: int = 3, **kwargs) -> int:

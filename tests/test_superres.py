@@ -226,6 +226,7 @@ def test_faulted_captures_change_what_they_say(tmp_path):
 
 
 def test_a_fit_too_large_for_the_memory_is_refused_before_the_images_are_read(monkeypatch, tmp_path):
+    import gvae_core.refinement as refinement  # noqa: PLC0415
     import gvae_core.resources as resources  # noqa: PLC0415
     import gvae_core.superres.match as match  # noqa: PLC0415
 
@@ -234,7 +235,11 @@ def test_a_fit_too_large_for_the_memory_is_refused_before_the_images_are_read(mo
     need = resources.estimate_image_fit_memory(100, 1, images=3, height=H, width=H)
     more = resources.estimate_image_fit_memory(100, 1, images=300, height=H, width=H, children=0.5)
     assert more > need > resources.estimate_image_fit_memory(50, 1, images=3, height=H, width=H)
+    drawn = [resources.estimate_image_fit_memory(100, 1, images=3, height=750, width=1000, **k)
+             for k in ({"octaves": 2}, {}, {"patch": 96})]  # a whole 4x, a whole 2x, a 96 px tile's 2x render
+    assert drawn[0] > drawn[1] > drawn[2]
     monkeypatch.setattr(resources, "available_memory", lambda: need - 1)
+    monkeypatch.setattr(refinement, "check_refine_memory", lambda *a, **k: 0)  # the detail model's own check
     monkeypatch.setattr(match, "load_capture_images", lambda *a, **k: pytest.fail("images read"))
     with pytest.raises(resources.NotEnoughMemoryError, match="from 3 images of 24x24 px"):
         refine(trained.with_sh_degree(1), images=folder, fit={"children": None})

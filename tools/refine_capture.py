@@ -176,19 +176,19 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _picture(path: Path, clouds: dict, views) -> None:
-    """One held-out view at 2x: the photo and every row's render, each with a 3x zoomed crop below."""
+    """One held-out view at 2x: the photo and every row's render, each with its centre third zoomed 3x below."""
     from PIL import Image  # noqa: PLC0415
 
     v = len(views) // 2
     one = type(views)([views.cameras[v]], views.images[v:v + 1], views.alphas[v:v + 1], [views.names[v]])
     panels = [("photo", one.images[0])] + [(name, render_views(c, one)[0]) for name, c in clouds.items()]
     h, w = panels[0][1].shape[:2]
-    ch, cw = h // 4, w // 4
+    ch, cw = h // 3, w // 3
     y0, x0 = h // 2 - ch // 2, w // 2 - cw // 2
     columns = []
     for _, img in panels:
-        crop = np.kron(img[y0:y0 + ch, x0:x0 + cw], np.ones((3, 3, 1)))[:, :w]
-        col = np.concatenate([img, np.pad(crop, ((0, 0), (0, w - crop.shape[1]), (0, 0)))], 0)
+        crop = np.kron(img[y0:y0 + ch, x0:x0 + cw], np.ones((3, 3, 1)))
+        col = np.concatenate([img, np.pad(crop, ((0, 0), (0, w - crop.shape[1]), (0, 0)), mode="edge")], 0)
         columns.append(col)
     sheet = np.concatenate(columns, 1)
     Image.fromarray((np.clip(sheet, 0, 1) * 255 + 0.5).astype(np.uint8)).save(path, quality=85)  # (.jpg: small)

@@ -88,7 +88,8 @@ def one(n: int, views: int, height: int, fit: dict | None = None, optimizer: str
     conf = SuperResConfig(**config)
     estimate = estimate_image_fit_memory(n, trained.sh_degree, images=views, height=height, width=cam.width,
                                          extra_values=len(trained.extra),
-                                         children=conf.max_children if conf.children is not None else 0.0)
+                                         children=conf.max_children if conf.children is not None else 0.0,
+                                         patch=conf.patch, views_per_step=conf.views_per_step)
     return {"n": n, "views": views, "height": height, "width": cam.width, "made_s": made, "seconds": seconds,
             "fit_s": r.timings.get("fit", float("nan")), "steps": len(fit.losses),
             "cpu": c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime, "before": fit.psnr_before,

@@ -88,7 +88,8 @@ def register(subparsers) -> None:
                    help="with --images: every N-th image of the capture (by name) was held out from training "
                    "(gvae train --test-every N): never fitted, as it was not trained on (default: none)")
     r.add_argument("--fit-steps", type=int, default=None, metavar="N",
-                   help="with --images: optimiser steps per octave (default: superres.SuperResConfig's)")
+                   help="with --images: steps per octave, one whole image each (default: 20 passes over the fitted "
+                   "images, at most 300)")
     r.add_argument("--children", action="store_true",
                    help="with --images: add Gaussians that fade in above the training resolution where the fit's "
                    "gradients ask for them (more detail at 2x, a little less at 1.5x; BENCHMARKS.md)")
