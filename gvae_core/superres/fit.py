@@ -436,7 +436,7 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     was trained at, over `background`), judged on the ones held out (module docstring). `start`:
     changes to start from (field -> array; default zero). `images_scale`: the images are this power
     of 2 times the training resolution (2: real 2x images, the oracle of one octave; renders are
-    averaged down to them). `progress(fraction, message)` now and then; an exception it raises
+    averaged down to them). `progress(fraction, message)` after every step; an exception it raises
     stops the fit. `on_check(step, cloud)`: at every check, the cloud (torch, with the changes as
     they are then) for whoever wants to look at it too (a study of how the fit goes)."""
     config = config or SuperResConfig()
@@ -558,7 +558,7 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
             grad_sum = grad_count = None
             origin = {f: torch.cat([origin[f], torch.zeros_like(p[len(origin[f]):])]) if len(p) > len(origin[f])
                       else origin[f] for f, p in model.changes.items()}
-        if progress is not None and (step % 10 == 9 or step == total - 1):
+        if progress is not None:  # every step: a step of a large capture takes seconds, and cancel acts here
             progress((step + 1) / max(total, 1), f"fitting to the images: step {step + 1}/{total}, "
                      f"loss {np.mean(losses[-20:]):.4f}" + (f", held-out {best:.2f} dB" if len(held) else ""))
         if len(held) and ((step + 1) % check_interval == 0 or step == total - 1):
