@@ -277,7 +277,8 @@ def test_a_fit_the_held_out_images_do_not_like_is_not_kept():
     _, trained, views = _capture(n_views=16, n=150)
     detail = refine(trained, fidelity=None).cloud
     for start in ("detail", "zero"):
-        r = refine(trained, images=views, fit=SuperResConfig(steps=6, start=start, lr=300.0, check_every=0.1))
+        r = refine(trained, images=views, fit=SuperResConfig(steps=6, start=start, lr=300.0, check_every=0.1,
+                                                             slow_down=0.0))  # (going on slower: the next test)
         fit = r.fit
         assert fit.holdout_views == 2 and fit.images == 14 and fit.kept != "fit" and not fit.improves
         assert fit.fit_step == 0 and fit.steps_run < fit.steps_planned  # stopped, back at its step 0
@@ -297,6 +298,22 @@ def test_a_fit_the_held_out_images_do_not_like_is_not_kept():
     assert good.fit.kept == "fit" and good.fit.holdout_fit > good.fit.holdout_begin
     assert good.fit.fit_step == good.fit.steps_run == good.fit.steps_planned  # ran its steps: the last state kept
     assert [s for s, _ in good.fit.checks][0] == 0 and len(good.fit.checks) > 2
+
+
+def test_a_fit_that_falls_goes_back_to_its_best_and_on_slower():
+    """A fit whose held-out figure falls `tolerance` below its best is taken back there and goes on
+    at `slow_down` times its rates, once; with slow_down 0 it stops at the first fall."""
+    _, trained, views = _capture(n_views=16, n=150)
+    fits = {sd: refine(trained, images=views, fit=SuperResConfig(steps=24, start="zero", lr=30.0, check_every=0.2,
+                                                                 slow_down=sd)).fit for sd in (0.3, 0.0)}
+    slower, stopped = fits[0.3], fits[0.0]
+    assert stopped.slowed_at == 0 and stopped.steps_run < stopped.steps_planned  # stopped at its first fall
+    assert stopped.fit_step < stopped.steps_run and stopped.holdout_fit == max(v for _, v in stopped.checks)
+    assert slower.slowed_at == stopped.steps_run and slower.steps_run == slower.steps_planned  # on, to the end
+    assert slower.kept == "fit" and slower.holdout_fit > stopped.holdout_fit
+    assert "slower from step" in slower.judged() and "slower" not in stopped.judged()
+    with pytest.raises(ValueError, match="slow_down"):
+        SuperResConfig(slow_down=1.0)
 
 
 def test_tiles_cover_each_image_and_held_out_rows_are_spread():

@@ -11,8 +11,8 @@ construction), so the picture the images were fitted with stays the input's.
 
 A fit is judged on images it did not fit: every `holdout`-th image is held out, the fit runs on
 the rest, and the held-out ones, drawn at 2x and averaged down, are checked every `check_every`
-passes: a fit that draws them more than `tolerance` dB worse than its best is stopped and taken back
-to its best; and the fit is kept only if it draws them better than the changes it started from
+passes: a fit that draws them more than `tolerance` dB worse than its best is taken back to its
+best and goes on at `slow_down` times its rates (a second fall stops it there); and the fit is kept only if it draws them better than the changes it started from
 (its step 0), else the better of the detail model's changes and the input as it was
 (`SuperResFit.kept`). A fit that reproduces its own images better proves nothing: on a real capture
 it reproduced them 2.7 dB better and the photos it did not see no better. The held-out images are at
@@ -86,7 +86,9 @@ class SuperResConfig:
     gives back each step (0: none); holdout: every n-th image (of the images given, in their order)
     judges the fit instead of being fitted (0, or fewer than 16 images: none, the fitted images
     judge it); check_every: passes between checks on them; tolerance: how far (dB) below their best
-    figure the fit may draw them before it is stopped and taken back to its best; pose / exposure:
+    figure the fit may draw them before it is taken back to its best; slow_down: the fit then goes
+    on from there at this fraction of its rates, with fresh moments (once; a second fall, or 0,
+    stops it there); pose / exposure:
     the penalty weight of the per-image guard (`guards`), None: off; children: the view-space gradient (NDC, the
     reference's units) at which a Gaussian densifies (`CHILD_GRADIENT`, the reference 3DGS's), None
     (the default): no children; densify_at: when, as fractions of the steps; max_children: at most
@@ -108,6 +110,7 @@ class SuperResConfig:
     holdout: int = 8
     check_every: float = 0.5
     tolerance: float = 1.0
+    slow_down: float = 0.3
     lambda_dssim: float = 0.2
     pose: float | None = None
     exposure: float | None = None
@@ -131,10 +134,10 @@ class SuperResConfig:
             raise ValueError(f"superres: steps, epochs and patch must be >= 0, got {self.steps}, {self.epochs}, "
                              f"{self.patch}")
         if int(self.views_per_step) < 1 or not 0 <= self.pull < 1 or int(self.holdout) < 0 \
-                or not self.check_every > 0 or not self.tolerance >= 0:
-            raise ValueError("superres: views_per_step must be >= 1, holdout and tolerance >= 0, check_every > 0 "
-                             f"and pull in [0, 1), got {self.views_per_step}, {self.holdout}, {self.tolerance}, "
-                             f"{self.check_every}, {self.pull}")
+                or not self.check_every > 0 or not self.tolerance >= 0 or not 0 <= self.slow_down < 1:
+            raise ValueError("superres: views_per_step must be >= 1, holdout and tolerance >= 0, check_every > 0, "
+                             f"pull and slow_down in [0, 1), got {self.views_per_step}, {self.holdout}, "
+                             f"{self.tolerance}, {self.check_every}, {self.pull}, {self.slow_down}")
 
 
 @dataclass
@@ -149,8 +152,9 @@ class SuperResFit:
     before and after; which state was kept ("fit" when it draws the held-out images better than its
     step 0, else the best on them of "begin" (step 0: `changes` are then those), "start" and "input";
     without held-out images the fitted ones decide between "fit" and "start"),
-    the step of the fit's state, the steps run and planned, every check on the held-out images
-    (step, PSNR), the per-image guards' state, and seconds."""
+    the step of the fit's state, the steps run and planned, the step after which it went on at
+    `slow_down` times its rates (0: never), every check on the held-out images (step, PSNR), the
+    per-image guards' state, and seconds."""
 
     changes: dict[str, np.ndarray]
     losses: list[float]
@@ -168,6 +172,7 @@ class SuperResFit:
     fit_step: int = 0
     steps_run: int = 0
     steps_planned: int = 0
+    slowed_at: int = 0
     checks: list[tuple[int, float]] = field(default_factory=list)
     children: GaussianCloud | None = None
     child_roots: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -188,7 +193,9 @@ class SuperResFit:
             return (f"{self.holdout_views} held-out images drawn at 2x and averaged down: input "
                     f"{self.holdout_input:.2f}, detail model {self.holdout_start:.2f}, the fit at step 0 "
                     f"{self.holdout_begin:.2f} and at step {self.fit_step} {self.holdout_fit:.2f} dB PSNR "
-                    f"({self.steps_run} of {self.steps_planned} steps run); kept: {self.kept}")
+                    f"({self.steps_run} of {self.steps_planned} steps run"
+                    + (f"; back to its best and slower from step {self.slowed_at}" if self.slowed_at else "")
+                    + f"); kept: {self.kept}")
         return (f"no images held out: its own images {self.psnr_start:.2f} (start) -> {self.psnr_after:.2f} dB; "
                 f"kept: {self.kept}")
 
@@ -214,8 +221,12 @@ class _Model:
         self.roots = torch.zeros(0, dtype=torch.int64)
         self.means64 = np.ascontiguousarray(self.base.means.double().numpy().T)  # (3, R): the rows' fixed centres
         self.lrs = lrs
-        self.opt = VisibleAdam([{"params": [p], "lr": lrs[f]} for f, p in self.changes.items()]
-                               + [{"params": [p], "lr": lrs[f]} for f, p in self.child.items()], eps=1e-15)
+        self.opt = self._optimizer(1.0)
+
+    def _optimizer(self, factor: float) -> VisibleAdam:
+        """Adam, no moments yet, on the changes as they are, at `factor` times the rates."""
+        return VisibleAdam([{"params": [p], "lr": self.lrs[f] * factor} for f, p in self.changes.items()]
+                           + [{"params": [p], "lr": self.lrs[f] * factor} for f, p in self.child.items()], eps=1e-15)
 
     @property
     def m(self) -> int:
@@ -296,11 +307,14 @@ class _Model:
             return {"changes": {f: p.detach().clone() for f, p in self.changes.items()},
                     "child": {f: p.detach().clone() for f, p in self.child.items()}, "roots": self.roots.clone()}
 
-    def restore(self, state: dict) -> None:
-        """Back to a `snapshot` (the optimiser is not used after this)."""
+    def restore(self, state: dict, rates: float | None = None) -> None:
+        """Back to a `snapshot`; with `rates`, a fresh optimiser at that fraction of the rates to go on
+        from there (else the optimiser is not used after this)."""
         self.changes = {f: v.clone().requires_grad_(True) for f, v in state["changes"].items()}
         self.child = {f: v.clone().requires_grad_(True) for f, v in state["child"].items()}
         self.roots = state["roots"].clone()
+        if rates is not None:
+            self.opt = self._optimizer(rates)
 
     def pull(self, towards: dict[str, torch.Tensor], share: float, seen: torch.Tensor) -> None:
         """Move the input rows' changes `seen` (bool, input rows) `share` of the way back to
@@ -500,7 +514,7 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     densify_steps = {int(round(f * total)) for f in config.densify_at} if config.children is not None else set()
     grad_sum = grad_count = None
     order: list[tuple[int, tuple]] = []
-    t0, checking = time.perf_counter(), 0.0
+    t0, checking, slowed = time.perf_counter(), 0.0, 0
     initial = [g["lr"] for g in model.opt.param_groups]
     step = 0
     for step in range(total):
@@ -571,8 +585,12 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
             if now > best:
                 best, best_state, best_step = now, model.snapshot(), step + 1
             elif now < best - config.tolerance:
-                stopped = True
-                break
+                if slowed or not config.slow_down:
+                    stopped = True
+                    break
+                slowed = step + 1  # back to its best, on at a fraction of the rates
+                model.restore(best_state, config.slow_down)
+                initial = [g["lr"] for g in model.opt.param_groups]
     steps_run = step + 1 if total else 0
     timings["fit"] = time.perf_counter() - t0 - checking
     t0 = time.perf_counter()
@@ -597,7 +615,7 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
                        psnr_views=len(check_rows), images=len(fitted_rows), holdout_views=len(held),
                        holdout_input=holdout["input"], holdout_start=holdout["start"], holdout_begin=begin,
                        holdout_fit=fit_psnr, kept=kept, fit_step=fit_step,
-                       steps_run=steps_run, checks=checks,
+                       steps_run=steps_run, slowed_at=slowed, checks=checks,
                        steps_planned=total, children=children, child_roots=roots,
                        pose_pixels=None if pose is None else pose.pixels(),
                        exposure_gains=None if exposure is None else exposure.gains(),
