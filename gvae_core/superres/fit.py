@@ -12,8 +12,9 @@ construction), so the picture the images were fitted with stays the input's.
 A fit is judged on images it did not fit: every `holdout`-th image is held out, the fit runs on
 the rest, and the held-out ones, drawn at 2x and averaged down, are checked every `check_every`
 passes: a fit that draws them more than `tolerance` dB worse than its best is taken back to its
-best and goes on at `slow_down` times its rates (a second fall stops it there); and the fit is kept only if it draws them better than the changes it started from
-(its step 0), else the better of the detail model's changes and the input as it was
+best and goes on at `slow_down` times its rates (a second fall stops it there); and the fit is
+kept only if it draws them better than the changes it started from (its step 0), else the better
+of the detail model's changes and the input as it was
 (`SuperResFit.kept`). A fit that reproduces its own images better proves nothing: on a real capture
 it reproduced them 2.7 dB better and the photos it did not see no better. The held-out images are at
 the training resolution: what they see of a fit is its changes' side effects there, not the detail
