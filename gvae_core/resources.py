@@ -59,11 +59,11 @@ MERGE_PER_GAUSSIAN = 400
 #: copies each step draws from and the render's per-Gaussian state; per image pixel: the images and
 #: their composites (float32 RGB); per pixel a step draws (at 2^octave times the images' size): the
 #: render's per-pixel state kept for the backward pass. Fitted to the peaks of `python -m
-#: gvae_core.benchmarks superres` (whole images, one a step): 50k Gaussians on 43 images of 320x240
-#: 0.86 GiB, 100k on 100 of 500x375 1.71 GiB (300 steps), 1M on 40 of 720x540 6.75 GiB (18 steps:
-#: the fit was stopped there); within 1% of each.
+#: gvae_core.benchmarks superres` (whole images, one a step, 300 steps): 50k Gaussians on 43 images
+#: of 320x240 0.86 GiB, 100k on 100 of 500x375 1.71 GiB, 1M on 40 of 720x540 7.45 GiB; these give
+#: 0.90, 1.79 and 7.49 GiB (1-5% above each).
 IMAGE_FIT_BASE_BYTES = 400 << 20
-IMAGE_FIT_PER_VALUE = 85
+IMAGE_FIT_PER_VALUE = 98
 IMAGE_FIT_PER_PIXEL = 28
 IMAGE_FIT_PER_DRAWN_PIXEL = 440
 
