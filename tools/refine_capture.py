@@ -135,11 +135,7 @@ def main(argv: list[str] | None = None) -> int:
                    time.perf_counter() - t0, iterations=n)
         elif name == "oracle":
             real = capture.load("train", 2 * height)
-            start = None
-            if fit.start == "detail":
-                from gvae_core.octaves import octave_fields  # noqa: PLC0415
-
-                start = octave_fields(refine(cloud, fidelity=None).cloud)
+            start = _detail_start(cloud) if fit.start == "detail" else None
             f = fit_octaves(cloud, real, 1, fit, start=start, background=cloud.background or (1.0, 1.0, 1.0),
                             images_scale=2)
             chosen = f.changes if f.kept in ("fit", "begin") else {"start": start or {}, "input": {}}[f.kept]
@@ -147,11 +143,7 @@ def main(argv: list[str] | None = None) -> int:
                    steps=f.steps_run, holdout=[f.holdout_input, f.holdout_start, f.holdout_fit],
                    checks=[[s, round(v, 3)] for s, v in f.checks])
         elif name == "trace":
-            start = None
-            if fit.start == "detail":
-                from gvae_core.octaves import octave_fields  # noqa: PLC0415
-
-                start = octave_fields(refine(cloud, fidelity=None).cloud)
+            start = _detail_start(cloud) if fit.start == "detail" else None
             trace = []
 
             def look(step: int, now, trace=trace) -> None:
@@ -173,6 +165,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.picture is not None:
         _picture(args.picture, clouds, test[2 * height])
     return 0
+
+
+def _detail_start(cloud) -> dict:
+    """The detail model's changes per octave of `cloud`: where `refine(images=...)` starts its fit."""
+    from gvae_core.octaves import octave_fields  # noqa: PLC0415
+
+    return octave_fields(refine(cloud, fidelity=None).cloud)
 
 
 def _picture(path: Path, clouds: dict, views) -> None:
