@@ -563,8 +563,10 @@ def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, view
             work = _accumulate_view(f, cam, cloud.sh_degree, settings, float(normalization[1]), out, aa, timings,
                                     work, frames=frames, rows=order)
     del work, f
-    if fast:
-        out = torch.from_numpy(rows_out).T
+    if fast:  # rows back in the cloud's order; the packed form is their transpose (no copy)
+        result = np.empty_like(rows_out)
+        result[order.numpy()] = rows_out
+        return torch.from_numpy(result).T
     result = torch.empty_like(out)
     result[:, order] = out
     return result
@@ -669,18 +671,33 @@ def hessian_blocks_reference(cloud: GaussianCloud, cameras: Sequence[Camera],
     return blocks
 
 
-def scores_from_packed(packed: torch.Tensor, score: str = "logdet", ridge: float = 1e-2) -> torch.Tensor:
-    """`scores_from_blocks` on packed upper triangles (21, N) (`_TRIU` order)."""
+def scores_from_packed(packed: torch.Tensor, score: str = "logdet", ridge: float = 1e-2,
+                       kernels: str = "auto") -> torch.Tensor:
+    """`scores_from_blocks` on packed upper triangles (21, N) (`_TRIU` order). `kernels`: "auto"
+    takes the log-determinants of blocks on the CPU by the compiled kernels where Numba runs
+    (`rendering.compiled.logdet_scores`), "torch" by `_logdet_eye_plus` (the reference)."""
     if score not in ("logdet", "trace"):
         raise ValueError(f"hessian: score must be 'logdet' or 'trace', got {score!r}")
-    h = torch.nan_to_num(packed.double(), nan=0.0, posinf=0.0, neginf=0.0)
+    if kernels not in compiled.KERNEL_CHOICES:
+        raise ValueError(f"hessian: kernels must be one of {compiled.KERNEL_CHOICES}, got {kernels!r}")
     index = {(int(i), int(j)): k for k, (i, j) in enumerate(zip(*_TRIU.tolist()))}
-    trace = sum(h[index[(k, k)]] for k in range(BLOCK)).clamp(min=0.0)
-    if score == "trace" or h.shape[1] == 0:
+    on_diagonal = [index[(k, k)] for k in range(BLOCK)]
+    fast = kernels != "torch" and packed.device.type == "cpu" and compiled.numba_missing() is None
+    if fast:
+        rows = packed.T.double().numpy()  # (N, 21): no copy when packed is the transpose of rows
+        diagonal = torch.from_numpy(rows[:, on_diagonal].T)
+    else:
+        diagonal = packed[on_diagonal].double()
+    diagonal = torch.nan_to_num(diagonal, nan=0.0, posinf=0.0, neginf=0.0)
+    trace = sum(diagonal[k] for k in range(BLOCK)).clamp(min=0.0)
+    if score == "trace" or packed.shape[1] == 0:
         return trace.float()
     lam = ridge * float(trace.mean()) / BLOCK
     if not math.isfinite(lam) or lam <= 0.0:
-        return torch.zeros(h.shape[1], dtype=torch.float32)
+        return torch.zeros(packed.shape[1], dtype=torch.float32)
+    if fast:
+        return torch.from_numpy(compiled.logdet_scores(rows, lam))
+    h = torch.nan_to_num(packed.double(), nan=0.0, posinf=0.0, neginf=0.0)
     out = torch.zeros(h.shape[1], dtype=torch.float32)
     step = 1 << 16  # cache-sized pieces
     for i in range(0, h.shape[1], step):

@@ -12,7 +12,9 @@ from gvae_core.budget import select_budget
 from gvae_core.capture import default_views, scoring_views, surround_radius
 from gvae_core.conventions import rgb_to_dc
 from gvae_core.examples import example_cloud
-from gvae_core.hessian import hessian_blocks, hessian_blocks_reference, hessian_scores, scores_from_blocks
+from gvae_core.hessian import (_TRIU, hessian_blocks, hessian_blocks_reference, hessian_scores, scores_from_blocks,
+                               scores_from_packed)
+from gvae_core.rendering import compiled
 from gvae_core.rendering import RenderSettings
 
 LOG_SCALE = math.log(0.15)
@@ -116,6 +118,20 @@ def test_logdet_score_matches_the_eigenvalue_formula():
     lam = 1e-2 * float(torch.diagonal(blocks, dim1=1, dim2=2).sum(-1).mean()) / 6
     want = torch.log1p(torch.linalg.eigvalsh(blocks / lam).clamp(min=0)).sum(-1)
     torch.testing.assert_close(scores_from_blocks(blocks).double(), want, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.skipif(compiled.numba_missing() is not None, reason="the compiled kernels need Numba")
+def test_compiled_log_determinants_are_the_torch_ones():
+    h = torch.randn(3000, 6, 9, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    blocks = (h @ h.transpose(1, 2)) * torch.logspace(-6, 3, 3000, dtype=torch.float64)[:, None, None]
+    blocks[:10] = 0.0
+    rows = blocks[:, _TRIU[0], _TRIU[1]].contiguous()
+    rows[10, 3], rows[11, 0], rows[12, 20] = float("nan"), float("inf"), -float("inf")  # read as 0 by both
+    torch_scores = scores_from_packed(rows.T, kernels="torch")
+    fast = scores_from_packed(rows.T, kernels="auto")
+    assert torch.isfinite(fast).all() and (fast >= 0).all() and (fast[:10] == 0).all()
+    torch.testing.assert_close(fast, torch_scores, rtol=1e-6, atol=1e-6)
+    assert not torch.equal(fast, scores_from_packed(rows.roll(1, 0).T, kernels="auto"))
 
 
 def test_default_views_frame_an_object():

@@ -12,6 +12,7 @@ BENCHMARKS = (
     "gltf",
     "render",
     "kernels",
+    "capture_scale",
     "antialias",
     "blender",
     "refine",

@@ -332,6 +332,17 @@ def gaussian_blocks(inp: Inputs, camera: Camera, degree: int, scale: float, tabl
           for a, b in _chunks(n, 64.0 * n)])
 
 
+def logdet_scores(rows: np.ndarray, lam: float) -> np.ndarray:
+    """(N,) float32 log det(I + H / lam) of the blocks whose packed upper triangles are rows (N, 21)
+    float64 (`kernels.logdet_scores`; `hessian.scores_from_packed`'s log-determinant by the kernels)."""
+    k = kernels()
+    n = rows.shape[0]
+    out = np.empty(n, np.float32)
+    rows = np.ascontiguousarray(rows, np.float64)
+    _run([lambda a=a, b=b: k.logdet_scores(rows, float(lam), a, b, out) for a, b in _chunks(n, 256.0 * n)])
+    return out
+
+
 # ------------------------------------------------------------------------------ compiling
 
 def kernels_cached() -> bool:
@@ -366,6 +377,7 @@ def compile_kernels(progress: Callable[[float, str], None] | None = None) -> flo
     gauss_newton_moments(table, binning, acc, cam.width, cam.height, moments)
     blocks = np.zeros((n, 21), np.float64)  # a packed 6x6 block each
     gaussian_blocks(Inputs(*fields), cam, degree, 1.0, table, moments, blocks)
+    logdet_scores(blocks, 1.0)
     return time.perf_counter() - t0
 
 

@@ -1210,7 +1210,43 @@ def gaussian_blocks(means, log_scales, quats, sh_rest, sizes, cam, degree, flags
                 col += 1
 
 
+@kernel
+def logdet_scores(rows, lam, lo, hi, out):
+    """out[i] = log det(I + H_i / lam) (float32, >= 0) for i in lo..hi-1, H_i the symmetric 6x6
+    block whose upper triangle is rows[i] (21, row by row; non-finite entries read as 0), by an
+    LDL^T factorisation whose pivots are clamped at 1 (`hessian._logdet_eye_plus`, one block at a time)."""
+    a = np.empty((6, 6), np.float64)
+    low = np.zeros((6, 6), np.float64)
+    d = np.empty(6, np.float64)
+    for i in range(lo, hi):
+        col = 0
+        for r in range(6):
+            for c in range(r, 6):
+                v = rows[i, col]
+                v = v / lam if np.isfinite(v) else 0.0
+                a[r, c] = v
+                a[c, r] = v
+                col += 1
+        total, product = 0.0, 1.0  # the log of a product of pivots (one log a block, not six)
+        for j in range(6):
+            dj = 1.0 + a[j, j]
+            for k in range(j):
+                dj -= low[j, k] * low[j, k] * d[k]
+            dj = max(dj, 1.0)
+            d[j] = dj
+            product *= dj
+            if product > 1e150:
+                total += math.log(product)
+                product = 1.0
+            for r in range(j + 1, 6):
+                v = a[j, r]
+                for k in range(j):
+                    v -= low[r, k] * low[j, k] * d[k]
+                low[r, j] = v / dj
+        out[i] = max(total + math.log(product), 0.0)
+
+
 #: Every kernel of this module (what `compiled.compile_kernels` makes ready).
 KERNELS = ("project_forward", "project_backward", "radix_order", "gather_footprints", "bin_count", "bin_fill",
            "composite_forward", "composite_backward", "pair_grads_to_table", "gauss_newton_moments", "add_moments",
-           "gaussian_blocks")
+           "gaussian_blocks", "logdet_scores")
