@@ -501,9 +501,7 @@ def _accumulate_view_compiled(inp: compiled.Inputs, camera: Camera, degree: int,
         if binning.num_pairs == 0:
             return work
         if work is None or work.shape != (len(inp), _NMOM):  # float32: a few pairs a Gaussian are summed
-            work = np.zeros((len(inp), _NMOM), np.float32)
-        else:
-            work.fill(0.0)
+            work = np.zeros((len(inp), _NMOM), np.float32)  # (gaussian_blocks leaves it zeros again)
         compiled.gauss_newton_moments(table, binning, acc, camera.width, camera.height, work)
         del acc, binning
         clock("sweep")

@@ -322,7 +322,8 @@ def gauss_newton_moments(table: torch.Tensor, binning: Binning, acc: torch.Tenso
 def gaussian_blocks(inp: Inputs, camera: Camera, degree: int, scale: float, table: torch.Tensor,
                     moments: np.ndarray, out: np.ndarray) -> None:
     """out (N, 21) float64 += this view's packed Gauss-Newton blocks of every Gaussian with some
-    weight in `moments` (N, 34) (`kernels.gaussian_blocks`; `hessian._gaussian_blocks` by the kernels)."""
+    weight in `moments` (N, 34) (`kernels.gaussian_blocks`; `hessian._gaussian_blocks` by the kernels);
+    `moments` is all zeros afterwards (what the next view's sweep adds into)."""
     k = kernels()
     n = len(inp)
     cam = camera_vector(camera)

@@ -1008,8 +1008,8 @@ def _world(g, to_world):
 def gaussian_blocks(means, log_scales, quats, sh_rest, sizes, cam, degree, flags, scale, table, mom, lo, hi, out):
     """out[i] (21, float64) += the packed upper triangle of this view's Gauss-Newton block J^T J of
     Gaussian i (position in the normalised frame, log-scale) for i in lo..hi-1 with some weight
-    (mom[i, NMOM-1] > 0), from its moments mom[i] (`gauss_newton_moments`, summed over its pairs)
-    and its drawn colour (table[i, 6:9]): `hessian._gaussian_blocks`, one Gaussian at a time in
+    (mom[i, NMOM-1] > 0), from its moments mom[i] (`gauss_newton_moments`, summed over its pairs;
+    cleared once read, so that mom is all zeros again for the next view) and its drawn colour (table[i, 6:9]): `hessian._gaussian_blocks`, one Gaussian at a time in
     float64 (the derivatives of the projection by camera-space position and log-scale, in the
     anti-aliasing mode of `flags`, composed with the moments)."""
     fx, fy = cam[12], cam[13]
@@ -1042,7 +1042,7 @@ def gaussian_blocks(means, log_scales, quats, sh_rest, sizes, cam, degree, flags
             col += 1
     for i in range(lo, hi):
         m = mom[i]
-        if not m[NMOM - 1] > 0.0:
+        if not m[NMOM - 1] > 0.0:  # (a row with no weight got nothing from `add_moments`: zeros)
             continue
         rx, ry, rz = means[i, 0] - cam[9], means[i, 1] - cam[10], means[i, 2] - cam[11]
         x = cam[0] * rx + cam[1] * ry + cam[2] * rz
@@ -1208,6 +1208,7 @@ def gaussian_blocks(means, log_scales, quats, sh_rest, sizes, cam, degree, flags
                 val = h[t1, t2]
                 out[i, col] += val if np.isfinite(val) else 0.0
                 col += 1
+        m[:] = 0.0  # read: cleared for the next view's sweep
 
 
 @kernel
