@@ -1,7 +1,8 @@
 """The compiled core at capture scale, each row beside its goal (issue 44), in one run:
 - forward + backward of 100k Gaussians at 800x800 (`kernels.renderer_rows`) against the C
   reference's forward pass of the same run; error: the largest gradient difference from the
-  torch path, relative to its largest value;
+  torch path, relative to its largest value; and the compositing's time per pixel-Gaussian pair,
+  forward and backward (`pair_costs`);
 - the Hessian scores of 1M Gaussians, default views (`kernels.hessian_rows`); error: the largest
   score difference from the torch path, relative;
 - `gvae refine` (detail model) and `gvae compact --keep 0.5` of a 1M-Gaussian PLY as whole
@@ -25,6 +26,7 @@ from ..examples import example_cloud
 from ..ply import write_ply
 from ..rendering import compiled
 from . import kernels as kernel_rows
+from .render import benchmark_camera, benchmark_scene
 
 #: Issue 44's goals: forward + backward in times the C forward; seconds for the rest.
 GOALS = {"fwd_bwd": 4.0, "hessian": 3.0, "refine": 8.0, "compact": 10.0}
@@ -66,6 +68,28 @@ def command_row(args: list[str], repeats: int = 3) -> dict:
             "peak": max(peaks)}
 
 
+def pair_costs(n: int = 100_000, height: int = 800, repeats: int = 7) -> dict:
+    """Nanoseconds per evaluated pixel-Gaussian pair of the compiled compositing, forward and backward
+    (medians; all threads), of `benchmark_scene(n)` seen by `benchmark_camera(height)`."""
+    cloud, cam = benchmark_scene(n), benchmark_camera(height)
+    tc = cloud.to_torch()
+    proj, table = compiled.project(tc.means, tc.scales, tc.quats, tc.opacities, tc.sh_dc, tc.sh_rest, cam, 3)
+    binning = compiled.bin_gaussians(table, proj.footprint, proj.visible, cam.width, cam.height, 8)
+    grad = None
+    forward, backward = [], []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        acc = compiled.composite_forward(table, binning)
+        forward.append(time.perf_counter() - t)
+        grad = torch.rand_like(acc) if grad is None else grad
+        t = time.perf_counter()
+        compiled.composite_backward(table, binning, acc, grad)
+        backward.append(time.perf_counter() - t)
+    evals = binning.evaluations
+    return {"forward": 1e9 * statistics.median(forward) / evals, "backward": 1e9 * statistics.median(backward) / evals,
+            "evaluations": evals, "load": _load()}
+
+
 def run(args) -> None:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     missing = compiled.numba_missing()
@@ -93,6 +117,11 @@ def run(args) -> None:
               f"{1000 * r['both']:.0f} ms = **{ratio:.2f}x** the C forward's {1000 * r['c']:.0f} ms (compiled forward "
               f"{1000 * r['fwd']:.0f} ms) | {_verdict(ratio, GOALS['fwd_bwd'])} | grad rel. diff {r['grad_err']:.1g}, "
               f"image {r['err']:.1g} vs float64 | {r['load']} |", flush=True)
+
+    p = pair_costs(repeats=3 if quick else 7)
+    print(f"| compositing per pixel-Gaussian pair, 100k @ 800x800 | backward at the forward's cost | forward "
+          f"{p['forward']:.2f} ns, backward **{p['backward']:.2f} ns** ({p['backward'] / p['forward']:.2f}x; "
+          f"{p['evaluations']:,} pairs) | - | (the same kernels as the row above) | {p['load']} |", flush=True)
 
     h = kernel_rows.hessian_rows((n,), repeats=1 if quick else 3, with_torch=True)[0]
     print(f"| Hessian scores, {n:,}, default views | <= {GOALS['hessian']:.0f} s | **{h['total']:.2f} s** (process "
