@@ -1009,9 +1009,10 @@ def gaussian_blocks(means, log_scales, quats, sh_rest, sizes, cam, degree, flags
     """out[i] (21, float64) += the packed upper triangle of this view's Gauss-Newton block J^T J of
     Gaussian i (position in the normalised frame, log-scale) for i in lo..hi-1 with some weight
     (mom[i, NMOM-1] > 0), from its moments mom[i] (`gauss_newton_moments`, summed over its pairs;
-    cleared once read, so that mom is all zeros again for the next view) and its drawn colour (table[i, 6:9]): `hessian._gaussian_blocks`, one Gaussian at a time in
-    float64 (the derivatives of the projection by camera-space position and log-scale, in the
-    anti-aliasing mode of `flags`, composed with the moments)."""
+    cleared once read, so that mom is all zeros again for the next view) and its drawn colour
+    (table[i, 6:9]): `hessian._gaussian_blocks`, one Gaussian at a time in float64 (the derivatives
+    of the projection by camera-space position and log-scale, in the anti-aliasing mode of `flags`,
+    composed with the moments)."""
     fx, fy = cam[12], cam[13]
     lo_x, hi_x, lo_y, hi_y = cam[16], cam[17], cam[18], cam[19]
     aw, ax, ay, az = cam[20], cam[21], cam[22], cam[23]
