@@ -289,7 +289,9 @@ def composite_backward(table: torch.Tensor, binning: Binning, acc: torch.Tensor,
                                                 g, pair_grads)
           for a, b in _tile_chunks(binning)])
     grad_table = np.zeros(tab.shape, np.float32)
-    k.pair_grads_to_table(pair_grads, ids, tab, grad_table)
+    parts = 1 if len(ids) * k.NGRAD < _SMALL else min(threads(), k.NGRAD)
+    _run([lambda a=a, b=b: k.pair_grads_to_table(pair_grads, ids, tab, a, b, grad_table)
+          for a, b in _split(np.ones(k.NGRAD), parts)])
     return torch.from_numpy(grad_table)
 
 

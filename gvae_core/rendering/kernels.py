@@ -858,16 +858,18 @@ def composite_backward(table, ids, offsets, t_lo, t_hi, tiles_x, ts, acc, g_acc,
 
 
 @kernel
-def pair_grads_to_table(pair_grads, ids, table, grad_table):
-    """grad_table[i, :NGRAD] = sum of pair_grads over the pairs of Gaussian i, the log-opacity
-    column turned into d / d opacity (0 for rows of opacity 0); the rest left as they are."""
+def pair_grads_to_table(pair_grads, ids, table, c_lo, c_hi, grad_table):
+    """grad_table[i, c] = sum of pair_grads[:, c] over the pairs of Gaussian i for the columns c in
+    c_lo..c_hi-1 (threads take columns apart: each sum in pair order, as one thread would), the
+    log-opacity column turned into d / d opacity (0 for rows of opacity 0); the rest left as they are."""
     for k in range(ids.shape[0]):
         g = ids[k]
-        for c in range(NGRAD):
+        for c in range(c_lo, c_hi):
             grad_table[g, c] += pair_grads[k, c]
-    for g in range(grad_table.shape[0]):
-        o = table[g, OP]
-        grad_table[g, OP] = grad_table[g, OP] / o if o > _ZERO else _ZERO
+    if c_lo <= OP < c_hi:
+        for g in range(grad_table.shape[0]):
+            o = table[g, OP]
+            grad_table[g, OP] = grad_table[g, OP] / o if o > _ZERO else _ZERO
 
 
 # ----------------------------------------------------------------------------- the Hessian's sweep
