@@ -25,6 +25,7 @@ from .camera import Camera
 from .cloud import PARAMETER_FIELDS, GaussianCloud
 from .conventions import NEAR_PLANE
 from .octaves import LIMIT_KEY, stored_keys, training_rate
+from .resources import in_threads
 from .rendering import RenderSettings
 from .rendering.frames import Frame, make_frame, redraw
 
@@ -73,14 +74,20 @@ def _change_map(before: torch.Tensor, after: torch.Tensor, window: int) -> np.nd
 
 
 def _sample(change: np.ndarray, cam: Camera, points: np.ndarray) -> np.ndarray:
-    """The change map at each point's pixel; 0 where the point is not in the image."""
-    px, depth = cam.project(points)
-    ok = np.isfinite(px).all(1) & (depth > NEAR_PLANE)
-    col = np.where(ok, np.floor(np.nan_to_num(px[:, 0])), -1).astype(np.int64)
-    row = np.where(ok, np.floor(np.nan_to_num(px[:, 1])), -1).astype(np.int64)
-    ok &= (col >= 0) & (col < change.shape[1]) & (row >= 0) & (row < change.shape[0])
+    """The change map at each point's pixel; 0 where the point is not in the image. In ranges of
+    points run in threads (`resources.in_threads`)."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
     out = np.zeros(len(points))
-    out[ok] = change[row[ok], col[ok]]
+
+    def part(a: int, b: int) -> None:
+        px, depth = cam.project(points[a:b])
+        ok = np.isfinite(px).all(1) & (depth > NEAR_PLANE)
+        col = np.where(ok, np.floor(np.nan_to_num(px[:, 0])), -1).astype(np.int64)
+        row = np.where(ok, np.floor(np.nan_to_num(px[:, 1])), -1).astype(np.int64)
+        ok &= (col >= 0) & (col < change.shape[1]) & (row >= 0) & (row < change.shape[0])
+        out[a:b][ok] = change[row[ok], col[ok]]
+
+    in_threads(len(points), part)
     return out
 
 
@@ -116,8 +123,10 @@ def lineage_changes(before: GaussianCloud, after: GaussianCloud, roots: np.ndarr
     owner = index[np.asarray(added_roots, np.int64)]
     added = np.asarray(added, np.int64)[owner >= 0]
     owner = owner[owner >= 0]
-    points = np.concatenate([before.means[roots], after.means[roots], after.means[added]]).astype(np.float64)
     m = len(roots)
+    # the refined centres are sampled apart only where they moved (the detail method moves none)
+    moved = np.flatnonzero((after.means[roots] != before.means[roots]).any(1))
+    points = np.concatenate([before.means[roots], after.means[roots[moved]], after.means[added]]).astype(np.float64)
     worst = np.zeros(m)
     settings = settings or RenderSettings()
     frames = list(frames) if frames is not None else [None] * len(cameras)
@@ -127,10 +136,13 @@ def lineage_changes(before: GaussianCloud, after: GaussianCloud, roots: np.ndarr
         for i, cam in enumerate(cameras):
             frame = frames[i] or make_frame(before, cam, settings)
             img_b = frame.image(white)
-            img_a = redraw(frame, after, changed).image(white)
+            # every row changed (the detail method changes them all): a new frame, nothing to keep
+            img_a = (make_frame(after, cam, settings) if len(changed) == len(after)
+                     else redraw(frame, after, changed)).image(white)
             values = _sample(_change_map(img_b.clamp(0, 1), img_a.clamp(0, 1), window), cam, points)
-            np.maximum(worst, np.maximum(values[:m], values[m:2 * m]), out=worst)
-            np.maximum.at(worst, owner, values[2 * m:])
+            np.maximum(worst, values[:m], out=worst)
+            worst[moved] = np.maximum(worst[moved], values[m:m + len(moved)])
+            np.maximum.at(worst, owner, values[m + len(moved):])
     return worst
 
 

@@ -104,6 +104,27 @@ def test_lineage_changes_and_putting_lineages_back():
     np.testing.assert_array_equal(cloud.opacities[24], after.opacities[25])
 
 
+def test_lineage_changes_when_every_row_changes():
+    """The detail method changes every row and moves none: the refined cloud is drawn afresh, each
+    centre sampled once, and each lineage's change is the reference's; one moved root and a child
+    are sampled at their own places."""
+    before = _cloud(40, seed=3)
+    after = before.select(np.arange(len(before)))
+    after.scales[:] += np.where(np.arange(len(before)) % 2 == 0, 0.25, -0.2).astype(np.float32)[:, None]
+    after.opacities[::4] -= np.float32(3.0)
+    after.means[11] += np.float32([0.0, 0.3, 0.0])
+    kid = before.select(np.array([20]))
+    kid.means[0] = np.float32([0.1, -0.6, 0.5])
+    after = GaussianCloud.concat([after, kid])
+    roots, added, added_roots = np.arange(len(before)), np.array([40]), np.array([20])
+    assert len(changed_rows(before, after)) == len(after)
+    cams = _cameras(48)
+    change = lineage_changes(before, after, roots, added, added_roots, cams)
+    np.testing.assert_allclose(change, _reference_changes(before, after, roots, added, added_roots, cams),
+                               atol=1e-6)
+    assert (change > 1e-3).mean() > 0.5
+
+
 def test_changed_rows_are_the_rows_that_draw_differently():
     before = with_dilation_3d(_cloud(), _cameras(48))
     after = GaussianCloud.concat([before, before.select(np.array([2]))])
