@@ -38,6 +38,7 @@ import numpy as np
 from .camera import Camera
 from .cloud import GaussianCloud
 from .conventions import NEAR_PLANE
+from .resources import in_threads
 
 __all__ = ["FILTER_KEY", "DILATION_KEY", "FILTER_3D_VARIANCE", "CLASSIC_DILATION", "VIEW_MARGIN",
            "ANTIALIAS_MODES", "DEFAULT_ANTIALIAS", "resolve_antialias", "max_sampling_rate", "filter_3d",
@@ -108,11 +109,16 @@ def _camera_rate(means: np.ndarray, cam: Camera, near: float, margin: float) -> 
 def max_sampling_rate(means, cameras: Sequence[Camera], *, near: float = NEAR_PLANE,
                       margin: float = VIEW_MARGIN) -> np.ndarray:
     """(N,) float64: the largest f / z (pixels per world unit) over the cameras that see each
-    centre; 0 where none does. One pass per camera, vectorised over the Gaussians."""
+    centre; 0 where none does. One pass per camera, vectorised over the Gaussians, in ranges of
+    them run in threads (`resources.in_threads`; the same values)."""
     m = np.asarray(means, np.float64).reshape(-1, 3)
     rate = np.zeros(len(m))
-    for cam in cameras:
-        np.maximum(rate, _camera_rate(m, cam, near, margin), out=rate)
+
+    def part(a: int, b: int) -> None:
+        for cam in cameras:
+            np.maximum(rate[a:b], _camera_rate(m[a:b], cam, near, margin), out=rate[a:b])
+
+    in_threads(len(m), part)
     return rate
 
 

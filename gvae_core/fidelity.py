@@ -24,7 +24,8 @@ from .budget import DEFAULT_FIDELITY
 from .camera import Camera
 from .cloud import PARAMETER_FIELDS, GaussianCloud
 from .conventions import NEAR_PLANE
-from .octaves import LIMIT_KEY, stored_keys, training_rate
+from .octaves import LIMIT_KEY, octaves_seen, stored_keys, training_rate
+from .resources import in_threads
 from .rendering import RenderSettings
 from .rendering.frames import Frame, make_frame, redraw
 
@@ -73,14 +74,20 @@ def _change_map(before: torch.Tensor, after: torch.Tensor, window: int) -> np.nd
 
 
 def _sample(change: np.ndarray, cam: Camera, points: np.ndarray) -> np.ndarray:
-    """The change map at each point's pixel; 0 where the point is not in the image."""
-    px, depth = cam.project(points)
-    ok = np.isfinite(px).all(1) & (depth > NEAR_PLANE)
-    col = np.where(ok, np.floor(np.nan_to_num(px[:, 0])), -1).astype(np.int64)
-    row = np.where(ok, np.floor(np.nan_to_num(px[:, 1])), -1).astype(np.int64)
-    ok &= (col >= 0) & (col < change.shape[1]) & (row >= 0) & (row < change.shape[0])
+    """The change map at each point's pixel; 0 where the point is not in the image. In ranges of
+    points run in threads (`resources.in_threads`)."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
     out = np.zeros(len(points))
-    out[ok] = change[row[ok], col[ok]]
+
+    def part(a: int, b: int) -> None:
+        px, depth = cam.project(points[a:b])
+        ok = np.isfinite(px).all(1) & (depth > NEAR_PLANE)
+        col = np.where(ok, np.floor(np.nan_to_num(px[:, 0])), -1).astype(np.int64)
+        row = np.where(ok, np.floor(np.nan_to_num(px[:, 1])), -1).astype(np.int64)
+        ok &= (col >= 0) & (col < change.shape[1]) & (row >= 0) & (row < change.shape[0])
+        out[a:b][ok] = change[row[ok], col[ok]]
+
+    in_threads(len(points), part)
     return out
 
 
@@ -88,18 +95,43 @@ def changed_rows(before: GaussianCloud, after: GaussianCloud) -> np.ndarray:
     """Rows of `after` that draw differently from `before`'s row of the same index: the rows whose
     parameters, anti-aliasing size or changes per octave (`gvae_core.octaves`) differ, and the rows
     past `before`'s end."""
+    everywhere, octaves_only = _changes(before, after)
+    return np.union1d(everywhere, octaves_only)
+
+
+def _changes(before: GaussianCloud, after: GaussianCloud) -> tuple[np.ndarray, np.ndarray]:
+    """(rows of `after` that may draw differently through any camera: other parameters or
+    anti-aliasing size, rows past `before`'s end; the other rows whose changes per octave differ)."""
     n = len(before)
     if len(after) < n:
         raise ValueError(f"fidelity: the refined cloud has fewer rows ({len(after)}) than the input ({n})")
-    diff = np.zeros(n, bool)
+
+    def differ(a, b) -> np.ndarray:
+        return (np.asarray(a)[:n] != np.asarray(b)).reshape(n, -1).any(1)
+
+    params = np.zeros(n, bool)
     for name in PARAMETER_FIELDS:
-        diff |= (np.asarray(getattr(after, name))[:n] != np.asarray(getattr(before, name))).reshape(n, -1).any(1)
+        params |= differ(getattr(after, name), getattr(before, name))
+    octaves = np.zeros(n, bool)
     for key in dict.fromkeys((FILTER_KEY, DILATION_KEY, *stored_keys(before), *stored_keys(after))):
+        mask = params if key in (FILTER_KEY, DILATION_KEY) else octaves
         if key in before.extra and key in after.extra:
-            diff |= (np.asarray(after.extra[key])[:n] != np.asarray(before.extra[key])).reshape(n, -1).any(1)
+            mask |= differ(after.extra[key], before.extra[key])
         elif key in before.extra or key in after.extra:
-            diff[:] = True
-    return np.concatenate([np.flatnonzero(diff), np.arange(n, len(after))])
+            mask[:] = True
+    return (np.concatenate([np.flatnonzero(params), np.arange(n, len(after))]),
+            np.flatnonzero(octaves & ~params))
+
+
+def _seen_above_training_rate(cloud: GaussianCloud, rows: np.ndarray, camera: Camera) -> np.ndarray:
+    """(len(rows),) whether `camera` draws each of `rows` of `cloud` with some of its changes per
+    octave (t > 0, `octaves.octaves_seen`); none where the cloud has none or no training rate."""
+    rate = training_rate(cloud)
+    if LIMIT_KEY not in cloud.extra or rate is None or not len(rows):
+        return np.zeros(len(rows), bool)
+    limit = np.asarray(cloud.extra[LIMIT_KEY]).reshape(-1)
+    return octaves_seen(np.asarray(cloud.means)[rows], np.asarray(rate)[rows],
+                        limit[rows] if len(limit) > 1 else limit, camera) != 0
 
 
 def lineage_changes(before: GaussianCloud, after: GaussianCloud, roots: np.ndarray, added: np.ndarray,
@@ -109,28 +141,40 @@ def lineage_changes(before: GaussianCloud, after: GaussianCloud, roots: np.ndarr
     (the root's input and refined centres, and every added row whose root it is), between renders
     of `before` and `after`. `roots`: input rows the refine grew; `added`, `added_roots`: rows of
     `after` it added and the input row each descends from. `frames`: `before`'s frames at `cameras`
-    made already (None where not); `after` is drawn by redrawing them."""
+    made already (None where not; the frames this makes are stored into it, a list); `after` is
+    drawn by redrawing them. A camera through which no row draws differently (the rows whose only
+    change is per octave all seen at or below their training rate, t = 0: their parameters are
+    drawn as they were) changes no pixel, and is not drawn."""
     roots = np.asarray(roots, np.int64)
     index = np.full(len(before), -1, np.int64)
     index[roots] = np.arange(len(roots))
     owner = index[np.asarray(added_roots, np.int64)]
     added = np.asarray(added, np.int64)[owner >= 0]
     owner = owner[owner >= 0]
-    points = np.concatenate([before.means[roots], after.means[roots], after.means[added]]).astype(np.float64)
     m = len(roots)
+    # the refined centres are sampled apart only where they moved (the detail method moves none)
+    moved = np.flatnonzero((after.means[roots] != before.means[roots]).any(1))
+    points = np.concatenate([before.means[roots], after.means[roots[moved]], after.means[added]]).astype(np.float64)
     worst = np.zeros(m)
     settings = settings or RenderSettings()
-    frames = list(frames) if frames is not None else [None] * len(cameras)
-    changed = changed_rows(before, after)
+    frames = frames if frames is not None else [None] * len(cameras)
+    everywhere, octaves_only = _changes(before, after)
+    changed = np.union1d(everywhere, octaves_only)
     white = (1.0, 1.0, 1.0)
     with torch.no_grad():
         for i, cam in enumerate(cameras):
-            frame = frames[i] or make_frame(before, cam, settings)
+            if not len(everywhere) and not (_seen_above_training_rate(after, octaves_only, cam).any()
+                                            or _seen_above_training_rate(before, octaves_only, cam).any()):
+                continue  # both clouds draw the same parameters through this camera: no pixel changes
+            frames[i] = frame = frames[i] or make_frame(before, cam, settings)
             img_b = frame.image(white)
-            img_a = redraw(frame, after, changed).image(white)
+            # every row changed (the detail method changes them all): a new frame, nothing to keep
+            img_a = (make_frame(after, cam, settings) if len(changed) == len(after)
+                     else redraw(frame, after, changed)).image(white)
             values = _sample(_change_map(img_b.clamp(0, 1), img_a.clamp(0, 1), window), cam, points)
-            np.maximum(worst, np.maximum(values[:m], values[m:2 * m]), out=worst)
-            np.maximum.at(worst, owner, values[2 * m:])
+            np.maximum(worst, values[:m], out=worst)
+            worst[moved] = np.maximum(worst[moved], values[m:m + len(moved)])
+            np.maximum.at(worst, owner, values[m + len(moved):])
     return worst
 
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .camera import Camera, look_target
 from .cloud import GaussianCloud
@@ -140,6 +139,8 @@ def initial_cloud(config, points, rng: np.random.Generator | None = None) -> Gau
     n = len(xyz)
     k = min(4, n)
     if k > 1:
+        from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy is slow to import; only this step needs it
+
         dist, _ = cKDTree(xyz).query(xyz, k=k)
         d2 = np.maximum(np.mean(dist[:, 1:] ** 2, axis=1), 1e-7)
     else:

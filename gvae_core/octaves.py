@@ -35,6 +35,7 @@ from .antialias import CLASSIC_DILATION, DILATION_KEY, FILTER_3D_VARIANCE, FILTE
 from .camera import Camera
 from .cloud import GaussianCloud
 from .conventions import NEAR_PLANE, is_torch
+from .resources import in_threads
 
 __all__ = ["FIELDS", "SIZE", "REFINED_SIZE_CHANGE", "LIMIT_KEY", "field_keys", "has_octaves", "stored_keys",
            "octave_fields", "training_rate", "training_height", "octaves_seen", "with_octaves", "without_octaves",
@@ -178,15 +179,23 @@ def octaves_seen(means, rate, limit, camera: Camera):
             lim = torch.as_tensor(limit, device=m.device).to(torch.float64).reshape(-1)
             t = torch.where(t < DEADBAND, torch.zeros_like(t), t)
             return torch.minimum(t, lim).nan_to_num(0.0)
-    m = np.asarray(means, np.float64).reshape(-1, 3)
-    z = (m - camera.center) @ camera.rotation[2]
-    nu = np.asarray(rate, np.float64).reshape(-1)
-    ok = np.isfinite(z) & (z > NEAR_PLANE) & (nu > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(ok, np.log2(np.where(ok, max(camera.fx, camera.fy) / np.where(ok, z, 1.0) / np.where(ok, nu, 1.0),
-                                          1.0)), 0.0)
-    t = np.where(t < DEADBAND, 0.0, t)
-    return np.nan_to_num(np.minimum(t, np.asarray(limit, np.float64).reshape(-1)))
+    m = np.asarray(means).reshape(-1, 3)
+    nu = np.asarray(rate).reshape(-1)
+    lim = np.broadcast_to(np.asarray(limit).reshape(-1), (len(m),))
+    out = np.empty(len(m))
+
+    def part(a: int, b: int) -> None:  # float64 per range of rows, in threads (resources.in_threads)
+        z = (np.asarray(m[a:b], np.float64) - camera.center) @ camera.rotation[2]
+        r = np.asarray(nu[a:b], np.float64)
+        ok = np.isfinite(z) & (z > NEAR_PLANE) & (r > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(ok, np.log2(np.where(ok, max(camera.fx, camera.fy) / np.where(ok, z, 1.0)
+                                              / np.where(ok, r, 1.0), 1.0)), 0.0)
+        t = np.where(t < DEADBAND, 0.0, t)
+        out[a:b] = np.nan_to_num(np.minimum(t, np.asarray(lim[a:b], np.float64)))
+
+    in_threads(len(m), part)
+    return out
 
 
 def drawn_fields(fields: dict, cloud: GaussianCloud, camera: Camera) -> dict:
@@ -201,8 +210,13 @@ def drawn_fields(fields: dict, cloud: GaussianCloud, camera: Camera) -> dict:
 
     means = fields["means"]
     limit = cloud.extra[LIMIT_KEY]
-    t = octaves_seen(means, rate if is_torch(rate) else torch.from_numpy(np.asarray(rate)),
-                     limit if is_torch(limit) else torch.from_numpy(np.asarray(limit, np.float32)), camera)
+    if all(not is_torch(x) or x.device.type == "cpu" for x in (means, rate, limit)):
+        # on the CPU by numpy in threads (the same float64 arithmetic; torch's element-wise passes cost more)
+        t = torch.from_numpy(octaves_seen(*(x.detach().numpy() if is_torch(x) else x for x in (means, rate, limit)),
+                                          camera)).to(means.device)
+    else:
+        t = octaves_seen(means, rate if is_torch(rate) else torch.from_numpy(np.asarray(rate)),
+                         limit if is_torch(limit) else torch.from_numpy(np.asarray(limit, np.float32)), camera)
     out = dict(fields)
     for field, change in changes.items():
         if field not in out:

@@ -45,7 +45,7 @@ from .hessian import DEFAULT_RESOLUTION, DEFAULT_VIEWS, hessian_scores, scoring_
 from .lineage import (APP_EXIST, GEO_EXIST, GEO_LOG_SCALE, GEO_POSITION, Lineage, appearance_features,
                       cloud_from_features, geometry_features)
 from .octaves import has_octaves, octave_fields, with_octaves
-from .rendering.frames import Frame, make_frame
+from .rendering.frames import Frame
 from .resources import check_image_fit_memory, check_refine_memory, reuse_freed_memory
 from .superres import SuperResConfig, SuperResFit, capture_images, fit_octaves
 from .vae import GaussianVAE, load_default_model, load_model
@@ -536,8 +536,8 @@ def refine_steps(cloud: GaussianCloud | RefineInput, *, steps: int = 1, budget: 
 
 class FidelityCheck:
     """Puts back the lineages of a result that change the picture at the training sampling rate by
-    more than `tolerance` (`gvae_core.fidelity`); keeps the input's frames, made once (or by the
-    Hessian), and redraws them with each result's changes."""
+    more than `tolerance` (`gvae_core.fidelity`); keeps the input's frames, made once where a view
+    needs them (or by the Hessian), and redraws them with each result's changes."""
 
     def __init__(self, src: GaussianCloud, cameras: list[Camera], tolerance: float, settings=None,
                  frames: Sequence[Frame] = ()):
@@ -571,7 +571,7 @@ class FidelityCheck:
 
     def __call__(self, result: RefineResult) -> RefineResult:
         t0 = time.perf_counter()
-        self.frames = [f or make_frame(self.src, cam, self.settings) for f, cam in zip(self.frames, self.cameras)]
+        # the input's frames are made where a view needs them (lineage_changes stores them for the next result)
         change = lineage_changes(self.src, result.cloud, result.selected, result.added, result.parents,
                                  self.cameras, settings=self.settings, frames=self.frames)
         reverted = result.selected[change > self.tolerance]

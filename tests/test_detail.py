@@ -10,7 +10,9 @@ from gvae_core.antialias import with_dilation_3d
 from gvae_core.datasets import Views
 from gvae_core.detail import (DetailConfig, DetailModel, Example, FitConfig, detail_inputs, fit_changes, fit_model,
                               load_detail, save_detail)
-from gvae_core.detail.features import AXIS, NODE, SHARED, lineage_nodes
+from gvae_core.detail import kernels
+from gvae_core.detail.features import (_CHANGE, _LOG_SCALE, _OPACITY, AXIS, NODE, SHARED, detail_inputs_reference,
+                                       lineage_nodes)
 from gvae_core.examples import example_cloud
 from gvae_core.lineage import Lineage
 from gvae_core.octaves import with_octaves
@@ -145,3 +147,74 @@ def test_inputs_of_some_rows_are_those_rows_of_all():
     every, some = detail_inputs(c, lin), detail_inputs(c, lin, rows=rows)
     for a, b in ((every.shared, some.shared), (every.axis, some.axis), (every.nodes, some.nodes)):
         np.testing.assert_allclose(a[rows], b, rtol=1e-6)
+
+
+def _hard_cloud(n=400):
+    """A cloud with every kind of awkward value the inputs clamp: out-of-range, infinite and NaN
+    log-scales and opacity logits, NaN and huge DC colours, NaN and non-positive sizes, a duplicate
+    point, a lineage with a stage where some Gaussians did not exist yet."""
+    c = _cloud(n)
+    s, o, dc, m = c.scales.copy(), c.opacities.copy(), c.sh_dc.copy(), c.means.copy()
+    s[0], s[1, 0], s[2, 1], s[3, 2] = -30.0, 20.0, -np.inf, np.nan
+    o[4], o[5], o[6], o[7] = -50.0, 50.0, np.inf, np.nan
+    dc[8], dc[9, 0], dc[10, 1] = np.nan, 1e30, -np.inf
+    m[11] = m[12]
+    size = c.extra["gvae_dilation_3D"].copy()
+    size[13], size[14], size[15] = np.nan, 0.0, -1.0
+    c = c.replace(scales=s, opacities=o, sh_dc=dc, means=m, extra={**c.extra, "gvae_dilation_3D": size})
+    lin = Lineage()
+    ids = np.arange(n)
+    for stage, shift in enumerate((0.0, -0.1, -0.3)):
+        lin.add_stage(c.replace(scales=np.nan_to_num(c.scales) + shift, opacities=np.nan_to_num(c.opacities) - shift,
+                                extra={}), ids, np.full(n, -1) if stage == 0 else ids, 50 + 25 * stage)
+    lin.set_normalization(*c.normalization())
+    return c, lin
+
+
+@pytest.mark.parametrize("with_lineage", [False, True])
+@pytest.mark.parametrize("neighbours", [0, 8])
+@pytest.mark.parametrize("rows", [None, np.array([3, 77, 5, 0, 399, 12])])
+def test_compiled_inputs_are_the_reference(with_lineage, neighbours, rows):
+    """The compiled kernel (what refine runs) against the numpy float64 definition: the same float32
+    values, up to the last bit of float64 arithmetic (fused multiply-adds)."""
+    assert (kernels.LOG_SCALE, kernels.OPACITY, kernels.CHANGE) == (_LOG_SCALE, _OPACITY, _CHANGE)
+    c, lin = _hard_cloud()
+    lin = lin if with_lineage else None
+    fast = detail_inputs(c, lin, neighbours=neighbours, rows=rows)
+    ref = detail_inputs_reference(c, lin, neighbours=neighbours, rows=rows)
+    for name in ("shared", "axis", "nodes"):
+        a, b = getattr(fast, name), getattr(ref, name)
+        assert a.dtype == b.dtype == np.float32 and a.shape == b.shape
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6, err_msg=name)
+    assert np.isfinite(fast.shared).all() and np.isfinite(fast.axis).all() and np.isfinite(fast.nodes).all()
+    assert fast.nodes[:, 2, 4].min() == 1.0 and (fast.shared[:, 8] == float(with_lineage)).all()
+
+
+@pytest.mark.parametrize("config", [DetailConfig(), DetailConfig(colour=True, context=True, lineage=False),
+                                    DetailConfig(encoder="transformer", hidden=32)])
+def test_changes_are_the_forward_pass(config):
+    """`changes` (what refine runs: the compiled kernel for the `features` encoder) against `forward`
+    (the torch network training differentiates), with every weight non-zero and inputs that reach
+    the tanh bounds; and both against the forward pass in float64."""
+    torch.manual_seed(0)
+    model = DetailModel(config)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.normal_(0.0, 0.5)  # an untrained model's last layers are zero: give every weight a value
+    c, lin = _hard_cloud(300)
+    inputs = detail_inputs(c, lin, neighbours=config.inputs_neighbours)
+    inputs.shared[:7] *= 40.0  # far into GELU's tails and the tanh bounds
+    assert model._compiled() == (config.encoder == "features")
+    fast = model.changes(inputs)
+    args = [torch.from_numpy(a) for a in (inputs.shared, inputs.axis, inputs.nodes)]
+    with torch.no_grad():
+        ref = model(*args)
+        ref64 = model.double()(*(a.double() for a in args))
+    assert set(fast) == set(ref) == {"scales", "opacities"} | ({"sh_dc"} if config.colour else set())
+    for k in ref:
+        assert fast[k].dtype == np.float32 and fast[k].shape == tuple(ref[k].shape)
+        assert np.abs(ref[k].numpy()).max() > 0.5  # the heads are not trivially zero
+        np.testing.assert_allclose(fast[k], ref[k].numpy(), rtol=1e-5, atol=1e-5, err_msg=k)
+        np.testing.assert_allclose(fast[k], ref64[k].numpy(), rtol=1e-4, atol=1e-4, err_msg=k)
+    bounded = np.abs(fast["opacities"]).max()
+    assert bounded <= 8.0 and bounded > 7.0

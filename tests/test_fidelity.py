@@ -11,7 +11,8 @@ from gvae_core import Camera, GaussianCloud
 from gvae_core.antialias import DILATION_KEY, FILTER_KEY, with_dilation_3d, with_filter_3d
 from gvae_core.fidelity import changed_rows, lineage_changes, revert_lineages, training_rate_views
 from gvae_core.refinement import FidelityCheck, refine
-from gvae_core.rendering import render
+from gvae_core.octaves import with_octaves
+from gvae_core.rendering import RenderSettings, render
 from gvae_core.vae import GaussianVAE
 
 
@@ -58,12 +59,12 @@ def test_the_check_reads_the_training_rate_from_the_capture_cameras():
     assert {c.height for c in FidelityCheck.around(plain, None, 0.01, {"resolution": 48}).cameras} == {48}
 
 
-def _reference_changes(before, after, roots, added, added_roots, cameras, window=3):
+def _reference_changes(before, after, roots, added, added_roots, cameras, window=3, settings=None):
     """Per lineage, per camera, per point: the window mean of the per-pixel change, in loops."""
     out = np.zeros(len(roots))
     for cam in cameras:
-        a = render(before, cam, background=(1.0, 1.0, 1.0)).image.clamp(0, 1).numpy().astype(np.float64)
-        b = render(after, cam, background=(1.0, 1.0, 1.0)).image.clamp(0, 1).numpy().astype(np.float64)
+        a, b = (render(c, cam, background=(1.0, 1.0, 1.0), settings=settings).image.clamp(0, 1).numpy()
+                .astype(np.float64) for c in (before, after))
         diff = np.abs(b - a).mean(-1)
         h, w = diff.shape
         for i, root in enumerate(roots):
@@ -102,6 +103,46 @@ def test_lineage_changes_and_putting_lineages_back():
     assert kept.tolist() == [False, True] and len(cloud) == len(before) + 1
     np.testing.assert_array_equal(cloud.means[:24], before.means)
     np.testing.assert_array_equal(cloud.opacities[24], after.opacities[25])
+
+
+def test_lineage_changes_when_every_row_changes():
+    """The detail method changes every row and moves none: the refined cloud is drawn afresh, each
+    centre sampled once, and each lineage's change is the reference's; one moved root and a child
+    are sampled at their own places."""
+    before = _cloud(40, seed=3)
+    after = before.select(np.arange(len(before)))
+    after.scales[:] += np.where(np.arange(len(before)) % 2 == 0, 0.25, -0.2).astype(np.float32)[:, None]
+    after.opacities[::4] -= np.float32(3.0)
+    after.means[11] += np.float32([0.0, 0.3, 0.0])
+    kid = before.select(np.array([20]))
+    kid.means[0] = np.float32([0.1, -0.6, 0.5])
+    after = GaussianCloud.concat([after, kid])
+    roots, added, added_roots = np.arange(len(before)), np.array([40]), np.array([20])
+    assert len(changed_rows(before, after)) == len(after)
+    cams = _cameras(48)
+    change = lineage_changes(before, after, roots, added, added_roots, cams)
+    np.testing.assert_allclose(change, _reference_changes(before, after, roots, added, added_roots, cams),
+                               atol=1e-6)
+    assert (change > 1e-3).mean() > 0.5
+
+
+def test_views_where_no_change_per_octave_shows_are_not_drawn():
+    """Changes per octave only (what the detail method makes): through a camera at or below the
+    training rate every row draws as it was, so the check draws nothing there and finds no change;
+    through one at twice the rate the changes show, and the check is the per-pixel reference's."""
+    before = with_dilation_3d(_cloud(30, seed=4), _cameras(48))
+    changes = {"scales": np.full((30, 3), 0.4, np.float32), "opacities": np.full(30, -1.5, np.float32)}
+    after = with_octaves(before, changes, limit=1.0)
+    roots, none = np.arange(30), np.zeros(0, np.int64)
+    low, high = _cameras(40), _cameras(96)
+    frames = [None] * len(low)
+    assert (lineage_changes(before, after, roots, none, none, low, frames=frames) == 0).all()
+    assert frames == [None] * len(low)  # nothing drawn
+    settings = RenderSettings(antialias="matched")
+    change = lineage_changes(before, after, roots, none, none, high, settings=settings, frames=frames)
+    assert all(f is not None for f in frames) and (change > 1e-3).mean() > 0.5
+    np.testing.assert_allclose(change, _reference_changes(before, after, roots, none, none, high, settings=settings),
+                               atol=1e-6)
 
 
 def test_changed_rows_are_the_rows_that_draw_differently():

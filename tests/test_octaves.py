@@ -119,3 +119,22 @@ def test_refuses_a_cloud_without_a_training_rate():
         with_octaves(cloud, {"scales": np.zeros((5, 3), np.float32)})
     with pytest.raises(ValueError, match="limit"):
         with_octaves(_cloud(), {}, limit=math.inf)
+
+
+def test_octaves_seen_in_threads_is_the_torch_branch():
+    """Enough Gaussians to be split into ranges run in threads (numpy, what `drawn_fields` runs on
+    the CPU): the torch branch's values (the same float64 arithmetic), limits per Gaussian, and
+    unknown rates, points behind the camera and NaN centres drawn unchanged."""
+    rng = np.random.default_rng(2)
+    n = 100_003
+    means = rng.normal(0.0, 1.0, (n, 3)).astype(np.float32)
+    means[:3] = [[0, 0, -10.0], [np.nan, 0, 0], [0, 0, 3.9]]
+    rate = rng.uniform(5.0, 60.0, n)
+    rate[3], rate[4] = 0.0, np.inf
+    limit = rng.choice(np.float32([0.5, 1.0, 3.0]), n)
+    cam = _camera(64, distance=4.0)
+    t = octaves_seen(means, rate, limit, cam)
+    tt = octaves_seen(torch.from_numpy(means), torch.from_numpy(rate), torch.from_numpy(limit), cam).numpy()
+    np.testing.assert_allclose(t, tt, rtol=1e-12, atol=1e-12)
+    assert t.dtype == np.float64 and np.isfinite(t).all() and (t[:5] == 0).all() and (t <= limit).all()
+    assert (t > 0).mean() > 0.2

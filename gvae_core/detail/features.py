@@ -1,6 +1,7 @@
 """What the detail model sees of each Gaussian: its own state, its lineage and its neighbourhood,
 in units that depend neither on the scene's size nor on the training resolution. numpy (and
-scipy's k-d tree for the neighbours); no torch.
+scipy's k-d tree for the neighbours, imported only when they are asked for); no torch
+arithmetic.
 
 Per Gaussian, `SHARED` values and, per axis of its ellipsoid, `AXIS` values (the model predicts a
 change per axis with one network shared by the three axes, so it cannot tell them apart but by
@@ -8,23 +9,29 @@ what they are). Sizes are in pixels of the training sampling rate (log size + lo
 the cloud's anti-aliasing size, `gvae_core.octaves.training_rate`); lineage changes are per
 octave of training resolution between the stages (log2 of their height ratio); neighbours are the
 `neighbours` nearest centres.
+
+`detail_inputs` runs a compiled kernel (`detail.kernels`, Numba; rows in threads) where Numba
+loads; `detail_inputs_reference`, the numpy float64 code, is what the tests hold it to and what
+runs without Numba.
 """
 
 from __future__ import annotations
 
+import importlib
 import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..cloud import GaussianCloud
 from ..conventions import dc_to_rgb
 from ..lineage import APP_OPACITY, GEO_EXIST, GEO_LOG_SCALE, Lineage
 from ..octaves import training_rate
+from ..rendering.compiled import numba_missing
+from ..resources import cpu_threads, in_threads
 
 __all__ = ["SHARED", "AXIS", "NODE", "LINEAGE_COLUMNS", "CONTEXT_COLUMNS", "DetailInputs", "detail_inputs",
-           "lineage_nodes"]
+           "detail_inputs_reference", "lineage_nodes"]
 
 SHARED = ("opacity", "opacity_change", "opacity_change_before", "existed_before", "existed_two_before",
           "size_mean", "size_max", "size_min", "has_history", "luminance",
@@ -106,18 +113,75 @@ def lineage_nodes(cloud: GaussianCloud, lineage: Lineage | None):
     return scales, opac, exist, octaves
 
 
-def detail_inputs(cloud: GaussianCloud, lineage: Lineage | None = None, *, neighbours: int = 8,
-                  rows=None) -> DetailInputs:
-    """The model's inputs for the Gaussians `rows` (default: all) of `cloud` (numpy; needs its
-    anti-aliasing size) with its `lineage` (None: Gaussians without history); the neighbours are
-    found among all of them (`neighbours` 0: none, their columns are 0)."""
-    c = cloud.numpy()
-    n = len(c)
+def _rates(c: GaussianCloud) -> np.ndarray:
+    """(N,) float64 each Gaussian's training rate; where it is not finite and positive, the median of
+    those that are (1 when none is)."""
     nu = training_rate(c)
     if nu is None:
         raise ValueError("detail: the cloud needs its anti-aliasing size (the sampling rate it was trained at)")
     nu = np.where(np.isfinite(nu) & (nu > 0) & (nu < 1e29), nu, np.nan)
-    nu = np.where(np.isnan(nu), np.nanmedian(nu) if np.isfinite(nu).any() else 1.0, nu)
+    return np.where(np.isnan(nu), np.nanmedian(nu) if np.isfinite(nu).any() else 1.0, nu)
+
+
+def _neighbours(c: GaussianCloud, r: np.ndarray, k: int, workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """(M, k) distances and indices of the k nearest other centres of rows `r` (scipy's k-d tree)."""
+    from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy is slow to import; only the context needs it
+
+    pos = np.nan_to_num(np.asarray(c.means, np.float64))
+    dist, idx = cKDTree(pos).query(pos[r], k + 1, workers=workers)
+    return dist[:, 1:], idx[:, 1:]
+
+
+def detail_inputs(cloud: GaussianCloud, lineage: Lineage | None = None, *, neighbours: int = 8,
+                  rows=None) -> DetailInputs:
+    """The model's inputs for the Gaussians `rows` (default: all) of `cloud` (numpy; needs its
+    anti-aliasing size) with its `lineage` (None: Gaussians without history); the neighbours are
+    found among all of them (`neighbours` 0: none, their columns are 0). By the compiled kernel
+    where Numba loads, else `detail_inputs_reference` (the same values to float32 rounding)."""
+    if numba_missing() is not None:
+        return detail_inputs_reference(cloud, lineage, neighbours=neighbours, rows=rows)
+    c = cloud.numpy()
+    n = len(c)
+    nu = _rates(c)
+    if lineage is None or lineage.n_stages < 2:  # the cloud's own values at every node, as lineage_nodes
+        s = np.ascontiguousarray(c.scales, np.float64)
+        o = np.ascontiguousarray(c.opacities, np.float64).reshape(n)
+        zero, one = np.zeros(n), np.ones(n)
+        nodes_s, nodes_o, nodes_e, octaves = (s, s, s), (o, o, o), (zero, zero, one), np.ones(2)
+    else:
+        scales, opac, exist, octaves = lineage_nodes(c, lineage)
+        nodes_s = tuple(np.ascontiguousarray(scales[:, t]) for t in range(3))
+        nodes_o = tuple(np.ascontiguousarray(opac[:, t]) for t in range(3))
+        nodes_e = tuple(np.ascontiguousarray(exist[:, t]) for t in range(3))
+    r = np.arange(n, dtype=np.int64) if rows is None else np.asarray(rows, np.int64).reshape(-1)
+    m = len(r)
+    k = int(min(neighbours, n - 1))
+    if k >= 1 and m:
+        dist, idx = _neighbours(c, r, k, workers=cpu_threads())
+        dist, idx = np.ascontiguousarray(dist, np.float64), np.ascontiguousarray(idx, np.int64)
+    else:
+        dist, idx = np.zeros((m, 0)), np.zeros((m, 0), np.int64)
+    has_history = float(lineage is not None and lineage.n_stages > 1)
+    shared = np.empty((m, len(SHARED)), np.float32)
+    axis = np.empty((m, 3, len(AXIS)), np.float32)
+    nodes = np.empty((m, 3, len(NODE)), np.float32)
+    sh_dc = np.ascontiguousarray(c.sh_dc, np.float32)
+    kern = importlib.import_module(".kernels", __package__).detail_rows
+
+    def part(a: int, b: int) -> None:
+        kern(*nodes_s, *nodes_o, *nodes_e, nu, sh_dc, np.asarray(octaves, np.float64), has_history, r, idx, dist,
+             a, b, shared, axis, nodes)
+
+    in_threads(m, part)
+    return DetailInputs(shared, axis, nodes)
+
+
+def detail_inputs_reference(cloud: GaussianCloud, lineage: Lineage | None = None, *, neighbours: int = 8,
+                            rows=None) -> DetailInputs:
+    """`detail_inputs` in numpy, float64 until the end: the definition the compiled kernel is held to."""
+    c = cloud.numpy()
+    n = len(c)
+    nu = _rates(c)
     scales, opac, exist, octaves = lineage_nodes(c, lineage)
     scales = np.clip(np.nan_to_num(scales), *_LOG_SCALE)
     opac = np.clip(np.nan_to_num(opac), *_OPACITY)
@@ -134,9 +198,7 @@ def detail_inputs(cloud: GaussianCloud, lineage: Lineage | None = None, *, neigh
     m = len(r)
     k = int(min(neighbours, n - 1))
     if k >= 1 and m:
-        pos = np.nan_to_num(np.asarray(c.means, np.float64))
-        dist, idx = cKDTree(pos).query(pos[r], k + 1)
-        dist, idx = dist[:, 1:], idx[:, 1:]
+        dist, idx = _neighbours(c, r, k)
         size = np.exp(scales[r, 2].max(1))
         nb_distance = np.log(dist.mean(1) / size + 1e-6)
         nb_contrast = np.abs(rgb[idx] - rgb[r, None]).mean((1, 2))

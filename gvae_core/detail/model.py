@@ -10,12 +10,15 @@ bounded by tanh. Weights are a few tens of kilobytes.
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
 
+from ..rendering.compiled import numba_missing
+from ..resources import in_threads
 from ..vae.model import EncoderBlock
 from .features import AXIS, CONTEXT_COLUMNS, LINEAGE_COLUMNS, NODE, SHARED, DetailInputs
 
@@ -124,13 +127,49 @@ class DetailModel(nn.Module):
 
     @torch.no_grad()
     def changes(self, inputs: DetailInputs, batch: int = 1 << 18) -> dict[str, np.ndarray]:
-        """Changes per octave for every Gaussian of `inputs` (numpy float32), batched, no gradient."""
+        """Changes per octave for every Gaussian of `inputs` (numpy float32), no gradient: by the
+        compiled kernel (`kernels.model_rows`, rows in threads) where it applies (the `features`
+        encoder, float32 weights on the CPU, Numba loads), else by `forward` in batches."""
+        if self._compiled():
+            return self._changes_compiled(inputs)
         parts: dict[str, list] = {}
         for i in range(0, max(len(inputs), 1), batch):
             out = self(*(torch.from_numpy(a[i:i + batch]) for a in (inputs.shared, inputs.axis, inputs.nodes)))
             for k, v in out.items():
                 parts.setdefault(k, []).append(v.numpy())
         return {k: np.concatenate(v).astype(np.float32) for k, v in parts.items()}
+
+    def _compiled(self) -> bool:
+        p = self.shared[0].weight
+        return (self.config.encoder == "features" and p.device.type == "cpu" and p.dtype == torch.float32
+                and numba_missing() is None)
+
+    def _changes_compiled(self, inputs: DetailInputs) -> dict[str, np.ndarray]:
+        def weights(layer: nn.Linear) -> tuple[np.ndarray, np.ndarray]:  # (in, out) and (out,), float32
+            return (np.ascontiguousarray(layer.weight.detach().numpy().T),
+                    np.ascontiguousarray(layer.bias.detach().numpy()))
+
+        h = self.config.hidden
+        s1, s1b = weights(self.shared[0])
+        s2, s2b = weights(self.shared[2])
+        a1, a1b = weights(self.axis[0])
+        a2, a2b = weights(self.axis[2])
+        r1, r1b = weights(self.rest[0])
+        r2, r2b = weights(self.rest[2])
+        args = (self.shared_mask.numpy(), self.axis_mask.numpy(), s1, s1b, s2, s2b, np.ascontiguousarray(a1[:h]),
+                np.ascontiguousarray(a1[h:]), a1b, np.ascontiguousarray(a2[:, 0]), a2b, r1, r1b, r2, r2b,
+                np.float32(MAX_LOG_SCALE_CHANGE), np.float32(MAX_OPACITY_CHANGE), np.float32(MAX_DC_CHANGE))
+        m = len(inputs)
+        shared = np.ascontiguousarray(inputs.shared, np.float32)
+        axis = np.ascontiguousarray(inputs.axis, np.float32)
+        scales = np.empty((m, 3), np.float32)
+        rest = np.empty((m, r2b.shape[0]), np.float32)
+        kern = importlib.import_module(".kernels", __package__).model_rows
+        in_threads(m, lambda a, b: kern(shared, axis, *args, a, b, scales, rest), chunk=1 << 14)
+        out = {"scales": scales, "opacities": rest[:, 0].copy()}
+        if self.config.colour:
+            out["sh_dc"] = np.ascontiguousarray(rest[:, 1:4])
+        return out
 
     def size_bytes(self) -> int:
         return sum(p.numel() * p.element_size() for p in self.parameters())

@@ -10,7 +10,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
-from scipy.optimize import linear_sum_assignment
 
 from .. import quaternions
 from ..conventions import SH_C0, sigmoid
@@ -43,6 +42,8 @@ def match_slots(cost: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 def match_slots_reference(cost: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Slow reference of `match_slots`: the Hungarian algorithm per lineage (scipy)."""
+    from scipy.optimize import linear_sum_assignment  # noqa: PLC0415 - scipy is slow to import; tests only
+
     out = np.zeros(mask.shape, np.int64)
     for i in range(len(cost)):
         cols = np.flatnonzero(mask[i])
