@@ -38,7 +38,7 @@ import numpy as np
 from .camera import Camera
 from .cloud import GaussianCloud
 from .conventions import NEAR_PLANE
-from .resources import in_threads
+from .parallel import in_threads
 
 __all__ = ["FILTER_KEY", "DILATION_KEY", "FILTER_3D_VARIANCE", "CLASSIC_DILATION", "VIEW_MARGIN",
            "ANTIALIAS_MODES", "DEFAULT_ANTIALIAS", "resolve_antialias", "max_sampling_rate", "filter_3d",
@@ -110,7 +110,7 @@ def max_sampling_rate(means, cameras: Sequence[Camera], *, near: float = NEAR_PL
                       margin: float = VIEW_MARGIN) -> np.ndarray:
     """(N,) float64: the largest f / z (pixels per world unit) over the cameras that see each
     centre; 0 where none does. One pass per camera, vectorised over the Gaussians, in ranges of
-    them run in threads (`resources.in_threads`; the same values)."""
+    them run in threads (`parallel.in_threads`; the same values)."""
     m = np.asarray(means, np.float64).reshape(-1, 3)
     rate = np.zeros(len(m))
 

@@ -25,7 +25,7 @@ from .camera import Camera
 from .cloud import PARAMETER_FIELDS, GaussianCloud
 from .conventions import NEAR_PLANE
 from .octaves import LIMIT_KEY, octaves_seen, stored_keys, training_rate
-from .resources import in_threads
+from .parallel import in_threads
 from .rendering import RenderSettings
 from .rendering.frames import Frame, make_frame, redraw
 
@@ -75,7 +75,7 @@ def _change_map(before: torch.Tensor, after: torch.Tensor, window: int) -> np.nd
 
 def _sample(change: np.ndarray, cam: Camera, points: np.ndarray) -> np.ndarray:
     """The change map at each point's pixel; 0 where the point is not in the image. In ranges of
-    points run in threads (`resources.in_threads`)."""
+    points run in threads (`parallel.in_threads`)."""
     points = np.asarray(points, np.float64).reshape(-1, 3)
     out = np.zeros(len(points))
 

@@ -35,7 +35,7 @@ from .antialias import CLASSIC_DILATION, DILATION_KEY, FILTER_3D_VARIANCE, FILTE
 from .camera import Camera
 from .cloud import GaussianCloud
 from .conventions import NEAR_PLANE, is_torch
-from .resources import in_threads
+from .parallel import in_threads
 
 __all__ = ["FIELDS", "SIZE", "REFINED_SIZE_CHANGE", "LIMIT_KEY", "field_keys", "has_octaves", "stored_keys",
            "octave_fields", "training_rate", "training_height", "octaves_seen", "with_octaves", "without_octaves",
@@ -184,7 +184,7 @@ def octaves_seen(means, rate, limit, camera: Camera):
     lim = np.broadcast_to(np.asarray(limit).reshape(-1), (len(m),))
     out = np.empty(len(m))
 
-    def part(a: int, b: int) -> None:  # float64 per range of rows, in threads (resources.in_threads)
+    def part(a: int, b: int) -> None:  # float64 per range of rows, in threads (parallel.in_threads)
         z = (np.asarray(m[a:b], np.float64) - camera.center) @ camera.rotation[2]
         r = np.asarray(nu[a:b], np.float64)
         ok = np.isfinite(z) & (z > NEAR_PLANE) & (r > 0)

@@ -22,14 +22,13 @@ import ctypes
 import os
 import sys
 import threading
-from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Iterator
 
 from .conventions import SH_REST_COUNTS
 
 __all__ = ["NotEnoughMemoryError", "available_memory", "estimate_refine_memory", "check_refine_memory",
            "estimate_compact_memory", "check_compact_memory", "estimate_image_fit_memory", "check_image_fit_memory",
-           "estimate_train_memory", "train_cap", "reuse_freed_memory", "cpu_threads", "in_threads"]
+           "estimate_train_memory", "train_cap", "reuse_freed_memory"]
 
 #: Bytes of the Python process with torch and the models loaded, before any cloud.
 BASE_BYTES = 600 << 20
@@ -290,35 +289,3 @@ class _AllocatorScope:
 #: says whether it could act (glibc only; elsewhere the scope does nothing). Process-wide: other
 #: threads allocate the same way meanwhile (a matter of speed, never of results).
 reuse_freed_memory = _AllocatorScope()
-
-
-def cpu_threads() -> int:
-    """How many threads CPU work may use: torch's intra-op count when torch is loaded (what its
-    operations and the compiled kernels use), else the CPUs this process may run on."""
-    torch = sys.modules.get("torch")
-    if torch is not None and hasattr(torch, "get_num_threads"):
-        return max(1, int(torch.get_num_threads()))
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
-
-
-#: Rows below which `in_threads` runs in the calling thread (a thread costs more than it saves).
-MIN_ROWS_PER_THREAD = 1 << 15
-
-
-def in_threads(n: int, fn: Callable[[int, int], object], *, threads: int | None = None,
-               chunk: int = 1 << 16) -> list:
-    """[fn(a, b) for consecutive ranges a..b covering 0..n], the ranges run in `threads` threads
-    (default `cpu_threads()`), about `chunk` rows each so that their temporaries stay in cache. For
-    work whose result per row depends on that row alone (numpy operations and compiled kernels
-    that release the GIL): the result is what fn(0, n) gives (bit for bit where the work is elementwise)."""
-    threads = cpu_threads() if threads is None else max(1, int(threads))
-    parts = max(1, -(-n // max(1, chunk)))
-    edges = [n * i // parts for i in range(parts + 1)]
-    ranges = [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-    if threads == 1 or len(ranges) <= 1 or n < 2 * MIN_ROWS_PER_THREAD:
-        return [fn(a, b) for a, b in ranges]
-    with ThreadPoolExecutor(min(threads, len(ranges)), thread_name_prefix="gvae-rows") as pool:
-        return list(pool.map(lambda ab: fn(*ab), ranges))

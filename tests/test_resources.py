@@ -40,29 +40,3 @@ def test_the_scope_does_nothing_without_glibc(monkeypatch):
         _touch_and_free(8)
 
 
-@pytest.mark.parametrize("n", [0, 5, 70_000, 200_003])
-@pytest.mark.parametrize("threads", [1, 2, 3])
-def test_in_threads_is_the_work_done_at_once(n, threads):
-    """Rows split into ranges run in threads give what one call over all of them gives, every row
-    once (elementwise numpy work: bit for bit)."""
-    x = np.random.default_rng(n).normal(size=(n, 3))
-    out = np.full(n, np.nan)
-    calls = []
-
-    def work(a, b):
-        calls.append((a, b))
-        out[a:b] = np.log1p(np.abs(x[a:b])).sum(1) / (x[a:b, 0] ** 2 + 1.0)
-        return b - a
-
-    sizes = resources.in_threads(n, work, threads=threads, chunk=4096)
-    assert sum(sizes) == n and sorted(calls) == calls_sorted(calls) and not np.isnan(out).any()
-    np.testing.assert_array_equal(out, np.log1p(np.abs(x)).sum(1) / (x[:, 0] ** 2 + 1.0))
-    assert len(calls) == (0 if n == 0 else max(1, -(-n // 4096)))
-    assert resources.cpu_threads() >= 1
-
-
-def calls_sorted(calls):
-    """The ranges in order, each starting where the one before ended."""
-    ranges = sorted(calls)
-    assert all(b0 == a1 for (_, b0), (a1, _) in zip(ranges[:-1], ranges[1:]))
-    return ranges

@@ -28,7 +28,8 @@ from ..conventions import dc_to_rgb
 from ..lineage import APP_OPACITY, GEO_EXIST, GEO_LOG_SCALE, Lineage
 from ..octaves import training_rate
 from ..rendering.compiled import numba_missing
-from ..resources import cpu_threads, in_threads
+from .. import parallel
+from ..parallel import in_threads
 
 __all__ = ["SHARED", "AXIS", "NODE", "LINEAGE_COLUMNS", "CONTEXT_COLUMNS", "DetailInputs", "detail_inputs",
            "detail_inputs_reference", "lineage_nodes"]
@@ -157,7 +158,7 @@ def detail_inputs(cloud: GaussianCloud, lineage: Lineage | None = None, *, neigh
     m = len(r)
     k = int(min(neighbours, n - 1))
     if k >= 1 and m:
-        dist, idx = _neighbours(c, r, k, workers=cpu_threads())
+        dist, idx = _neighbours(c, r, k, workers=parallel.count())
         dist, idx = np.ascontiguousarray(dist, np.float64), np.ascontiguousarray(idx, np.int64)
     else:
         dist, idx = np.zeros((m, 0)), np.zeros((m, 0), np.int64)

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from ..rendering.compiled import numba_missing
-from ..resources import in_threads
+from ..parallel import in_threads
 from ..vae.model import EncoderBlock
 from .features import AXIS, CONTEXT_COLUMNS, LINEAGE_COLUMNS, NODE, SHARED, DetailInputs
 

@@ -8,7 +8,7 @@ the reference these are tested against and what runs on a GPU, in float64 and wi
 `RenderSettings(kernels="torch")`.
 
 Work is split into chunks (of Gaussians, of tiles) run in threads: the kernels release the GIL, so
-there is no threading layer of Numba's, and nothing global is set; `torch.get_num_threads()`
+there is no threading layer of Numba's, and nothing global is set; `parallel.count()` (torch's count)
 threads, as the torch path uses. The first call of each kernel in a process loads it from the
 on-disk cache (`kernels.kernel_cache_dir`, a user cache directory) or, the first time on a machine,
 compiles it (`compile_kernels` does all of it at once and says so; `kernels.KERNELS` lists them).
@@ -22,13 +22,13 @@ import importlib.util
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
 
 from .. import quaternions
 from ..camera import Camera
+from ..parallel import count, run, split
 from .projection import Projected, fov_limits
 from .tiles import Binning
 
@@ -76,34 +76,10 @@ def use_compiled(choice: str, device, dtype) -> bool:
 
 # ------------------------------------------------------------------------------ threads
 
-def threads() -> int:
-    return max(1, torch.get_num_threads())
-
-
-def _run(tasks: list[Callable]) -> list:
-    """Run the callables (compiled kernels release the GIL), in threads when there are several."""
-    n = min(threads(), len(tasks))
-    if n <= 1:
-        return [t() for t in tasks]
-    with ThreadPoolExecutor(n, thread_name_prefix="gvae-kernel") as pool:
-        return list(pool.map(lambda t: t(), tasks))
-
-
-def _split(cost: np.ndarray, parts: int) -> list[tuple[int, int]]:
-    """Consecutive ranges of indices of about equal total `cost` (at most `parts`, none empty)."""
-    n = len(cost)
-    if n == 0:
-        return []
-    cum = np.cumsum(cost, dtype=np.float64)
-    bounds = np.searchsorted(cum, cum[-1] * np.arange(1, parts) / parts, side="right")
-    edges = np.unique(np.concatenate([[0], np.clip(bounds, 0, n), [n]]))
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-
-
 def _chunks(n: int, work: float) -> list[tuple[int, int]]:
     """Ranges of n items doing `work` pixel-pair evaluations in all: one when small, else some per thread."""
-    parts = 1 if work < _SMALL or threads() == 1 else 4 * threads()
-    return _split(np.ones(n), min(parts, max(n, 1)))
+    parts = 1 if work < _SMALL or count() == 1 else 4 * count()
+    return split(np.ones(n), min(parts, max(n, 1)))
 
 
 # ------------------------------------------------------------------------------ projection
@@ -160,7 +136,7 @@ def project_arrays(inp: Inputs, camera: Camera, degree: int):
     foot = np.empty((n, 4), np.float64)
     radii = np.empty(n, np.int32)
     visible = np.empty(n, np.bool_)
-    _run([lambda a=a, b=b: k.project_forward(*inp.fields(), cam, int(degree), inp.flags, camera.width, camera.height,
+    run([lambda a=a, b=b: k.project_forward(*inp.fields(), cam, int(degree), inp.flags, camera.width, camera.height,
                                              a, b, table, foot, radii, visible)
           for a, b in _chunks(n, 64.0 * n)])
     return table, foot, radii, visible
@@ -186,7 +162,7 @@ class ProjectFunction(torch.autograd.Function):
         g = np.ascontiguousarray(grad_table.numpy(), np.float32)
         out = [np.empty((n, 3), np.float64), np.empty((n, 3), np.float32), np.empty((n, 4), np.float32),
                np.empty(n, np.float32), np.empty((n, 3), np.float32), np.empty(inp.sh_rest.shape, np.float32)]
-        _run([lambda a=a, b=b: k.project_backward(*inp.fields(), cam, int(ctx.degree), inp.flags, a, b, ctx.table, g,
+        run([lambda a=a, b=b: k.project_backward(*inp.fields(), cam, int(ctx.degree), inp.flags, a, b, ctx.table, g,
                                                   *out)
               for a, b in _chunks(n, 64.0 * n)])
         grads = [torch.from_numpy(o).reshape(shape).to(dtype) for o, (shape, dtype) in zip(out, ctx.like)]
@@ -233,16 +209,16 @@ def bin_gaussians(table: torch.Tensor, footprint: torch.Tensor, visible: torch.T
     k.radix_order(keys, order)
     parts = _chunks(len(order), 16.0 * len(order))
     geo = np.empty((len(order), k.GEO), np.float64)
-    _run([lambda a=a, b=b: k.gather_footprints(tab, foot, order, a, b, geo) for a, b in parts])
+    run([lambda a=a, b=b: k.gather_footprints(tab, foot, order, a, b, geo) for a, b in parts])
     hist = np.zeros((max(len(parts), 1), ntiles), np.int64)
-    _run([lambda c=c, a=a, b=b: k.bin_count(geo, a, b, ts, tiles_x, width, height, exact, hist[c])
+    run([lambda c=c, a=a, b=b: k.bin_count(geo, a, b, ts, tiles_x, width, height, exact, hist[c])
           for c, (a, b) in enumerate(parts)])
     counts = hist.sum(0)
     offsets = np.zeros(ntiles + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
     cursor = offsets[:-1] + np.cumsum(hist, 0) - hist  # each chunk's first place in every tile's list
     ids = np.empty(int(offsets[-1]), np.int64)
-    _run([lambda c=c, a=a, b=b: k.bin_fill(geo, order, a, b, ts, tiles_x, width, height, exact, cursor[c], ids)
+    run([lambda c=c, a=a, b=b: k.bin_fill(geo, order, a, b, ts, tiles_x, width, height, exact, cursor[c], ids)
           for c, (a, b) in enumerate(parts)])
     return Binning(ts, tiles_x, tiles_y, torch.from_numpy(ids), torch.from_numpy(offsets), torch.from_numpy(counts))
 
@@ -254,8 +230,8 @@ def _tile_chunks(binning: Binning) -> list[tuple[int, int]]:
     counts = binning.counts.numpy()
     p = binning.tile_size ** 2
     work = float(counts.sum()) * p
-    parts = 1 if work < _SMALL or threads() == 1 else 8 * threads()
-    return _split(counts + 1.0, parts)
+    parts = 1 if work < _SMALL or count() == 1 else 8 * count()
+    return split(counts + 1.0, parts)
 
 
 def _arrays(table: torch.Tensor, binning: Binning):
@@ -269,7 +245,7 @@ def composite_forward(table: torch.Tensor, binning: Binning) -> torch.Tensor:
     tab, ids, offsets = _arrays(table, binning)
     p = binning.tile_size ** 2
     acc = np.empty((binning.tiles_x * binning.tiles_y, 5, p), np.float32)
-    evals = _run([lambda a=a, b=b: k.composite_forward(tab, ids, offsets, a, b, binning.tiles_x, binning.tile_size,
+    evals = run([lambda a=a, b=b: k.composite_forward(tab, ids, offsets, a, b, binning.tiles_x, binning.tile_size,
                                                        acc)
                   for a, b in _tile_chunks(binning)])
     binning.evaluations = int(sum(evals))
@@ -285,13 +261,13 @@ def composite_backward(table: torch.Tensor, binning: Binning, acc: torch.Tensor,
     acc_np = np.ascontiguousarray(acc.numpy(), np.float32)
     g = np.ascontiguousarray(grad_acc.numpy(), np.float32)
     pair_grads = np.zeros((len(ids), k.NGRAD), np.float32)
-    _run([lambda a=a, b=b: k.composite_backward(tab, ids, offsets, a, b, binning.tiles_x, binning.tile_size, acc_np,
+    run([lambda a=a, b=b: k.composite_backward(tab, ids, offsets, a, b, binning.tiles_x, binning.tile_size, acc_np,
                                                 g, pair_grads)
           for a, b in _tile_chunks(binning)])
     grad_table = np.zeros(tab.shape, np.float32)
-    parts = 1 if len(ids) * k.NGRAD < _SMALL else min(threads(), k.NGRAD)
-    _run([lambda a=a, b=b: k.pair_grads_to_table(pair_grads, ids, tab, a, b, grad_table)
-          for a, b in _split(np.ones(k.NGRAD), parts)])
+    parts = 1 if len(ids) * k.NGRAD < _SMALL else min(count(), k.NGRAD)
+    run([lambda a=a, b=b: k.pair_grads_to_table(pair_grads, ids, tab, a, b, grad_table)
+          for a, b in split(np.ones(k.NGRAD), parts)])
     return torch.from_numpy(grad_table)
 
 
@@ -307,7 +283,7 @@ def gauss_newton_moments(table: torch.Tensor, binning: Binning, acc: torch.Tenso
     counts = binning.counts.numpy()
     # ranges of tiles of at most about _SWEEP_CHUNK pairs (one buffer each), in the threads
     chunk = max(_SWEEP_CHUNK, int(counts.max(initial=0)))
-    ranges = _split(counts + 1.0, max(1, -(-int(counts.sum()) // chunk)))
+    ranges = split(counts + 1.0, max(1, -(-int(counts.sum()) // chunk)))
     lock = threading.Lock()
 
     def sweep(a: int, b: int) -> None:
@@ -318,7 +294,7 @@ def gauss_newton_moments(table: torch.Tensor, binning: Binning, acc: torch.Tenso
         with lock:
             k.add_moments(moments, ids, base, out)
 
-    _run([lambda a=a, b=b: sweep(a, b) for a, b in ranges])
+    run([lambda a=a, b=b: sweep(a, b) for a, b in ranges])
 
 
 def gaussian_blocks(inp: Inputs, camera: Camera, degree: int, scale: float, table: torch.Tensor,
@@ -330,7 +306,7 @@ def gaussian_blocks(inp: Inputs, camera: Camera, degree: int, scale: float, tabl
     n = len(inp)
     cam = camera_vector(camera)
     tab = np.ascontiguousarray(table.detach().numpy(), np.float32)
-    _run([lambda a=a, b=b: k.gaussian_blocks(inp.means, inp.scales, inp.quats, inp.sh_rest, inp.sizes, cam,
+    run([lambda a=a, b=b: k.gaussian_blocks(inp.means, inp.scales, inp.quats, inp.sh_rest, inp.sizes, cam,
                                              int(degree), inp.flags, float(scale), tab, moments, a, b, out)
           for a, b in _chunks(n, 64.0 * n)])
 
@@ -342,7 +318,7 @@ def logdet_scores(rows: np.ndarray, lam: float) -> np.ndarray:
     n = rows.shape[0]
     out = np.empty(n, np.float32)
     rows = np.ascontiguousarray(rows, np.float64)
-    _run([lambda a=a, b=b: k.logdet_scores(rows, float(lam), a, b, out) for a, b in _chunks(n, 256.0 * n)])
+    run([lambda a=a, b=b: k.logdet_scores(rows, float(lam), a, b, out) for a, b in _chunks(n, 256.0 * n)])
     return out
 
 
