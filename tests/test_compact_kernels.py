@@ -132,6 +132,10 @@ def test_merged_groups_are_the_numpy_ones():
         np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=1e-5, atol=1e-6, err_msg=name)
     for key, value in slow.extra.items():
         np.testing.assert_allclose(fast.extra[key], value, rtol=1e-6, err_msg=key)
+    twins = cloud.select(np.repeat(np.arange(50), 3))  # equal masses: the lowest row represents its group
+    groups = np.repeat(np.arange(50), 3)[::-1].copy()
+    np.testing.assert_array_equal(merge.merge_groups(twins, groups)[1], merge.merge_groups_numpy(twins, groups)[1])
+    np.testing.assert_array_equal(merge.merge_groups(twins, groups)[1], np.arange(147, -1, -3))
 
 
 def test_removal_with_and_without_the_kernels_is_the_same(monkeypatch):

@@ -132,20 +132,20 @@ def matching(a: np.ndarray, b: np.ndarray, cost: np.ndarray, n: int, limit: int,
 # ------------------------------------------------------------------------------ merged groups
 
 def group_sums(starts: np.ndarray, ends: np.ndarray, rows: np.ndarray, mass, mu, sigma, opacity, sh_dc, sh_rest):
-    """(w, mass, mu, sigma, together, sh_dc, sh_rest) of each group of members (consecutive,
-    starts..ends; member i is the cloud's row rows[i], of activated `opacity` and SH;
-    `merge.merge_groups`' reductions by `kernels.group_sums`)."""
+    """(w, heaviest, mass, mu, sigma, together, sh_dc, sh_rest) of each group of members
+    (consecutive, starts..ends, in ascending rows; member i is the cloud's row rows[i], of activated
+    `opacity` and SH; `merge.merge_groups`' reductions and representatives by `kernels.group_sums`)."""
     k = kernels()
     g, m = len(starts), len(mass)
-    w = np.empty(m)
+    w, heaviest = np.empty(m), np.empty(g, np.int64)
     out = (np.empty(g), np.empty((g, 3)), np.empty((g, 6)), np.empty(g), np.empty((g, 3), np.float32),
            np.empty((g,) + sh_rest.shape[1:], np.float32))
     args = (np.ascontiguousarray(starts, np.int64), np.ascontiguousarray(ends, np.int64),
             np.ascontiguousarray(rows, np.int64), mass, mu, sigma,
             np.ascontiguousarray(opacity, np.float64), np.ascontiguousarray(sh_dc, np.float32),
             np.ascontiguousarray(sh_rest, np.float32))
-    run([lambda a=a, b=b: k.group_sums(*args, a, b, w, *out) for a, b in chunks(g)])
-    return (w, *out)
+    run([lambda a=a, b=b: k.group_sums(*args, a, b, w, heaviest, *out) for a, b in chunks(g)])
+    return (w, heaviest, *out)
 
 
 def unique_edges(nb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -242,20 +242,25 @@ def greedy_matching(a, b, cost, n, limit, rounds, chosen):
 # ------------------------------------------------------------------------------ merged groups
 
 @kernel
-def group_sums(starts, ends, rows, mass, mu, sigma, opacity, sh_dc, sh_rest, lo, hi, w, g_mass, g_mu, g_sigma,
-               together, g_dc, g_rest):
+def group_sums(starts, ends, rows, mass, mu, sigma, opacity, sh_dc, sh_rest, lo, hi, w, heaviest, g_mass, g_mu,
+               g_sigma, together, g_dc, g_rest):
     """For groups j in lo..hi-1 (members starts[j]..ends[j]-1: float64 moments mass, mu, sigma, and
     the rows `rows` of the cloud's activated opacity and float32 SH): the mass weight w of each
     member (its mass / the group's), the group's mass, mass-weighted centre and covariance (the
     members' covariances about the group's centre), what its members draw together
     (1 - prod(1 - o)) and its mass-weighted SH (float32 weights and sums, as `merge_groups`), each
-    sum in member order."""
+    sum in member order; and its heaviest member's row (`merge.representatives`: the first of the
+    heaviest, the members being in ascending rows)."""
     k_rest = sh_rest.shape[1]
     for j in range(lo, hi):
         s, t = starts[j], ends[j]
         m = 0.0
+        top = s
         for i in range(s, t):
             m += mass[i]
+            if mass[i] > mass[top]:
+                top = i
+        heaviest[j] = rows[top]
         g_mass[j] = m
         total = max(m, 1e-300)
         cx = cy = cz = 0.0

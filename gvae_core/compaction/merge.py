@@ -34,13 +34,16 @@ def merge_groups(cloud: GaussianCloud, groups: np.ndarray) -> tuple[GaussianClou
     src = cloud.numpy()
     groups, multi, size, idx = _members(groups)
     m = moments(src, np.zeros(len(idx)), rows=idx)
-    rows = representatives(groups, idx, m.mass)
-    out = src.select(rows)  # (a copy: selected by an index)
+    rows = np.zeros(len(size), np.int64)
+    kept = np.flatnonzero(groups >= 0)
+    rows[groups[kept]] = kept
     if len(multi):
         starts = np.concatenate([[0], np.cumsum(size[multi])[:-1]])
         opacity = activate_opacities(src.opacities.astype(np.float64))
-        w, mass, mu, sigma, together, sh_dc, sh_rest = compiled.group_sums(
+        w, rows[multi], mass, mu, sigma, together, sh_dc, sh_rest = compiled.group_sums(
             starts, starts + size[multi], idx, m.mass, m.mu, m.sigma, opacity, src.sh_dc, src.sh_rest)
+    out = src.select(rows)  # (a copy: selected by an index)
+    if len(multi):
         write_shapes(out, multi, mu + m.origin, sigma, mass, m.floor, together, threaded=True)
         out.sh_dc[multi] = sh_dc
         if src.sh_rest.shape[1]:
