@@ -156,3 +156,23 @@ def unique_edges(nb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     b = np.empty_like(a)
     count = kernels().unique_edges(nb, a, b)
     return a[:count], b[:count]
+
+
+def shapes(sigma: np.ndarray, floor: float, mass: np.ndarray, together: np.ndarray):
+    """(log-scales (G,3), quaternions (G,4), opacity logits (G,)) of merged Gaussians of packed
+    covariances `sigma` (`merge.write_shapes`): numpy's eigh (LAPACK: the same axes as the
+    reference), then `kernels.shapes`, chunk by chunk in threads."""
+    k = kernels()
+    g = len(sigma)
+    log_scale, quats, logits = np.empty((g, 3)), np.empty((g, 4)), np.empty(g)
+    mass, together = np.ascontiguousarray(mass, np.float64), np.ascontiguousarray(together, np.float64)
+
+    def part(lo: int, hi: int) -> None:
+        full = sigma[lo:hi][:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
+        vals, vecs = np.linalg.eigh(full)
+        k.shapes(vals, np.ascontiguousarray(vecs), float(floor), mass[lo:hi], together[lo:hi],
+                 float(LOG_SCALE_RANGE[0]), float(LOG_SCALE_RANGE[1]), 0, hi - lo, log_scale[lo:hi], quats[lo:hi],
+                 logits[lo:hi])
+
+    run([lambda a=a, b=b: part(a, b) for a, b in chunks(g)])
+    return log_scale, quats, logits

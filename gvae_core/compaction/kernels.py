@@ -341,3 +341,67 @@ def unique_edges(nb, a_out, b_out):
                 b_out[out] = hi[x]
                 out += 1
     return out
+
+
+@kernel
+def shapes(vals, vecs, floor, mass, together, ls_lo, ls_hi, lo, hi, log_scale, quats, logits):
+    """For merged Gaussians j in lo..hi-1, from the eigen-decomposition (vals, vecs) of their
+    covariances: log-scales (of vals less `floor`, clamped), the rotation of vecs (its first axis
+    flipped where it is a reflection) as a quaternion (Shepperd's method, w >= 0,
+    `quaternions.from_rotmat`) and the opacity logit that keeps `mass` for the stored shape (plus
+    `floor`), at most `together`, in [1e-6, 1 - 1e-6] (`merge.write_shapes`)."""
+    for j in range(lo, hi):
+        v = vecs[j]
+        d = (v[0, 0] * (v[1, 1] * v[2, 2] - v[1, 2] * v[2, 1]) - v[0, 1] * (v[1, 0] * v[2, 2] - v[1, 2] * v[2, 0])
+             + v[0, 2] * (v[1, 0] * v[2, 1] - v[1, 1] * v[2, 0]))
+        f = -1.0 if d < 0 else 1.0
+        a00, a10, a20 = f * v[0, 0], f * v[1, 0], f * v[2, 0]
+        a01, a11, a21 = v[0, 1], v[1, 1], v[2, 1]
+        a02, a12, a22 = v[0, 2], v[1, 2], v[2, 2]
+        s0 = min(max(0.5 * math.log(max(vals[j, 0] - floor, 1e-300)), ls_lo), ls_hi)
+        s1 = min(max(0.5 * math.log(max(vals[j, 1] - floor, 1e-300)), ls_lo), ls_hi)
+        s2 = min(max(0.5 * math.log(max(vals[j, 2] - floor, 1e-300)), ls_lo), ls_hi)
+        log_scale[j, 0], log_scale[j, 1], log_scale[j, 2] = s0, s1, s2
+        e0, e1, e2 = math.exp(s0), math.exp(s1), math.exp(s2)
+        b00, b01, b02 = a00 * e0, a01 * e1, a02 * e2
+        b10, b11, b12 = a10 * e0, a11 * e1, a12 * e2
+        b20, b21, b22 = a20 * e0, a21 * e1, a22 * e2
+        xx = b00 * b00 + b01 * b01 + b02 * b02 + floor
+        xy = b00 * b10 + b01 * b11 + b02 * b12
+        xz = b00 * b20 + b01 * b21 + b02 * b22
+        yy = b10 * b10 + b11 * b11 + b12 * b12 + floor
+        yz = b10 * b20 + b11 * b21 + b12 * b22
+        zz = b20 * b20 + b21 * b21 + b22 * b22 + floor
+        minors = xx * yy - xy * xy + xx * zz - xz * xz + yy * zz - yz * yz
+        o = mass[j] / max(math.sqrt(max(minors, 0.0)), 1e-300)
+        o = min(max(min(o, together[j]), 1e-6), 1.0 - 1e-6)
+        logits[j] = math.log(o / (1.0 - o))
+        # Shepperd: column p of K = 4 q q^T, p the largest of (trace, a00, a11, a22)
+        diag = (a00 + a11 + a22, a00, a11, a22)
+        p = 0
+        for c in range(1, 4):
+            if diag[c] > diag[p]:
+                p = c
+        if p == 0:
+            k0, k1, k2, k3 = 1 + a00 + a11 + a22, a21 - a12, a02 - a20, a10 - a01
+        elif p == 1:
+            k0, k1, k2, k3 = a21 - a12, 1 + a00 - a11 - a22, a01 + a10, a02 + a20
+        elif p == 2:
+            k0, k1, k2, k3 = a02 - a20, a01 + a10, 1 - a00 + a11 - a22, a12 + a21
+        else:
+            k0, k1, k2, k3 = a10 - a01, a02 + a20, a12 + a21, 1 - a00 - a11 + a22
+        kp = (k0, k1, k2, k3)[p]
+        s = math.sqrt(max(kp, 1e-300)) * 2
+        q0, q1, q2, q3 = k0 / s, k1 / s, k2 / s, k3 / s
+        if p == 0:
+            q0 = 0.25 * s
+        elif p == 1:
+            q1 = 0.25 * s
+        elif p == 2:
+            q2 = 0.25 * s
+        else:
+            q3 = 0.25 * s
+        if q0 < 0:
+            q0, q1, q2, q3 = -q0, -q1, -q2, -q3
+        norm = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+        quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3] = q0 / norm, q1 / norm, q2 / norm, q3 / norm

@@ -1,8 +1,8 @@
 """Assembling the compacted cloud: each group of input Gaussians becomes one (`merge_groups`), its
 members' moments matched with mass weights; `merge_groups_reference` is the slow, obviously correct
-definition (a loop over the groups) the tests hold it to. Where Numba is, the members' moments and
-the groups' sums are compiled kernels (`compiled`), the eigen-decompositions numpy's in threads;
-`merge_groups_numpy` (all numpy) is their reference.
+definition (a loop over the groups) the tests hold it to. Where Numba is, the members' moments, the
+groups' sums and their shapes are compiled kernels (`compiled`; the eigen-decompositions numpy's,
+in threads); `merge_groups_numpy` (all numpy) is their reference.
 """
 
 from __future__ import annotations
@@ -44,7 +44,8 @@ def merge_groups(cloud: GaussianCloud, groups: np.ndarray) -> tuple[GaussianClou
             starts, starts + size[multi], idx, m.mass, m.mu, m.sigma, opacity, src.sh_dc, src.sh_rest)
     out = src.select(rows)  # (a copy: selected by an index)
     if len(multi):
-        write_shapes(out, multi, mu + m.origin, sigma, mass, m.floor, together, threaded=True)
+        out.means[multi] = mu + m.origin
+        out.scales[multi], out.quats[multi], out.opacities[multi] = compiled.shapes(sigma, m.floor, mass, together)
         out.sh_dc[multi] = sh_dc
         if src.sh_rest.shape[1]:
             out.sh_rest[multi] = sh_rest
@@ -112,31 +113,22 @@ def write_merged(out: GaussianCloud, multi, members: GaussianCloud, grp, starts,
     write_sizes(out, multi, members.extra, grp, w)
 
 
-def write_shapes(out: GaussianCloud, multi, mu, sigma, mass, floor: float, together, threaded: bool = False) -> None:
+def write_shapes(out: GaussianCloud, multi, mu, sigma, mass, floor: float, together) -> None:
     """Write the merged Gaussians' centres `mu`, shapes (from their covariances `sigma`, less
     `floor` on the diagonal) and opacities (the mass kept, at most what the members draw
-    `together`) into rows `multi` of `out`. `threaded`: in chunks, in threads (numpy releases the
-    GIL in them; each row's arithmetic is the same)."""
-    def part(lo: int, hi: int) -> None:
-        s = slice(lo, hi)
-        vals, vecs = np.linalg.eigh(unpack(sigma[s]))
-        vecs[np.linalg.det(vecs) < 0, :, 0] *= -1.0  # a rotation, not a reflection
-        log_scale = np.clip(0.5 * np.log(np.maximum(vals - floor, 1e-300)), *LOG_SCALE_RANGE)
-        scaled = vecs * np.exp(log_scale)[:, None, :]
-        stored = pack(scaled @ scaled.transpose(0, 2, 1))  # as stored (scales clamped)
-        stored[:, DIAG] += floor
-        opacity = mass[s] / np.maximum(np.sqrt(np.maximum(minors(stored), 0.0)), 1e-300)
-        opacity = np.clip(np.minimum(opacity, together[s]), 1e-6, 1.0 - 1e-6)
-        rows = multi[s]
-        out.means[rows] = mu[s]
-        out.scales[rows] = log_scale
-        out.quats[rows] = quaternions.from_rotmat(vecs)
-        out.opacities[rows] = np.log(opacity / (1.0 - opacity))
-
-    if threaded:
-        compiled.run([lambda a=a, b=b: part(a, b) for a, b in compiled.chunks(len(multi))])
-    else:
-        part(0, len(multi))
+    `together`) into rows `multi` of `out` (numpy: the reference of `compiled.shapes`)."""
+    vals, vecs = np.linalg.eigh(unpack(sigma))
+    vecs[np.linalg.det(vecs) < 0, :, 0] *= -1.0  # a rotation, not a reflection
+    log_scale = np.clip(0.5 * np.log(np.maximum(vals - floor, 1e-300)), *LOG_SCALE_RANGE)
+    scaled = vecs * np.exp(log_scale)[:, None, :]
+    stored = pack(scaled @ scaled.transpose(0, 2, 1))  # as stored (scales clamped)
+    stored[:, DIAG] += floor
+    opacity = mass / np.maximum(np.sqrt(np.maximum(minors(stored), 0.0)), 1e-300)
+    opacity = np.clip(np.minimum(opacity, together), 1e-6, 1.0 - 1e-6)
+    out.means[multi] = mu
+    out.scales[multi] = log_scale
+    out.quats[multi] = quaternions.from_rotmat(vecs)
+    out.opacities[multi] = np.log(opacity / (1.0 - opacity))
 
 
 def write_sizes(out: GaussianCloud, multi, extra: dict, grp, w) -> None:
