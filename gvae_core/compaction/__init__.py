@@ -24,6 +24,9 @@ number, or as few as keep the picture within a PSNR tolerance). Stages, one modu
 - `report`: the result; the PSNR of the compacted cloud's renders against the input's from views
   that see what was removed, how many removed Gaussians those views did not see, and a warning
   when the views miss more than a small share of the cloud.
+- `compiled`, `kernels`: the hit counts, moments, merge costs, matching, neighbour edges and merged
+  groups as compiled CPU kernels (Numba) run in threads, where Numba is; the numpy and torch code
+  they stand for stays beside them as their reference (and runs where Numba is not).
 
 What was measured (BENCHMARKS.md, "Compaction"): merging keeps the picture far better than any
 pruning score without fine-tuning; the Hessian's weighting of the merges changes PSNR by less than
