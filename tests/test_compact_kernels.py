@@ -1,7 +1,7 @@
 """Compaction's compiled kernels (`gvae_core.compaction.compiled`, Numba) held to the numpy and torch
 code they stand for: the pixel hits of the torch sweep, the moments, merge costs, merges, matching
-and neighbour edges of the numpy code, the merged groups of `merge_groups_numpy`, and a whole
-removal with and without them."""
+and neighbour edges of the numpy code, the grid's nearest neighbours of scipy's k-d tree, the
+merged groups of `merge_groups_numpy`, and a whole removal with and without them."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from gvae_core import Camera
 from gvae_core.compaction import compiled, graph, merge, moments, pixel_hits, pixel_hits_reference, removal_groups
@@ -119,6 +120,38 @@ def test_unique_edges_are_numpys():
     key = np.unique(np.minimum(aa[ok], bb[ok]) * m + np.maximum(aa[ok], bb[ok]))
     np.testing.assert_array_equal(a, key // m)
     np.testing.assert_array_equal(b, key % m)
+
+
+@pytest.mark.parametrize("shape", ["volume", "surface", "floaters"])
+def test_grid_neighbours_are_the_kd_trees(shape, monkeypatch):
+    rng = np.random.default_rng(7)
+    points = {"volume": lambda: rng.random((6000, 3)),
+              "surface": lambda: (lambda v: v / np.linalg.norm(v, axis=1, keepdims=True))(rng.normal(size=(6000, 3))),
+              "floaters": lambda: np.concatenate([rng.random((6000, 3)), rng.normal(0, 300, (60, 3))])}[shape]()
+    near = compiled.nearest(points, 4)  # (floaters: the points whose cells cannot tell go to the k-d tree)
+    _, ref = cKDTree(points).query(points, 5)
+    np.testing.assert_array_equal(near, ref[:, 1:])
+    a, b = graph.knn_edges(points, np.arange(len(points)), 4)
+    monkeypatch.setattr(compiled, "available", lambda: False)
+    a_ref, b_ref = graph.knn_edges(points, np.arange(len(points)), 4)
+    np.testing.assert_array_equal(a, a_ref)
+    np.testing.assert_array_equal(b, b_ref)
+
+
+def test_grid_neighbours_of_coincident_points():
+    """Many copies of a few points: no grid (a cell would hold too many), the k-d tree answers; a
+    few twins: each point's nearest others, never itself."""
+    rng = np.random.default_rng(8)
+    assert compiled.nearest(np.repeat(rng.random((20, 3)), 300, 0), 4) is None
+    a, b = graph.knn_edges(np.repeat(rng.random((20, 3)), 300, 0), np.arange(6000), 4)
+    assert len(a) > 0 and (a < b).all()
+    points = np.concatenate([rng.random((3000, 3)), rng.random((10, 3))])
+    points[-10:] = points[:10]
+    near = compiled.nearest(points, 4)
+    assert (near != np.arange(len(points))[:, None]).all()
+    d = np.linalg.norm(points[near] - points[:, None], axis=2)
+    _, ref = cKDTree(points).query(points, 5)
+    np.testing.assert_allclose(d, np.sort(np.linalg.norm(points[ref] - points[:, None], axis=2), 1)[:, 1:])
 
 
 def test_merged_groups_are_the_numpy_ones():

@@ -176,3 +176,57 @@ def shapes(sigma: np.ndarray, floor: float, mass: np.ndarray, together: np.ndarr
 
     run([lambda a=a, b=b: part(a, b) for a, b in chunks(g)])
     return log_scale, quats, logits
+
+
+#: Points per occupied cell that `nearest` aims at, and the most one cell may hold before the
+#: grid is given up for the k-d tree (clouds of many coincident or far scattered Gaussians).
+CELL_POINTS, CELL_LIMIT = 6.0, 256
+
+
+def nearest(points: np.ndarray, k: int) -> np.ndarray | None:
+    """(M, k) int64: each point's k nearest others (exact, squared distances in float64; nearest
+    first), by a grid of cells: the points of each cell compared with those of the 3 x 3 x 3
+    cells around it (`kernels.cell_neighbours`, cells in threads); a point whose k-th nearest
+    could lie beyond those cells is asked of scipy's k-d tree instead. The same neighbours as the
+    k-d tree's but among points at exactly equal distances. None where the points do not suit a
+    grid (a cell would hold more than CELL_LIMIT): the caller asks the k-d tree."""
+    from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy is slow to import; only merging needs it
+
+    kern = kernels()
+    points = np.ascontiguousarray(points, np.float64)
+    m = len(points)
+    origin = points.min(0)
+    extent = points.max(0) - origin
+    low, high = np.percentile(points, [1, 99], axis=0)
+    box = np.maximum(high - low, 1e-12 * max(float(extent.max()), 1e-300))
+    h = max(float(np.cbrt(np.prod(box) / m * CELL_POINTS)), float(extent.max()) / ((1 << 20) - 2), 1e-300)
+    for _ in range(3):  # (surfaces fill few cells: scale the cells to their occupancy)
+        ix = np.minimum(((points - origin) / h).astype(np.int64), (1 << 21) - 1)
+        key = (ix[:, 0] << 42) | (ix[:, 1] << 21) | ix[:, 2]
+        perm = np.argsort(key, kind="stable")
+        sk = key[perm]
+        first = np.flatnonzero(np.concatenate([[True], sk[1:] != sk[:-1]]))
+        occupancy = m / len(first)
+        if 0.5 * CELL_POINTS <= occupancy <= 2.0 * CELL_POINTS:
+            break
+        h = max(h * (CELL_POINTS / occupancy) ** 0.5, float(extent.max()) / ((1 << 20) - 2), 1e-300)
+    starts = np.append(first, m)
+    if np.diff(starts).max() > CELL_LIMIT:
+        return None
+    keys = sk[first]
+    slots = np.empty(1 << int(2 * len(keys) - 1).bit_length(), np.int64)
+    kern.cell_table(keys, slots)
+    cell_ix = np.ascontiguousarray(ix[perm[first]])
+    dims = ix.max(0) + 1
+    nb = np.empty((m, k), np.int64)
+    certain = np.zeros(m, np.bool_)
+    ordered = np.ascontiguousarray(points[perm])  # (each cell's points together: read in order)
+    run([lambda a=a, b=b: kern.cell_neighbours(ordered, perm, cell_ix, keys, starts, slots, origin, float(h), dims, k,
+                                               a, b, nb, certain)
+         for a, b in split(np.diff(starts).astype(np.float64) ** 2 + 1.0, 1 if m < SMALL else 8 * threads())])
+    doubt = np.flatnonzero(~certain)
+    if len(doubt):
+        _, near = cKDTree(points).query(points[doubt], k + 1, workers=-1)
+        near = np.take_along_axis(near, np.argsort(near == doubt[:, None], axis=1, kind="stable"), 1)
+        nb[doubt] = near[:, :k]
+    return nb

@@ -54,17 +54,23 @@ def matching_numpy(a: np.ndarray, b: np.ndarray, cost: np.ndarray, n: int, limit
 
 def knn_edges(mu: np.ndarray, nodes: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Edges (a < b, each once, ascending) between each of `nodes` and its `k` nearest others (by
-    centre): the neighbours by scipy's k-d tree (in its threads), the edges made unique by a
-    compiled kernel where it runs (`compiled.unique_edges`), else by np.unique."""
+    centre). Where the kernels run: the neighbours from a grid of cells (`compiled.nearest`; the
+    k-d tree's but among points at exactly equal distances), the edges made unique by
+    `compiled.unique_edges`; else (the reference) scipy's k-d tree and np.unique."""
     from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy is slow to import; only merging needs it
 
     k = min(k, len(nodes) - 1)
     if k < 1:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    _, nb = cKDTree(mu[nodes]).query(mu[nodes], k + 1, workers=-1)
     if compiled.available():
+        near = compiled.nearest(mu[nodes], k)
+        if near is None:
+            _, nb = cKDTree(mu[nodes]).query(mu[nodes], k + 1, workers=-1)
+        else:
+            nb = np.concatenate([np.arange(len(nodes))[:, None], near], 1)
         a, b = compiled.unique_edges(nb)
         return nodes[a], nodes[b]
+    _, nb = cKDTree(mu[nodes]).query(mu[nodes], k + 1, workers=-1)
     a = np.repeat(np.arange(len(nodes)), k)
     b = nb[:, 1:].reshape(-1)
     ok = (b < len(nodes)) & (a != b)

@@ -405,3 +405,119 @@ def shapes(vals, vecs, floor, mass, together, ls_lo, ls_hi, lo, hi, log_scale, q
             q0, q1, q2, q3 = -q0, -q1, -q2, -q3
         norm = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
         quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3] = q0 / norm, q1 / norm, q2 / norm, q3 / norm
+
+
+_HASH = np.int64(-7046029254386353131)  # 0x9E3779B97F4A7C15 (Fibonacci hashing) as an int64
+
+
+@kernel
+def cell_table(keys, slots):
+    """An open-addressing hash table of the cells' keys (sorted, unique): slots (S,) int64, S a
+    power of two >= 2 len(keys), each the index of a key or -1."""
+    mask = slots.shape[0] - 1
+    shift = 64 - _bits(slots.shape[0])
+    slots[:] = -1
+    for c in range(keys.shape[0]):
+        h = (keys[c] * _HASH) >> shift & mask
+        while slots[h] >= 0:
+            h = (h + 1) & mask
+        slots[h] = c
+
+
+@inline
+def _bits(size):
+    """log2 of a power of two."""
+    b = 0
+    while (1 << b) < size:
+        b += 1
+    return b
+
+
+@inline
+def _find(keys, slots, key, shift):
+    """The index of `key` in the cell table (`cell_table`), or -1 (the hash: the top bits)."""
+    mask = slots.shape[0] - 1
+    h = (key * _HASH) >> shift & mask
+    while slots[h] >= 0:
+        if keys[slots[h]] == key:
+            return slots[h]
+        h = (h + 1) & mask
+    return -1
+
+
+#: The 27 cells around a cell (offsets dx, dy, dz), nearest first: its own, faces, edges, corners.
+_AROUND = np.array(sorted(((x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)),
+                          key=lambda o: abs(o[0]) + abs(o[1]) + abs(o[2])), np.int64)
+
+
+@kernel
+def cell_neighbours(sorted_points, perm, cell_ix, keys, starts, slots, origin, h, dims, k, lo, hi, nb, certain):
+    """The k nearest others of each point of cells lo..hi-1 among the points of the 3 x 3 x 3
+    cells around its own (the points sorted by cell: sorted_points, the original index of each
+    perm; cells' first points starts, integer coordinates cell_ix, keys ix << 42 | iy << 21 | iz,
+    found through the hash table slots; cell edge h, from origin, dims cells a side; a cell
+    farther than the k-th nearest so far is skipped): nb[i] (k, original indices) nearest first
+    (ties: the first seen, cells nearest first), and certain[i] whether no point outside those
+    cells can be nearer than the k-th (else the caller asks an exact search)."""
+    best_d = np.empty(k)
+    best_t = np.empty(k, np.int64)
+    shift = 64 - _bits(slots.shape[0])
+    first = np.empty(27, np.int64)
+    last = np.empty(27, np.int64)
+    offs = np.empty((27, 3), np.int64)
+    box_lo = np.empty(3)
+    bound_lo = np.empty(3)
+    bound_hi = np.empty(3)
+    for c in range(lo, hi):
+        used = 0
+        for o in range(27):
+            x, y, z = cell_ix[c, 0] + _AROUND[o, 0], cell_ix[c, 1] + _AROUND[o, 1], cell_ix[c, 2] + _AROUND[o, 2]
+            if x < 0 or y < 0 or z < 0 or x >= dims[0] or y >= dims[1] or z >= dims[2]:
+                continue
+            f = _find(keys, slots, (x << 42) | (y << 21) | z, shift)
+            if f < 0:
+                continue
+            first[used], last[used] = starts[f], starts[f + 1]
+            offs[used, 0], offs[used, 1], offs[used, 2] = _AROUND[o, 0], _AROUND[o, 1], _AROUND[o, 2]
+            used += 1
+        # the cell's box, and the faces of the 3 x 3 x 3 block with cells beyond them
+        for a in range(3):
+            ci = cell_ix[c, a]
+            box_lo[a] = origin[a] + ci * h
+            bound_lo[a] = origin[a] + (ci - 1) * h if ci - 1 > 0 else -np.inf
+            bound_hi[a] = origin[a] + (ci + 2) * h if ci + 2 < dims[a] else np.inf
+        for s in range(starts[c], starts[c + 1]):
+            px, py, pz = sorted_points[s, 0], sorted_points[s, 1], sorted_points[s, 2]
+            for j in range(k):
+                best_d[j] = np.inf
+                best_t[j] = -1
+            for q in range(used):
+                gap = 0.0  # squared distance from the point to that cell's box
+                for a in range(3):
+                    off = offs[q, a]
+                    if off < 0:
+                        g = sorted_points[s, a] - box_lo[a]
+                        gap += g * g
+                    elif off > 0:
+                        g = box_lo[a] + h - sorted_points[s, a]
+                        gap += g * g
+                if gap > best_d[k - 1]:
+                    continue
+                for u in range(first[q], last[q]):
+                    ex, ey, ez = sorted_points[u, 0] - px, sorted_points[u, 1] - py, sorted_points[u, 2] - pz
+                    d = ex * ex + ey * ey + ez * ez
+                    if d < best_d[k - 1] and u != s:
+                        v = k - 1
+                        while v > 0 and best_d[v - 1] > d:
+                            best_d[v] = best_d[v - 1]
+                            best_t[v] = best_t[v - 1]
+                            v -= 1
+                        best_d[v] = d
+                        best_t[v] = u
+            bound = np.inf
+            for a in range(3):
+                bound = min(bound, sorted_points[s, a] - bound_lo[a], bound_hi[a] - sorted_points[s, a])
+            i = perm[s]
+            certain[i] = best_t[k - 1] >= 0 and best_d[k - 1] < bound * bound
+            for j in range(k):
+                nb[i, j] = perm[best_t[j]] if best_t[j] >= 0 else -1
