@@ -303,14 +303,7 @@ class GaussianCloud:
         of their 1st..99th percentile box and half of its longest side (1 when degenerate). This
         is the scene-normalised frame, (x - centre) / scale, of lineage features and Hessian
         scores, so that one model serves every scene."""
-        p = np.asarray(self.numpy().means, np.float64).reshape(-1, 3)
-        if not np.isfinite(p).all():
-            p = p[np.isfinite(p).all(1)]
-        if len(p) == 0:
-            return np.zeros(3), 1.0
-        lo, hi = np.percentile(p, [1, 99], axis=0)
-        scale = float(np.max(hi - lo)) / 2.0
-        return (lo + hi) / 2.0, (scale if scale > 1e-8 else 1.0)
+        return normalization_of(self.numpy().means)
 
     def transformed(self, matrix) -> GaussianCloud:
         """The cloud moved by a 4x4 matrix of rotation, uniform positive scale and translation (a
@@ -410,3 +403,16 @@ class GaussianCloud:
         out.scales = clip(out.scales, *LOG_SCALE_RANGE)
         out.opacities = clip(out.opacities, *OPACITY_LOGIT_RANGE)
         return out
+
+
+def normalization_of(means) -> tuple[np.ndarray, float]:
+    """`GaussianCloud.normalization` of the centres `means` (N,3) (for a subset of a cloud's rows
+    without selecting the rest of its fields)."""
+    p = np.asarray(means, np.float64).reshape(-1, 3)
+    if not np.isfinite(p).all():
+        p = p[np.isfinite(p).all(1)]
+    if len(p) == 0:
+        return np.zeros(3), 1.0
+    lo, hi = np.percentile(p, [1, 99], axis=0)
+    scale = float(np.max(hi - lo)) / 2.0
+    return (lo + hi) / 2.0, (scale if scale > 1e-8 else 1.0)

@@ -24,6 +24,9 @@ number, or as few as keep the picture within a PSNR tolerance). Stages, one modu
 - `report`: the result; the PSNR of the compacted cloud's renders against the input's from views
   that see what was removed, how many removed Gaussians those views did not see, and a warning
   when the views miss more than a small share of the cloud.
+- `compiled`, `kernels`: the hit counts, moments, merge costs, matching, neighbour edges and merged
+  groups as compiled CPU kernels (Numba) run in threads, where Numba is; the numpy and torch code
+  they stand for stays beside them as their reference (and runs where Numba is not).
 
 What was measured (BENCHMARKS.md, "Compaction"): merging keeps the picture far better than any
 pruning score without fine-tuning; the Hessian's weighting of the merges changes PSNR by less than
@@ -191,7 +194,8 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
                                          seed, views, resolution, settings, say, timings, extra,
                                          None if looks is None else looks.inside)
         else:
-            result = _compact(src, target, tolerance, cameras, looks, how, seed, settings, say, timings)
+            result = _compact(src, target, tolerance, cameras, looks, how, seed, settings, say, timings,
+                              listened=progress is not None)
     result.warnings = unseen_warning(n, result.unseen, looks is not None and looks.placed)
     result.cloud = result.cloud.replace(background=src.background)  # drawn over what the input was trained over
     timings["total"] = time.perf_counter() - t_start
@@ -200,15 +204,18 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
 
 
 def _compact(src: GaussianCloud, target: int | None, tolerance, cameras, looks: CompactionViews, how: dict, seed: int,
-             settings: RenderSettings, say, timings: dict) -> CompactResult:
-    """Compaction without fine-tuning: score, see, remove, merge, report."""
+             settings: RenderSettings, say, timings: dict, listened: bool = True) -> CompactResult:
+    """Compaction without fine-tuning: score, see, remove, merge, report. `listened`: whether a
+    caller follows the progress (without one the scoring is given none, and so does not make
+    every renderer kernel ready up front to say that it compiles: `rendering.compiled.compile_kernels`;
+    they load as they are first used)."""
     n = len(src)
     cams = looks.scoring
     t0 = time.perf_counter()
     frames: list = []
     say(0.0, f"scoring {n:,} Gaussians ({how['score']})")
     scores = compaction_scores(src, how["score"], cams, settings=settings, seed=seed, frames=frames,
-                               progress=lambda f, msg: say(0.6 * f, msg))
+                               progress=(lambda f, msg: say(0.6 * f, msg)) if listened else None)
     timings["score"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     seen = sight(src, scores, how["score"], frames, looks.others, settings, inside=looks.inside)

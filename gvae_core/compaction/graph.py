@@ -1,13 +1,15 @@
 """The neighbour graph merging runs on: each Gaussian's k nearest others (by centre), and the
 passes that merge pairs over it, cheapest first, each pass taking disjoint pairs (the edges that are
 the cheapest of both their ends: what greedy matching takes, found in parallel), until the count
-is reached.
+is reached. The matching runs as a compiled kernel where Numba is (`compiled.matching`; its
+reference: `matching_numpy`), as do the costs and the merges (`moments`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from . import compiled
 from .moments import Moments, merge_pairs, pair_cost
 
 #: Neighbours per Gaussian in the merge graph (4, 6 and 8 tried on the validation scenes: within
@@ -18,7 +20,15 @@ NEIGHBOURS = 4
 def matching(a: np.ndarray, b: np.ndarray, cost: np.ndarray, n: int, limit: int, rounds: int = 4) -> np.ndarray:
     """Edges (indices) of a matching: repeatedly every edge that is the cheapest of both its ends
     among the edges whose ends are both free (what greedy matching takes, found in parallel), for
-    a few rounds or until `limit` edges; the `limit` cheapest of them."""
+    a few rounds or until `limit` edges; the `limit` cheapest of them, cheapest first (ties: the
+    lower index). `compiled.matching` where it runs, else `matching_numpy`."""
+    if compiled.available():
+        return compiled.matching(a, b, cost, n, limit, rounds)
+    return matching_numpy(a, b, cost, n, limit, rounds)
+
+
+def matching_numpy(a: np.ndarray, b: np.ndarray, cost: np.ndarray, n: int, limit: int, rounds: int = 4) -> np.ndarray:
+    """`matching` in numpy: the edges ranked by a stable sort of their costs."""
     order = np.argsort(cost, kind="stable")
     sa, sb = a[order], b[order]
     free = np.ones(n, bool)
@@ -43,12 +53,23 @@ def matching(a: np.ndarray, b: np.ndarray, cost: np.ndarray, n: int, limit: int,
 
 
 def knn_edges(mu: np.ndarray, nodes: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Edges (a < b, each once) between each of `nodes` and its `k` nearest others (by centre)."""
+    """Edges (a < b, each once, ascending) between each of `nodes` and its `k` nearest others (by
+    centre). Where the kernels run: the neighbours from a grid of cells (`compiled.nearest`; the
+    k-d tree's but among points at exactly equal distances), the edges made unique by
+    `compiled.unique_edges`; else (the reference) scipy's k-d tree and np.unique."""
     from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy is slow to import; only merging needs it
 
     k = min(k, len(nodes) - 1)
     if k < 1:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if compiled.available():
+        near = compiled.nearest(mu[nodes], k)
+        if near is None:
+            _, nb = cKDTree(mu[nodes]).query(mu[nodes], k + 1, workers=-1)
+        else:
+            nb = np.concatenate([np.arange(len(nodes))[:, None], near], 1)
+        a, b = compiled.unique_edges(nb)
+        return nodes[a], nodes[b]
     _, nb = cKDTree(mu[nodes]).query(mu[nodes], k + 1, workers=-1)
     a = np.repeat(np.arange(len(nodes)), k)
     b = nb[:, 1:].reshape(-1)
@@ -85,8 +106,9 @@ def merge_owner(m: Moments, target: int, neighbours: int, progress=None) -> np.n
         a, b = owner[a], owner[b]  # contract the graph onto the groups' representatives
         keep = a != b
         a, b, cost, changed = np.minimum(a[keep], b[keep]), np.maximum(a[keep], b[keep]), cost[keep], changed[keep]
-        redo = np.flatnonzero(changed)
-        cost[redo] = pair_cost(m, a[redo], b[redo])
+        if alive > target:  # (after the last pass the costs are not read again)
+            redo = np.flatnonzero(changed)
+            cost[redo] = pair_cost(m, a[redo], b[redo])
         if progress is not None:
             progress(1.0 - (alive - target) / max(n - target, 1), f"merging: {alive:,} Gaussians")
     _, groups = np.unique(owner, return_inverse=True)

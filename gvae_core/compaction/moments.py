@@ -5,6 +5,9 @@ A Gaussian's mass is its opacity times sqrt of the sum of its covariance's 2x2 p
 moments with mass weights. Covariances are packed symmetric 3x3 matrices (xx, xy, xz, yy, yz, zz)
 with `floor` of variance on the diagonal, far below what a picture shows, so that flat Gaussians
 have a finite log det.
+
+`moments`, `pair_cost` and `merge_pairs` run as compiled kernels where Numba is (`compiled`); the
+numpy code (`moments_numpy`, `pair_cost_numpy`, `merge_pairs_numpy`) is their reference.
 """
 
 from __future__ import annotations
@@ -14,8 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import quaternions
-from ..cloud import GaussianCloud
+from ..cloud import GaussianCloud, normalization_of
 from ..conventions import LOG_SCALE_RANGE, SH_C0, activate_opacities
+from . import compiled
 
 #: Weight of the colour difference (RGB of the SH DC term, squared) against the shape change
 #: (nats of KL divergence) in the merge cost.
@@ -85,10 +89,26 @@ def floor_of(half: float) -> float:
     return (2.5e-4 * half) ** 2
 
 
-def moments(src: GaussianCloud, weight: np.ndarray) -> Moments:
+def moments(src: GaussianCloud, weight: np.ndarray, rows: np.ndarray | None = None) -> Moments:
     """The stored Gaussians as they are (their anti-aliasing filter left out: adding it to the
     covariances, and Mip-Splatting's opacity compensation, lost 0.06-0.10 dB at 50-30% kept on
-    the validation scenes)."""
+    the validation scenes). `rows`: of these rows only (as of `src.select(rows)`, without copying
+    the rest of their fields). By `compiled.gaussian_moments` where it runs, else `moments_numpy`."""
+    src = src.numpy()
+    if not compiled.available():
+        return moments_numpy(src if rows is None else src.select(rows), weight)
+    rows = np.arange(len(src)) if rows is None else np.asarray(rows, np.int64)
+    center, half = normalization_of(src.means[rows])
+    floor = floor_of(half)
+    opacity = activate_opacities(src.opacities.astype(np.float64))
+    mu, sigma, mass, ld = compiled.gaussian_moments(rows, src.means, src.scales, src.quats, opacity, center, floor)
+    return Moments(mass=mass, mu=mu, sigma=sigma, log_det=ld, floor=floor,
+                   colour=SH_C0 * src.sh_dc[rows].astype(np.float64), weight=np.array(weight, np.float64),
+                   origin=center)
+
+
+def moments_numpy(src: GaussianCloud, weight: np.ndarray) -> Moments:
+    """`moments` in numpy (float64): the reference of the compiled path."""
     center, half = src.normalization()
     floor = floor_of(half)
     sigma = covariances(src)
@@ -110,6 +130,13 @@ def pair(m: Moments, a: np.ndarray, b: np.ndarray):
 
 
 def pair_cost(m: Moments, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """`pair_cost_numpy` by `compiled.pair_costs` where it runs."""
+    if compiled.available():
+        return compiled.pair_costs(m, a, b, COLOUR_WEIGHT)
+    return pair_cost_numpy(m, a, b)
+
+
+def pair_cost_numpy(m: Moments, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Cost of merging each pair (a[i], b[i]): (weight_a + weight_b) x (mass_a + mass_b) x (the
     mass-weighted KL divergence of the two from their moment match, 1/2 (log det S - w_a log det
     S_a - w_b log det S_b), plus COLOUR_WEIGHT x w_a w_b |colour_a - colour_b|²)."""
@@ -120,6 +147,14 @@ def pair_cost(m: Moments, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def merge_pairs(m: Moments, a: np.ndarray, b: np.ndarray) -> None:
+    """`merge_pairs_numpy` by `compiled.merge_pairs` where it runs."""
+    if compiled.available():
+        compiled.merge_pairs(m, a, b)
+    else:
+        merge_pairs_numpy(m, a, b)
+
+
+def merge_pairs_numpy(m: Moments, a: np.ndarray, b: np.ndarray) -> None:
     """Merge each b[i] into a[i] in place (moments and weights add; b's entries are left stale)."""
     wa, wb, total, s = pair(m, a, b)
     m.sigma[a] = s

@@ -96,7 +96,7 @@ def removal_groups(src: GaussianCloud, scores: np.ndarray, target: int, *, score
     if score in PICTURE_SCORES:
         drop = min(int(round(prune * n)), len(kept) - target)
         kept = np.sort(kept[np.argsort(weight[kept], kind="stable")[drop:]])
-    m = moments(src.select(kept), weight[kept])
+    m = moments(src, weight[kept], rows=kept)
     sub = merge_owner(m, target, neighbours, progress)
     groups = np.full(n, -1, np.int64)
     # output rows in input order of their representatives

@@ -4,7 +4,9 @@ as log det(I + H/lambda), the sensitivity of PUP 3D-GS; the baselines it is comp
 LightGaussian's global significance (pixels hit x opacity x volume^0.1), opacity, random. And
 which Gaussians a set of views sees at all (`pixel_hits`: LightGaussian's hit counts, one sweep
 over each view's tile lists as the renderer composites them; `pixel_hits_reference`, the slow
-per-pixel loop the tests hold it to).
+per-pixel loop the tests hold it to). The sweep is a compiled kernel (`compiled.table_hits`) where
+the renderer's compiled path draws (float32 on the CPU, Numba there), else torch code (`table_hits`,
+its reference).
 """
 
 from __future__ import annotations
@@ -20,9 +22,11 @@ from ..cloud import GaussianCloud
 from ..conventions import LOG_SCALE_RANGE
 from ..hessian import hessian_scores
 from ..rendering import RenderSettings, prepare_view
+from ..rendering.compiled import use_compiled
 from ..rendering.frames import Frame
 from ..rendering.rasterize import (T_MIN, alpha_and_transmittance, compositing_weights, live_blocks, pair_table,
                                    pixel_monomials, tile_centres, tile_groups)
+from . import compiled
 
 #: Per-Gaussian scores `compact` can rank by: the default, then the baselines.
 SCORES = ("hessian", "lightgaussian", "opacity", "random")
@@ -42,7 +46,7 @@ def pixel_hits(cloud: GaussianCloud, cameras: Sequence[Camera], settings: Render
     with torch.no_grad():
         for cam in cameras:
             _, binning, table = prepare_view(cloud, cam, settings)
-            hits += _table_hits(table, binning, settings, cam)
+            hits += _hits(table, binning, settings, cam)
     return hits[:-1].numpy()
 
 
@@ -53,6 +57,18 @@ def frame_hits(frame: Frame, n: int, rows: np.ndarray) -> np.ndarray:
     rows = np.asarray(rows, np.int64)
     if len(rows) == 0 or frame.binning.num_pairs == 0:
         return np.zeros(len(rows), np.int64)
+    if _compiled(frame.table, frame.settings):
+        drawn = frame.rows.numpy()
+        drawn = np.where(drawn >= 0, drawn, n)
+        wanted = np.zeros(n + 1, bool)
+        wanted[rows] = True
+        b = frame.binning
+        hits = compiled.table_hits(frame.table.numpy(), b.gaussian_ids.numpy(), b.offsets.numpy(), b.tiles_x,
+                                   b.tile_size, frame.camera.width, frame.camera.height,
+                                   wanted=np.append(wanted[drawn], False))
+        by_row = np.zeros(n + 1, np.int64)
+        by_row[drawn] = hits[:-1]
+        return by_row[rows]
     wanted = torch.zeros(n + 1, dtype=torch.bool)
     wanted[torch.from_numpy(rows)] = True
     drawn = frame.rows.to("cpu").clamp(min=-1)
@@ -62,15 +78,30 @@ def frame_hits(frame: Frame, n: int, rows: np.ndarray) -> np.ndarray:
     keep = torch.zeros(b.tiles_x * b.tiles_y, dtype=torch.bool)
     keep[tiles[of_table[b.gaussian_ids.cpu()]]] = True
     with torch.no_grad():
-        hits = _table_hits(frame.table, replace(b, counts=torch.where(keep, b.counts, 0)), frame.settings, frame.camera)
+        hits = table_hits(frame.table, replace(b, counts=torch.where(keep, b.counts, 0)), frame.settings, frame.camera)
     by_row = torch.zeros(n + 1, dtype=torch.int64)
     by_row[drawn.where(drawn >= 0, torch.full_like(drawn, n))] = hits[:-1]
     return by_row[torch.from_numpy(rows)].numpy()
 
 
-def _table_hits(table: torch.Tensor, binning, settings: RenderSettings, cam: Camera) -> torch.Tensor:
+def _compiled(table: torch.Tensor, settings: RenderSettings) -> bool:
+    """Whether the compiled sweep counts the hits of `table` under `settings` (the renderer's rule:
+    its compiled path, float32 on the CPU, Numba there)."""
+    return compiled.available() and use_compiled(settings.kernels, table.device, table.dtype)
+
+
+def _hits(table: torch.Tensor, binning, settings: RenderSettings, cam: Camera) -> torch.Tensor:
+    """`table_hits` by the compiled sweep where it runs."""
+    if not _compiled(table, settings) or binning.num_pairs == 0:
+        return table_hits(table, binning, settings, cam)
+    return torch.from_numpy(compiled.table_hits(table.numpy(), binning.gaussian_ids.numpy(), binning.offsets.numpy(),
+                                                binning.tiles_x, binning.tile_size, cam.width, cam.height))
+
+
+def table_hits(table: torch.Tensor, binning, settings: RenderSettings, cam: Camera) -> torch.Tensor:
     """(R+1,) int64 hits of each row of a packed table (the last, the dummy's, 0), over the tiles
-    `binning` lists."""
+    `binning` lists (torch code: the reference of `compiled.table_hits`, and what runs off the
+    compiled path)."""
     hits = torch.zeros(table.shape[0], dtype=torch.int64)
     if binning.num_pairs == 0:
         return hits
