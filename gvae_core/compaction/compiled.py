@@ -1,7 +1,7 @@
 """Compaction's compiled CPU path: the kernels of `compaction.kernels` (Numba) driven in threads.
 
 As the renderer's `rendering.compiled` does it: the work is cut into chunks (of tiles, Gaussians,
-edges, groups) run in `torch.get_num_threads()` threads (the kernels release the GIL; nothing
+edges, groups) run in `parallel.count()` threads (the kernels release the GIL; nothing
 global is set). Where Numba is missing (`rendering.compiled.numba_missing`) `available()` is False
 and the numpy / torch references run instead. Each function here says which reference it stands
 for; the tests hold them to it.
@@ -10,13 +10,12 @@ for; the tests hold them to it.
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from ..conventions import LOG_SCALE_RANGE
-from ..rendering.compiled import numba_missing, threads
+from ..parallel import count, run, split
+from ..rendering.compiled import numba_missing
 
 #: Items (tile pairs, Gaussians, edges, groups) below which work is not split into threads.
 SMALL = 1 << 14
@@ -32,30 +31,10 @@ def kernels():
     return importlib.import_module(".kernels", __package__)
 
 
-def run(tasks: list[Callable]) -> list:
-    """Run the callables (compiled kernels release the GIL), in threads when there are several."""
-    n = min(threads(), len(tasks))
-    if n <= 1:
-        return [t() for t in tasks]
-    with ThreadPoolExecutor(n, thread_name_prefix="gvae-compact") as pool:
-        return list(pool.map(lambda t: t(), tasks))
-
-
-def split(cost: np.ndarray, parts: int) -> list[tuple[int, int]]:
-    """Consecutive ranges of indices of about equal total `cost` (at most `parts`, none empty)."""
-    n = len(cost)
-    if n == 0:
-        return []
-    cum = np.cumsum(cost, dtype=np.float64)
-    bounds = np.searchsorted(cum, cum[-1] * np.arange(1, parts) / parts, side="right")
-    edges = np.unique(np.concatenate([[0], np.clip(bounds, 0, n), [n]]))
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-
-
 def chunks(n: int, work: float | None = None) -> list[tuple[int, int]]:
     """Ranges of n items of about equal size: one when small, else a few per thread."""
     work = n if work is None else work
-    parts = 1 if work < SMALL or threads() == 1 else 4 * threads()
+    parts = 1 if work < SMALL or count() == 1 else 4 * count()
     parts = min(parts, max(n, 1))
     step = -(-n // parts) if n else 0
     return [(a, min(a + step, n)) for a in range(0, n, step)] if n else []
@@ -76,7 +55,7 @@ def table_hits(table: np.ndarray, ids: np.ndarray, offsets: np.ndarray, tiles_x:
     counts = np.diff(offsets)
     pair_hits = np.zeros(len(ids), np.int32)
     want = np.zeros(0, np.bool_) if wanted is None else np.ascontiguousarray(wanted, np.bool_)
-    parts = 1 if len(ids) * tile_size ** 2 < SMALL or threads() == 1 else 8 * threads()
+    parts = 1 if len(ids) * tile_size ** 2 < SMALL or count() == 1 else 8 * count()
     run([lambda a=a, b=b: k.tile_hits(table, ids, offsets, a, b, tiles_x, tile_size, width, height, want, pair_hits)
          for a, b in split(counts + 1.0, parts)])
     k.add_pair_hits(pair_hits, ids, hits)
@@ -223,7 +202,7 @@ def nearest(points: np.ndarray, k: int) -> np.ndarray | None:
     ordered = np.ascontiguousarray(points[perm])  # (each cell's points together: read in order)
     run([lambda a=a, b=b: kern.cell_neighbours(ordered, perm, cell_ix, keys, starts, slots, origin, float(h), dims, k,
                                                a, b, nb, certain)
-         for a, b in split(np.diff(starts).astype(np.float64) ** 2 + 1.0, 1 if m < SMALL else 8 * threads())])
+         for a, b in split(np.diff(starts).astype(np.float64) ** 2 + 1.0, 1 if m < SMALL else 8 * count())])
     doubt = np.flatnonzero(~certain)
     if len(doubt):
         _, near = cKDTree(points).query(points[doubt], k + 1, workers=-1)
