@@ -34,7 +34,7 @@ BLENDER_DISPLAY := tests/blender/test_display.py
 test: install
 	@mkdir -p build
 	@$(PY) -m pytest -q --basetemp=build/pytest-files $(NO_RENDER) > build/test-files.log 2>&1 & b0=$$!; \
-	$(PY) -c "from gvae_core.rendering.compiled import main; main()"; \
+	$(PY) -c "from gvae_core.warmup import main; main()"; \
 	$(PY) -m pytest -q --basetemp=build/pytest-blender tests/blender --ignore=$(BLENDER_DISPLAY) \
 		> build/test-blender.log 2>&1 & b1=$$!; \
 	$(PY) -m pytest -q --basetemp=build/pytest-display $(BLENDER_DISPLAY) > build/test-display.log 2>&1 & b2=$$!; \

@@ -117,11 +117,10 @@ def _core(module_name: str, function: str, label: str):
 
 
 def prepare_kernels(progress) -> None:
-    """Load the renderer's compiled CPU kernels, or compile them the first time (tens of seconds),
-    saying so through progress(fraction, message); nothing without numba (the torch code runs)."""
-    compiled = importlib.import_module("gvae_core.rendering.compiled")
-    if compiled.numba_missing() is None:
-        compiled.compile_kernels(progress)
+    """Load the core's compiled CPU kernels (renderer, detail model, compaction), or compile them the
+    first time (a minute or two), saying so through progress(fraction, message); nothing without
+    numba (the torch and numpy code run)."""
+    importlib.import_module("gvae_core.warmup").compile_kernels(progress)
 
 
 def pip_install_command(target: str, requirements: tuple[str, ...] = REFINE_REQUIREMENTS,

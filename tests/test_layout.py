@@ -49,7 +49,7 @@ FLOORS: tuple[tuple[str, frozenset[str]], ...] = tuple((name, frozenset(rooms.sp
     ("vae", "vae"),
     ("hessian", "hessian"),
     # refine and compact, and what they build on (DESIGN.md step 5)
-    ("refinement", "refinement budget fidelity detail superres compaction controls"),
+    ("refinement", "refinement budget fidelity detail superres compaction controls warmup"),
     ("evaluation", "metrics experiment report"),
     # entry points: may import anything
     ("top", "cli benchmarks __main__ __init__"),

@@ -351,7 +351,8 @@ def compile_kernels(progress: Callable[[float, str], None] | None = None) -> flo
     proj, table = project(*fields, cam, degree)
     binning = bin_gaussians(table, proj.footprint, proj.visible, cam.width, cam.height, tile_size=4)
     acc = composite_forward(table, binning)
-    table.backward(composite_backward(table, binning, acc, torch.ones_like(acc)))
+    # (a scalar's backward: torch imports sympy, a second, for a backward given its gradient)
+    (table * composite_backward(table, binning, acc, torch.ones_like(acc))).sum().backward()
     moments = np.zeros((n, kernels().NMOM), np.float32)
     gauss_newton_moments(table, binning, acc, cam.width, cam.height, moments)
     blocks = np.zeros((n, 21), np.float64)  # a packed 6x6 block each

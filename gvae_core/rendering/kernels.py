@@ -104,6 +104,11 @@ def is_cached(disp) -> bool:
         return False
 
 
+def module_kernels(module) -> list:
+    """The dispatchers `kernel` made in `module` (those `is_cached` can answer for)."""
+    return [v for v in vars(module).values() if isinstance(getattr(v, "_cache", None), _Cache)]
+
+
 def inline(fn):
     """A helper compiled into the kernels that call it."""
     return numba.njit(inline="always", fastmath=FASTMATH, error_model="numpy")(fn)

@@ -1,0 +1,52 @@
+"""Every compiled CPU kernel made ready before the first real job: the renderer's and the Hessian's
+(`rendering.compiled.compile_kernels`), the detail model's and compaction's, by a tiny refine and a
+tiny compact, which call them with the argument types real jobs do. The first run on a machine
+compiles them (about a minute on one core) and says so; later runs load them from the on-disk cache
+(`rendering.kernels.kernel_cache_dir`). `make test` runs `main` first, so that no test process
+compiles its own; Blender's Refine and Compact call `compile_kernels` with their progress."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from .compaction import compact
+from .examples import example_cloud
+from .refinement import refine
+from .rendering import compiled
+
+
+def kernels_cached() -> bool:
+    """Whether every kernel of every room is in the on-disk cache (Numba installed)."""
+    if compiled.numba_missing() is not None:
+        return True
+    from .compaction import kernels as compaction_kernels  # noqa: PLC0415 - these import Numba
+    from .detail import kernels as detail_kernels  # noqa: PLC0415
+    from .rendering import kernels  # noqa: PLC0415
+
+    return all(kernels.is_cached(d) for room in (kernels, detail_kernels, compaction_kernels)
+               for d in kernels.module_kernels(room))
+
+
+def compile_kernels(progress: Callable[[float, str], None] | None = None) -> float:
+    """Make every compiled kernel ready in this process; progress(0, message) first when some must be
+    compiled. Returns the seconds it took (0 without Numba: the torch and numpy code run then)."""
+    if compiled.numba_missing() is not None:
+        return 0.0
+    t0 = time.perf_counter()
+    if progress is not None and not kernels_cached():
+        progress(0.0, "Compiling the CPU kernels (first run only, a minute or two)")
+    compiled.compile_kernels()
+    tiny = example_cloud(64, seed=0)
+    refine(tiny)
+    compact(tiny, keep=0.5, distill=0, check_memory=False)
+    return time.perf_counter() - t0
+
+
+def main() -> None:
+    """Make every kernel ready and say where they are kept (`make test` runs this first)."""
+    if compiled.numba_missing():
+        print(f"compiled kernels: {compiled.numba_missing()}; the torch and numpy code run")
+        return
+    seconds = compile_kernels(lambda _, message: print(message, flush=True))
+    print(f"compiled kernels ready in {seconds:.1f} s ({compiled.kernels().kernel_cache_dir()})")
