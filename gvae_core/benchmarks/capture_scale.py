@@ -47,6 +47,11 @@ _CHILD = ("import resource, runpy, sys\n"
           "    runpy.run_module('gvae_core', run_name='__main__')\n"
           "finally:\n"
           "    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * (1 if sys.platform == 'darwin' else 1024)\n"
+          "    try:  # this process's own high-water mark (ru_maxrss keeps the forking parent's)\n"
+          "        status = open('/proc/self/status').read().split('VmHWM:')[1].split()\n"
+          "        peak = int(status[0]) * 1024\n"
+          "    except (OSError, IndexError, ValueError):\n"
+          "        pass\n"
           "    print(f'peak-rss {peak}', file=sys.stderr)\n")
 
 

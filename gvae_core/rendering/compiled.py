@@ -276,7 +276,12 @@ def composite_backward(table: torch.Tensor, binning: Binning, acc: torch.Tensor,
 def gauss_newton_moments(table: torch.Tensor, binning: Binning, acc: torch.Tensor, width: int, height: int,
                          out: np.ndarray) -> None:
     """Add each Gaussian's moments of its pixel derivatives (`kernels.gauss_newton_moments`) into
-    out (N, 34) float32 (`hessian._gauss_newton_sweep` by the kernels)."""
+    out (N, 34) float32 (`hessian._gauss_newton_sweep` by the kernels).
+
+    The tiles are swept in chunks (one moment buffer each) in the threads; each chunk's moments are
+    added into `out` one stripe of Gaussians at a time, and every stripe takes the chunks in their
+    order: threads add into different stripes at once, and each Gaussian's sum is made in the same
+    order whatever the threads (the same figures as one thread, run after run)."""
     k = kernels()
     tab, ids, offsets = _arrays(table, binning)
     acc_np = np.ascontiguousarray(acc.numpy(), np.float32)
@@ -284,17 +289,33 @@ def gauss_newton_moments(table: torch.Tensor, binning: Binning, acc: torch.Tenso
     # ranges of tiles of at most about _SWEEP_CHUNK pairs (one buffer each), in the threads
     chunk = max(_SWEEP_CHUNK, int(counts.max(initial=0)))
     ranges = split(counts + 1.0, max(1, -(-int(counts.sum()) // chunk)))
-    lock = threading.Lock()
+    stripes = split(np.ones(len(out)), count()) or [(0, 0)]
+    turn = [0] * len(stripes)  # the chunk each stripe takes its adds from next
+    failed = []  # a chunk that raised: the later ones stop waiting for it
+    changed = threading.Condition()
 
-    def sweep(a: int, b: int) -> None:
-        base, stop = int(offsets[a]), int(offsets[b])
-        moments = np.zeros((stop - base, k.NMOM), np.float32)
-        k.gauss_newton_moments(tab, ids, offsets, a, b, binning.tiles_x, binning.tile_size, width, height, acc_np,
-                               moments, base)
-        with lock:
-            k.add_moments(moments, ids, base, out)
+    def sweep(c: int, a: int, b: int) -> None:
+        try:
+            base, stop = int(offsets[a]), int(offsets[b])
+            moments = np.zeros((stop - base, k.NMOM), np.float32)
+            k.gauss_newton_moments(tab, ids, offsets, a, b, binning.tiles_x, binning.tile_size, width, height,
+                                   acc_np, moments, base)
+            for s in [(c + j) % len(stripes) for j in range(len(stripes))]:  # threads start on different stripes
+                with changed:
+                    changed.wait_for(lambda s=s: turn[s] == c or failed)
+                if failed:
+                    return
+                k.add_moments(moments, ids, base, stripes[s][0], stripes[s][1], out)  # stripe s is this chunk's
+                with changed:
+                    turn[s] += 1
+                    changed.notify_all()
+        except BaseException:
+            with changed:
+                failed.append(c)
+                changed.notify_all()
+            raise
 
-    run([lambda a=a, b=b: sweep(a, b) for a, b in ranges])
+    run([lambda c=c, a=a, b=b: sweep(c, a, b) for c, (a, b) in enumerate(ranges)])
 
 
 def gaussian_blocks(inp: Inputs, camera: Camera, degree: int, scale: float, table: torch.Tensor,

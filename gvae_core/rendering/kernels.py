@@ -992,13 +992,15 @@ def gauss_newton_moments(table, ids, offsets, t_lo, t_hi, tiles_x, ts, width, he
 
 
 @kernel
-def add_moments(moments, ids, base, out):
-    """out[ids[base + r]] += moments[r] for the rows r with some weight (w² > 0)."""
+def add_moments(moments, ids, base, g_lo, g_hi, out):
+    """out[ids[base + r]] += moments[r] for the rows r with some weight (w² > 0) whose Gaussian is in
+    g_lo..g_hi-1 (threads add into rows apart)."""
     for r in range(moments.shape[0]):
         if moments[r, NMOM - 1] > _ZERO:
             g = ids[base + r]
-            for c in range(NMOM):
-                out[g, c] += moments[r, c]
+            if g_lo <= g < g_hi:
+                for c in range(NMOM):
+                    out[g, c] += moments[r, c]
 
 
 # ----------------------------------------------------------------------------- the Hessian's blocks
