@@ -1,6 +1,6 @@
 """Every compiled CPU kernel made ready before the first real job: the renderer's and the Hessian's
-(`rendering.compiled.compile_kernels`), the detail model's and compaction's, by a tiny refine and a
-tiny compact, which call them with the argument types real jobs do. The first run on a machine
+(`rendering.compiled.compile_kernels`), the detail model's (its inputs and its network on a tiny
+cloud) and compaction's (a tiny compact), called with the argument types real jobs give them. The first run on a machine
 compiles them (about a minute on one core) and says so; later runs load them from the on-disk cache
 (`rendering.kernels.kernel_cache_dir`). `make test` runs `main` first, so that no test process
 compiles its own; Blender's Refine and Compact call `compile_kernels` with their progress."""
@@ -10,9 +10,11 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
+from .antialias import with_dilation_3d
+from .capture import default_views
 from .compaction import compact
+from .detail import detail_inputs, load_detail
 from .examples import example_cloud
-from .refinement import refine
 from .rendering import compiled
 
 
@@ -38,7 +40,9 @@ def compile_kernels(progress: Callable[[float, str], None] | None = None) -> flo
         progress(0.0, "Compiling the CPU kernels (first run only, a minute or two)")
     compiled.compile_kernels()
     tiny = example_cloud(64, seed=0)
-    refine(tiny)
+    model = load_detail(None)
+    drawn = with_dilation_3d(tiny, default_views(tiny, 2, 64))
+    model.changes(detail_inputs(drawn, None, neighbours=model.config.inputs_neighbours))
     compact(tiny, keep=0.5, distill=0, check_memory=False)
     return time.perf_counter() - t0
 
