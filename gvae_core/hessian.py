@@ -40,6 +40,7 @@ from .camera import Camera
 from .capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS, default_views, scoring_views
 from .cloud import GaussianCloud
 from .conventions import LOG_SCALE_RANGE, SH_C1 as SH_C1_, SH_C2 as SH_C2_, SH_C3 as SH_C3_
+from .parallel import in_threads
 from .rendering import RenderSettings, compiled, render
 from .rendering import projection as pj
 from .rendering.projection import Projected, project
@@ -563,7 +564,12 @@ def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, view
     del work, f
     if fast:  # rows back in the cloud's order; the packed form is their transpose (no copy)
         result = np.empty_like(rows_out)
-        result[order.numpy()] = rows_out
+        rows = order.numpy()
+
+        def put(a: int, b: int) -> None:  # the rows go to distinct places: ranges in threads
+            result[rows[a:b]] = rows_out[a:b]
+
+        in_threads(n, put)
         return torch.from_numpy(result).T
     result = torch.empty_like(out)
     result[:, order] = out
@@ -573,19 +579,26 @@ def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, view
 def _morton_order(means: np.ndarray, bits: int = 21) -> np.ndarray:
     """Rows sorted along a Z-order curve of their positions (`bits` <= 21 per axis, robust box)."""
     p = np.asarray(means, np.float64)
-    p = np.where(np.isfinite(p), p, 0.0)
     if len(p) == 0:
         return np.zeros(0, np.int64)
-    lo, hi = np.percentile(p, [0.5, 99.5], axis=0)
-    q = np.clip((p - lo) / np.maximum(hi - lo, 1e-30), 0.0, 1.0)
-    q = (q * ((1 << bits) - 1)).astype(np.uint64)
-    code = np.zeros(len(p), np.uint64)
-    for axis in range(3):  # spread the bits two apart (the usual magic numbers), then interleave
-        v = q[:, axis]
-        for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
-                            (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
-            v = (v | (v << np.uint64(shift))) & np.uint64(mask)
-        code |= v << np.uint64(axis)
+    finite = np.isfinite(p).all()
+    lo, hi = np.percentile(p if finite else np.where(np.isfinite(p), p, 0.0), [0.5, 99.5], axis=0)
+    code = np.empty(len(p), np.uint64)
+
+    def codes(a: int, b: int) -> None:  # elementwise per row: ranges in threads
+        block = p[a:b] if finite else np.where(np.isfinite(p[a:b]), p[a:b], 0.0)
+        q = np.clip((block - lo) / np.maximum(hi - lo, 1e-30), 0.0, 1.0)
+        q = (q * ((1 << bits) - 1)).astype(np.uint64)
+        c = np.zeros(b - a, np.uint64)
+        for axis in range(3):  # spread the bits two apart (the usual magic numbers), then interleave
+            v = q[:, axis]
+            for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                                (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+                v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+            c |= v << np.uint64(axis)
+        code[a:b] = c
+
+    in_threads(len(p), codes)
     return np.argsort(code, kind="stable")
 
 
