@@ -138,23 +138,31 @@ def gaussian_moments(rows, means, log_scales, quats, opacity, center, floor, ls_
             mu[i, c] = np.float64(means[r, c]) - center[c]
 
 
+@inline
+def _merged(mass, mu, sigma, i, j):
+    """The mass, the weights wa, wb (and wa wb) and the covariance (xx, xy, xz, yy, yz, zz) of
+    Gaussians i and j merged into one (moment matching)."""
+    ma, mb = mass[i], mass[j]
+    total = max(ma + mb, 1e-300)
+    wa = ma / total
+    wb = 1.0 - wa
+    ww = wa * wb
+    dx, dy, dz = mu[i, 0] - mu[j, 0], mu[i, 1] - mu[j, 1], mu[i, 2] - mu[j, 2]
+    xx = wa * sigma[i, 0] + wb * sigma[j, 0] + ww * (dx * dx)
+    xy = wa * sigma[i, 1] + wb * sigma[j, 1] + ww * (dx * dy)
+    xz = wa * sigma[i, 2] + wb * sigma[j, 2] + ww * (dx * dz)
+    yy = wa * sigma[i, 3] + wb * sigma[j, 3] + ww * (dy * dy)
+    yz = wa * sigma[i, 4] + wb * sigma[j, 4] + ww * (dy * dz)
+    zz = wa * sigma[i, 5] + wb * sigma[j, 5] + ww * (dz * dz)
+    return total, wa, wb, ww, xx, xy, xz, yy, yz, zz
+
+
 @kernel
 def pair_costs(mass, mu, sigma, log_det, colour, weight, a, b, colour_weight, lo, hi, out):
     """out[e] for e in lo..hi-1: the cost of merging a[e] and b[e] (`moments.pair_cost`)."""
     for e in range(lo, hi):
         i, j = a[e], b[e]
-        ma, mb = mass[i], mass[j]
-        total = max(ma + mb, 1e-300)
-        wa = ma / total
-        wb = 1.0 - wa
-        ww = wa * wb
-        dx, dy, dz = mu[i, 0] - mu[j, 0], mu[i, 1] - mu[j, 1], mu[i, 2] - mu[j, 2]
-        xx = wa * sigma[i, 0] + wb * sigma[j, 0] + ww * (dx * dx)
-        xy = wa * sigma[i, 1] + wb * sigma[j, 1] + ww * (dx * dy)
-        xz = wa * sigma[i, 2] + wb * sigma[j, 2] + ww * (dx * dz)
-        yy = wa * sigma[i, 3] + wb * sigma[j, 3] + ww * (dy * dy)
-        yz = wa * sigma[i, 4] + wb * sigma[j, 4] + ww * (dy * dz)
-        zz = wa * sigma[i, 5] + wb * sigma[j, 5] + ww * (dz * dz)
+        total, wa, wb, ww, xx, xy, xz, yy, yz, zz = _merged(mass, mu, sigma, i, j)
         d = xx * (yy * zz - yz * yz) - xy * (xy * zz - yz * xz) + xz * (xy * yz - yy * xz)
         shape = 0.5 * (math.log(max(d, 1e-300)) - wa * log_det[i] - wb * log_det[j])
         c0, c1, c2 = colour[i, 0] - colour[j, 0], colour[i, 1] - colour[j, 1], colour[i, 2] - colour[j, 2]
@@ -167,18 +175,7 @@ def merge_pairs(mass, mu, sigma, log_det, colour, weight, a, b):
     """Merge each b[e] into a[e] in place (`moments.merge_pairs`; the pairs disjoint)."""
     for e in range(a.shape[0]):
         i, j = a[e], b[e]
-        ma, mb = mass[i], mass[j]
-        total = max(ma + mb, 1e-300)
-        wa = ma / total
-        wb = 1.0 - wa
-        ww = wa * wb
-        dx, dy, dz = mu[i, 0] - mu[j, 0], mu[i, 1] - mu[j, 1], mu[i, 2] - mu[j, 2]
-        xx = wa * sigma[i, 0] + wb * sigma[j, 0] + ww * (dx * dx)
-        xy = wa * sigma[i, 1] + wb * sigma[j, 1] + ww * (dx * dy)
-        xz = wa * sigma[i, 2] + wb * sigma[j, 2] + ww * (dx * dz)
-        yy = wa * sigma[i, 3] + wb * sigma[j, 3] + ww * (dy * dy)
-        yz = wa * sigma[i, 4] + wb * sigma[j, 4] + ww * (dy * dz)
-        zz = wa * sigma[i, 5] + wb * sigma[j, 5] + ww * (dz * dz)
+        total, wa, wb, ww, xx, xy, xz, yy, yz, zz = _merged(mass, mu, sigma, i, j)
         sigma[i, 0], sigma[i, 1], sigma[i, 2], sigma[i, 3], sigma[i, 4], sigma[i, 5] = xx, xy, xz, yy, yz, zz
         d = xx * (yy * zz - yz * yz) - xy * (xy * zz - yz * xz) + xz * (xy * yz - yy * xz)
         log_det[i] = math.log(max(d, 1e-300))

@@ -15,12 +15,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from llvmlite import ir
-from numba.core import types
-from numba.extending import intrinsic
 
 from ..conventions import SH_C0
-from ..rendering.kernels import inline, kernel
+from ..rendering.kernels import EXP_LO, exp_f32, inline, kernel
 
 __all__ = ["detail_rows", "model_rows", "LOG_SCALE", "OPACITY", "CHANGE"]
 
@@ -142,22 +139,7 @@ def detail_rows(s0, s1, s2, o0, o1, o2, e0, e1, e2, nu, sh_dc, octaves, has_hist
 f32 = np.float32
 
 
-@intrinsic
-def _bits_to_f32(typingctx, x):
-    """The float32 whose bit pattern is the int32 `x`."""
-    sig = types.float32(types.int32)
-
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], ir.FloatType())
-
-    return sig, codegen
-
-
-_LOG2E = f32(1.4426950408889634)
-_LN2_HI, _LN2_LO = f32(0.693359375), f32(-2.12194440e-4)
-_E5, _E4, _E3 = f32(1.9875691500e-4), f32(1.3981999507e-3), f32(8.3334519073e-3)
-_E2, _E1, _E0 = f32(4.1665795894e-2), f32(1.6666665459e-1), f32(5.0000001201e-1)
-_ONE, _HALF, _EXP_LO = f32(1.0), f32(0.5), f32(-87.0)
+_ONE, _HALF = f32(1.0), f32(0.5)
 # erf as torch's vectorised CPU GELU computes it (Abramowitz & Stegun 7.1.26, |error| < 1.5e-7)
 _P = f32(0.3275911)
 _A1, _A2, _A3, _A4, _A5 = f32(0.254829592), f32(-0.284496736), f32(1.421413741), f32(-1.453152027), f32(1.061405429)
@@ -166,12 +148,8 @@ _SQRT1_2 = f32(0.7071067811865476)
 
 @inline
 def _exp_neg(x):
-    """exp of a float32 <= 0 (below -87: exp(-87)) to about 1 ulp (Cephes' expf); branch-free."""
-    x = max(x, _EXP_LO)
-    n = np.floor(x * _LOG2E + _HALF)
-    r = x - n * _LN2_HI - n * _LN2_LO
-    p = (((((_E5 * r + _E4) * r + _E3) * r + _E2) * r + _E1) * r + _E0) * (r * r) + r + _ONE
-    return p * _bits_to_f32((np.int32(n) + np.int32(127)) << np.int32(23))
+    """exp of a float32 <= 0 (below -87: exp(-87)) to about 1 ulp (`rendering.kernels.exp_f32`)."""
+    return exp_f32(max(x, EXP_LO))
 
 
 @inline

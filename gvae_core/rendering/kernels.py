@@ -132,14 +132,15 @@ _LN2_HI = f32(0.693359375)
 _LN2_LO = f32(-2.12194440e-4)
 _E5, _E4, _E3 = f32(1.9875691500e-4), f32(1.3981999507e-3), f32(8.3334519073e-3)
 _E2, _E1, _E0 = f32(4.1665795894e-2), f32(1.6666665459e-1), f32(5.0000001201e-1)
-_EXP_LO = f32(-87.0)
+EXP_LO = f32(-87.0)
 _ONE, _ZERO, _HALF = f32(1.0), f32(0.0), f32(0.5)
 
 
 @inline
-def _exp(x):
-    """exp of a float32 in [-87, 0] (callers clamp) to about 1 ulp (Cephes' expf: 2^n times a
-    degree-6 polynomial on [-ln2/2, ln2/2]); branch-free, so loops over it vectorise."""
+def exp_f32(x):
+    """exp of a float32 in [-87, 0] (callers clamp at EXP_LO) to about 1 ulp (Cephes' expf: 2^n times
+    a degree-6 polynomial on [-ln2/2, ln2/2]); branch-free, so loops over it vectorise. The detail
+    model's network uses it too."""
     n = np.floor(x * _LOG2E + _HALF)
     r = x - n * _LN2_HI - n * _LN2_LO
     z = r * r
@@ -719,9 +720,9 @@ def _alpha(px, py, mx, my, ha, nb, hc, lo):
     dx = px - mx
     dy = py - my
     e = lo + dx * (ha * dx + nb * dy) + hc * dy * dy
-    e = e if e > _EXP_LO else _EXP_LO
+    e = e if e > EXP_LO else EXP_LO
     e = e if e < _ZERO else _ZERO
-    alpha = min(_exp(e), ALPHA_MAX)
+    alpha = min(exp_f32(e), ALPHA_MAX)
     return (alpha if alpha >= ALPHA_MIN else _ZERO), dx, dy
 
 
