@@ -218,11 +218,18 @@ def print_first_call(rows) -> None:
         print(f"| {state} | {r['process']:.1f} | {r['imports']:.2f} | **{r['ready']:.1f}** | {r['load']} |")
 
 
-def run(args) -> None:
+def ready() -> bool:
+    """Whether the kernels can run here (else says why, skipped); OpenMP's threads told to sleep
+    when idle (OMP_WAIT_POLICY=PASSIVE unless set: spinning threads steal the other path's cores)."""
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     missing = compiled.numba_missing()
     if missing:
         print(f"skipped: {missing}")
+    return missing is None
+
+
+def run(args) -> None:
+    if not ready():
         return
     quick = getattr(args, "quick", False)
     print(f"load average (1, 5, 15 min) at start: {_load()}; OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")

@@ -97,6 +97,14 @@ def add_pair_hits(pair_hits, ids, hits):
 
 # ------------------------------------------------------------------------------ moments
 
+@inline
+def _gram(a0, a1, a2, b0, b1, b2, c0, c1, c2, floor):
+    """The covariance M M^T + floor I of M = rows (a, b, c) (a rotation times the scales), packed
+    (xx, xy, xz, yy, yz, zz)."""
+    return (a0 * a0 + a1 * a1 + a2 * a2 + floor, a0 * b0 + a1 * b1 + a2 * b2, a0 * c0 + a1 * c1 + a2 * c2,
+            b0 * b0 + b1 * b1 + b2 * b2 + floor, b0 * c0 + b1 * c1 + b2 * c2, c0 * c0 + c1 * c1 + c2 * c2 + floor)
+
+
 @kernel
 def gaussian_moments(rows, means, log_scales, quats, opacity, center, floor, ls_lo, ls_hi, lo, hi,
                      mu, sigma, mass, log_det):
@@ -123,12 +131,7 @@ def gaussian_moments(rows, means, log_scales, quats, opacity, center, floor, ls_
         a0, a1, a2 = r00 * s0, r01 * s1, r02 * s2
         b0, b1, b2 = r10 * s0, r11 * s1, r12 * s2
         c0, c1, c2 = r20 * s0, r21 * s1, r22 * s2
-        xx = a0 * a0 + a1 * a1 + a2 * a2 + floor
-        xy = a0 * b0 + a1 * b1 + a2 * b2
-        xz = a0 * c0 + a1 * c1 + a2 * c2
-        yy = b0 * b0 + b1 * b1 + b2 * b2 + floor
-        yz = b0 * c0 + b1 * c1 + b2 * c2
-        zz = c0 * c0 + c1 * c1 + c2 * c2 + floor
+        xx, xy, xz, yy, yz, zz = _gram(a0, a1, a2, b0, b1, b2, c0, c1, c2, floor)
         sigma[i, 0], sigma[i, 1], sigma[i, 2], sigma[i, 3], sigma[i, 4], sigma[i, 5] = xx, xy, xz, yy, yz, zz
         minors = xx * yy - xy * xy + xx * zz - xz * xz + yy * zz - yz * yz
         mass[i] = opacity[r] * math.sqrt(max(minors, 0.0))
@@ -363,12 +366,7 @@ def shapes(vals, vecs, floor, mass, together, ls_lo, ls_hi, lo, hi, log_scale, q
         b00, b01, b02 = a00 * e0, a01 * e1, a02 * e2
         b10, b11, b12 = a10 * e0, a11 * e1, a12 * e2
         b20, b21, b22 = a20 * e0, a21 * e1, a22 * e2
-        xx = b00 * b00 + b01 * b01 + b02 * b02 + floor
-        xy = b00 * b10 + b01 * b11 + b02 * b12
-        xz = b00 * b20 + b01 * b21 + b02 * b22
-        yy = b10 * b10 + b11 * b11 + b12 * b12 + floor
-        yz = b10 * b20 + b11 * b21 + b12 * b22
-        zz = b20 * b20 + b21 * b21 + b22 * b22 + floor
+        xx, xy, xz, yy, yz, zz = _gram(b00, b01, b02, b10, b11, b12, b20, b21, b22, floor)
         minors = xx * yy - xy * xy + xx * zz - xz * xz + yy * zz - yz * yz
         o = mass[j] / max(math.sqrt(max(minors, 0.0)), 1e-300)
         o = min(max(min(o, together[j]), 1e-6), 1.0 - 1e-6)
