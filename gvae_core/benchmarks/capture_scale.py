@@ -136,6 +136,7 @@ def run(args) -> None:
         for name, cmd in (("refine", ["refine", str(src), str(Path(tmp) / "refined.ply")]),
                           ("compact", ["compact", str(src), str(Path(tmp) / "compact.ply"), "--keep", "0.5"])):
             c = command_row(cmd, repeats=1 if quick else 3)
+            c["said"] = c.get("said", "").replace(f"{tmp}/", "")  # no machine paths in the table
             label = f"`gvae {' '.join(cmd[:1] + cmd[3:])}` {n:,}, whole command"
             if "failed" in c:
                 print(f"| {label} | <= {GOALS[name]:.0f} s | failed: {c['failed']} | - | - | {_load()} |", flush=True)
