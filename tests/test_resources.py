@@ -38,5 +38,3 @@ def test_the_scope_does_nothing_without_glibc(monkeypatch):
     with resources.reuse_freed_memory() as active:
         assert active is False
         _touch_and_free(8)
-
-
