@@ -581,13 +581,13 @@ def _morton_order(means: np.ndarray, bits: int = 21) -> np.ndarray:
     p = np.asarray(means, np.float64)
     if len(p) == 0:
         return np.zeros(0, np.int64)
-    finite = np.isfinite(p).all()
-    lo, hi = np.percentile(p if finite else np.where(np.isfinite(p), p, 0.0), [0.5, 99.5], axis=0)
+    if not np.isfinite(p).all():
+        p = np.where(np.isfinite(p), p, 0.0)
+    lo, hi = np.percentile(p, [0.5, 99.5], axis=0)
     code = np.empty(len(p), np.uint64)
 
     def codes(a: int, b: int) -> None:  # elementwise per row: ranges in threads
-        block = p[a:b] if finite else np.where(np.isfinite(p[a:b]), p[a:b], 0.0)
-        q = np.clip((block - lo) / np.maximum(hi - lo, 1e-30), 0.0, 1.0)
+        q = np.clip((p[a:b] - lo) / np.maximum(hi - lo, 1e-30), 0.0, 1.0)
         q = (q * ((1 << bits) - 1)).astype(np.uint64)
         c = np.zeros(b - a, np.uint64)
         for axis in range(3):  # spread the bits two apart (the usual magic numbers), then interleave

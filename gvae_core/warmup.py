@@ -1,8 +1,8 @@
 """Every compiled CPU kernel made ready before the first real job: the renderer's and the Hessian's
 (`rendering.compiled.compile_kernels`), the detail model's (its inputs and its network on a tiny
-cloud) and compaction's (a tiny compact), called with the argument types real jobs give them. The first run on a machine
-compiles them (about a minute on one core) and says so; later runs load them from the on-disk cache
-(`rendering.kernels.kernel_cache_dir`). `make test` runs `main` first, so that no test process
+cloud) and compaction's (a tiny compact), called with the argument types real jobs give them. The
+first run on a machine compiles them (about a minute on one core) and says so; later runs load them
+from the on-disk cache (`rendering.kernels.kernel_cache_dir`). `make test` runs `main` first, so that no test process
 compiles its own; Blender's Refine and Compact call `compile_kernels` with their progress."""
 
 from __future__ import annotations
