@@ -14,8 +14,7 @@ from gvae_core.conventions import rgb_to_dc
 from gvae_core.examples import example_cloud
 from gvae_core.hessian import (_TRIU, hessian_blocks, hessian_blocks_reference, hessian_scores, scores_from_blocks,
                                scores_from_packed)
-from gvae_core.rendering import compiled
-from gvae_core.rendering import RenderSettings
+from gvae_core.rendering import RenderSettings, compiled, render
 
 LOG_SCALE = math.log(0.15)
 
@@ -109,6 +108,26 @@ def test_scores_are_deterministic_and_follow_the_rows():
     perm = np.random.default_rng(0).permutation(len(cloud))
     b = hessian_scores(cloud.select(perm), views=2, resolution=48)
     torch.testing.assert_close(b, a[perm], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.skipif(compiled.numba_missing() is not None, reason="the compiled kernels need Numba")
+def test_compiled_scores_are_the_same_whatever_the_threads():
+    """The sweep's chunks add their moments stripe by stripe, each stripe taking the chunks in order:
+    every Gaussian's sum is made in one order, so one thread and two give the same scores to the bit
+    (on a cloud whose pairs fill several chunks)."""
+    cloud = example_cloud(30_000, seed=2)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = hessian_scores(cloud, views=2, resolution=192)
+        torch.set_num_threads(2)
+        two = hessian_scores(cloud, views=2, resolution=192)
+    finally:
+        torch.set_num_threads(threads)
+    view = default_views(cloud, 2, 192)[0]
+    pairs = render(cloud, view, settings=RenderSettings(tile_size=4)).num_pairs
+    assert pairs > 2 * (1 << 15)  # several of the sweep's chunks (`compiled`: about 32k pairs each)
+    assert torch.equal(one, two) and (one > 0).sum() > 1000
 
 
 def test_logdet_score_matches_the_eigenvalue_formula():
