@@ -52,6 +52,13 @@ def split(cost: np.ndarray, parts: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
+def chunks(n: int, work: float, small: float) -> list[tuple[int, int]]:
+    """Ranges of n items of about equal size doing `work` in all: one range when the work is below
+    `small` (a thread costs more than it saves) or there is one thread, else four per thread."""
+    parts = 1 if work < small or count() == 1 else 4 * count()
+    return split(np.ones(n), min(parts, max(n, 1)))
+
+
 def in_threads(n: int, fn: Callable[[int, int], object], *, threads: int | None = None,
                chunk: int = 1 << 16) -> list:
     """[fn(a, b) for consecutive ranges a..b covering 0..n], the ranges run in `threads` threads

@@ -14,7 +14,7 @@ import importlib
 import numpy as np
 
 from ..conventions import LOG_SCALE_RANGE
-from ..parallel import count, run, split
+from ..parallel import chunks, count, run, split
 from ..rendering.compiled import numba_missing
 
 #: Items (tile pairs, Gaussians, edges, groups) below which work is not split into threads.
@@ -29,15 +29,6 @@ def available() -> bool:
 def kernels():
     """The `kernels` module (imports Numba on first use)."""
     return importlib.import_module(".kernels", __package__)
-
-
-def chunks(n: int, work: float | None = None) -> list[tuple[int, int]]:
-    """Ranges of n items of about equal size: one when small, else a few per thread."""
-    work = n if work is None else work
-    parts = 1 if work < SMALL or count() == 1 else 4 * count()
-    parts = min(parts, max(n, 1))
-    step = -(-n // parts) if n else 0
-    return [(a, min(a + step, n)) for a in range(0, n, step)] if n else []
 
 
 # ------------------------------------------------------------------------------ pixel hits
@@ -77,7 +68,8 @@ def gaussian_moments(rows: np.ndarray, means, log_scales, quats, opacity: np.nda
     args = (np.ascontiguousarray(means), np.ascontiguousarray(log_scales), np.ascontiguousarray(quats),
             np.ascontiguousarray(opacity, np.float64), np.ascontiguousarray(center, np.float64), float(floor),
             float(LOG_SCALE_RANGE[0]), float(LOG_SCALE_RANGE[1]))
-    run([lambda a=a, b=b: k.gaussian_moments(rows, *args, a, b, mu, sigma, mass, log_det) for a, b in chunks(m)])
+    run([lambda a=a, b=b: k.gaussian_moments(rows, *args, a, b, mu, sigma, mass, log_det)
+         for a, b in chunks(m, m, SMALL)])
     return mu, sigma, mass, log_det
 
 
@@ -88,7 +80,7 @@ def pair_costs(m, a: np.ndarray, b: np.ndarray, colour_weight: float) -> np.ndar
     out = np.empty(len(a))
     run([lambda lo=lo, hi=hi: k.pair_costs(m.mass, m.mu, m.sigma, m.log_det, m.colour, m.weight, a, b,
                                            float(colour_weight), lo, hi, out)
-         for lo, hi in chunks(len(a))])
+         for lo, hi in chunks(len(a), len(a), SMALL)])
     return out
 
 
@@ -123,7 +115,7 @@ def group_sums(starts: np.ndarray, ends: np.ndarray, rows: np.ndarray, mass, mu,
             np.ascontiguousarray(rows, np.int64), mass, mu, sigma,
             np.ascontiguousarray(opacity, np.float64), np.ascontiguousarray(sh_dc, np.float32),
             np.ascontiguousarray(sh_rest, np.float32))
-    run([lambda a=a, b=b: k.group_sums(*args, a, b, w, heaviest, *out) for a, b in chunks(g)])
+    run([lambda a=a, b=b: k.group_sums(*args, a, b, w, heaviest, *out) for a, b in chunks(g, g, SMALL)])
     return (w, heaviest, *out)
 
 
@@ -153,7 +145,7 @@ def shapes(sigma: np.ndarray, floor: float, mass: np.ndarray, together: np.ndarr
                  float(LOG_SCALE_RANGE[0]), float(LOG_SCALE_RANGE[1]), 0, hi - lo, log_scale[lo:hi], quats[lo:hi],
                  logits[lo:hi])
 
-    run([lambda a=a, b=b: part(a, b) for a, b in chunks(g)])
+    run([lambda a=a, b=b: part(a, b) for a, b in chunks(g, g, SMALL)])
     return log_scale, quats, logits
 
 

@@ -28,7 +28,7 @@ import torch
 
 from .. import quaternions
 from ..camera import Camera
-from ..parallel import count, run, split
+from ..parallel import chunks, count, run, split
 from .projection import Projected, fov_limits
 from .tiles import Binning
 
@@ -75,12 +75,6 @@ def use_compiled(choice: str, device, dtype) -> bool:
 
 
 # ------------------------------------------------------------------------------ threads
-
-def _chunks(n: int, work: float) -> list[tuple[int, int]]:
-    """Ranges of n items doing `work` pixel-pair evaluations in all: one when small, else some per thread."""
-    parts = 1 if work < _SMALL or count() == 1 else 4 * count()
-    return split(np.ones(n), min(parts, max(n, 1)))
-
 
 # ------------------------------------------------------------------------------ projection
 
@@ -138,7 +132,7 @@ def project_arrays(inp: Inputs, camera: Camera, degree: int):
     visible = np.empty(n, np.bool_)
     run([lambda a=a, b=b: k.project_forward(*inp.fields(), cam, int(degree), inp.flags, camera.width, camera.height,
                                              a, b, table, foot, radii, visible)
-          for a, b in _chunks(n, 64.0 * n)])
+          for a, b in chunks(n, 64.0 * n, _SMALL)])
     return table, foot, radii, visible
 
 
@@ -164,7 +158,7 @@ class ProjectFunction(torch.autograd.Function):
                np.empty(n, np.float32), np.empty((n, 3), np.float32), np.empty(inp.sh_rest.shape, np.float32)]
         run([lambda a=a, b=b: k.project_backward(*inp.fields(), cam, int(ctx.degree), inp.flags, a, b, ctx.table, g,
                                                   *out)
-              for a, b in _chunks(n, 64.0 * n)])
+              for a, b in chunks(n, 64.0 * n, _SMALL)])
         grads = [torch.from_numpy(o).reshape(shape).to(dtype) for o, (shape, dtype) in zip(out, ctx.like)]
         return (*grads, None, None, None, None)
 
@@ -207,7 +201,7 @@ def bin_gaussians(table: torch.Tensor, footprint: torch.Tensor, visible: torch.T
     order = np.flatnonzero(visible.numpy()).astype(np.int64)
     keys = np.ascontiguousarray(tab[order, k.DEPTH]).view(np.uint32)  # positive depths: their bits sort alike
     k.radix_order(keys, order)
-    parts = _chunks(len(order), 16.0 * len(order))
+    parts = chunks(len(order), 16.0 * len(order), _SMALL)
     geo = np.empty((len(order), k.GEO), np.float64)
     run([lambda a=a, b=b: k.gather_footprints(tab, foot, order, a, b, geo) for a, b in parts])
     hist = np.zeros((max(len(parts), 1), ntiles), np.int64)
@@ -329,7 +323,7 @@ def gaussian_blocks(inp: Inputs, camera: Camera, degree: int, scale: float, tabl
     tab = np.ascontiguousarray(table.detach().numpy(), np.float32)
     run([lambda a=a, b=b: k.gaussian_blocks(inp.means, inp.scales, inp.quats, inp.sh_rest, inp.sizes, cam,
                                              int(degree), inp.flags, float(scale), tab, moments, a, b, out)
-          for a, b in _chunks(n, 64.0 * n)])
+          for a, b in chunks(n, 64.0 * n, _SMALL)])
 
 
 def logdet_scores(rows: np.ndarray, lam: float) -> np.ndarray:
@@ -339,7 +333,7 @@ def logdet_scores(rows: np.ndarray, lam: float) -> np.ndarray:
     n = rows.shape[0]
     out = np.empty(n, np.float32)
     rows = np.ascontiguousarray(rows, np.float64)
-    run([lambda a=a, b=b: k.logdet_scores(rows, float(lam), a, b, out) for a, b in _chunks(n, 256.0 * n)])
+    run([lambda a=a, b=b: k.logdet_scores(rows, float(lam), a, b, out) for a, b in chunks(n, 256.0 * n, _SMALL)])
     return out
 
 
