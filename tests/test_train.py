@@ -102,7 +102,7 @@ def synthetic_views(split, height):
 
 TINY = dict(resolutions=(12, 18, 24), iterations=(150, 100, 100), init_count=300, sh_degree=1, max_gaussians=500,
             min_densify_every=20, min_opacity_reset_every=60, train_eval_views=4,
-            background=(0.0, 0.0, 0.0), init="auto")
+            background=(0.0, 0.0, 0.0), init="auto", validation_views=0, converge=False)
 
 
 @pytest.fixture(scope="module")

@@ -46,3 +46,132 @@ def run(args) -> None:
               f"{e['peak_rss_mb']:>11.0f} | {e['peak_rss_mb'] - e['rss_start_mb']:>7.0f} |")
     print(f"total {total:.1f} s including evaluation and writing (load average at end "
           f"{os.getloadavg()[0]:.2f})")
+
+
+# ----------------------------------------------------------------------------- one step, part by part
+
+#: The parts of a training step `profile_step` times, in the order a step runs them.
+STEP_PARTS = ("project", "bin", "composite", "loss", "backward (loss, image)", "composite backward",
+              "project backward", "optimizer", "statistics", "densify")
+
+
+def profile_step(cloud, views, *, steps: int = 20, sh_degree: int = 3, densify_every: int = 25,
+                 config=None, seed: int = 0) -> dict[str, float]:
+    """CPU seconds of this thread per training step, part by part (`STEP_PARTS`), over `steps`
+    steps of the trainer's recipe on `cloud` and the training `views` (one view a step, in a seeded
+    order): the renderer's stages forward and backward (timed inside the compiled path: run it with
+    one torch thread, so that the thread's CPU time is the step's), the loss, the optimiser, the
+    densification statistics and a round of density control every `densify_every` steps (its
+    cost spread over the steps). Also "step" (the whole step) and "other" (what no part covers)."""
+    import numpy as np  # noqa: PLC0415
+    import torch  # noqa: PLC0415
+
+    from ..densify import GaussianModel  # noqa: PLC0415
+    from ..losses import photometric_loss  # noqa: PLC0415
+    from ..rendering import RenderSettings, compiled, render  # noqa: PLC0415
+
+    config = config or TrainConfig()
+    spent = dict.fromkeys(STEP_PARTS, 0.0)
+    clock = time.thread_time
+
+    def timed(part, fn):
+        def wrapper(*a, **k):
+            t = clock()
+            try:
+                return fn(*a, **k)
+            finally:
+                spent[part] += clock() - t
+        return wrapper
+
+    patched = {"project": (compiled, "project"), "bin": (compiled, "bin_gaussians"),
+               "composite": (compiled, "composite_forward"), "composite backward": (compiled, "composite_backward")}
+    saved = {part: getattr(owner, name) for part, (owner, name) in patched.items()}
+    saved_backward = compiled.ProjectFunction.backward
+    from ..train import _targets, scene_extent  # noqa: PLC0415
+
+    _, extent = scene_extent(views.cameras)
+    model = GaussianModel(cloud.replace(extra={}), np.arange(len(cloud)), np.full(len(cloud), -1),
+                          config.learning_rates(extent), extent, len(cloud), None)
+    strategy = config.densify_strategy()
+    targets = _targets(views, config.background)
+    settings = RenderSettings(antialias=config.antialias)
+    order = np.random.default_rng(seed).permutation(max(steps, len(views)))
+    gen = torch.Generator().manual_seed(seed)
+    total = 0.0
+    try:
+        for part, (owner, name) in patched.items():
+            setattr(owner, name, timed(part, saved[part]))
+        compiled.ProjectFunction.backward = staticmethod(timed("project backward", saved_backward))
+        for it in range(1, steps + 1):
+            v = int(order[it - 1] % len(views))
+            t0 = clock()
+            result = render(model.cloud(), views.cameras[v], background=config.background, sh_degree=sh_degree,
+                            settings=settings)
+            result.means2d.retain_grad()
+            t = clock()
+            loss = photometric_loss(result.image, targets[v], config.lambda_dssim)
+            spent["loss"] += clock() - t
+            t = clock()
+            inner = spent["composite backward"] + spent["project backward"]
+            loss.backward()
+            spent["backward (loss, image)"] += clock() - t - (spent["composite backward"] + spent["project backward"]
+                                                              - inner)
+            with torch.no_grad():
+                t = clock()
+                model.add_stats(result.means2d.grad, result.visible, result.radii, views.cameras[v].width,
+                                views.cameras[v].height)
+                spent["statistics"] += clock() - t
+                t = clock()
+                model.optimizer.step()
+                model.optimizer.zero_grad(set_to_none=True)
+                spent["optimizer"] += clock() - t
+                if it % densify_every == 0:
+                    t = clock()
+                    strategy.densify_and_prune(model, gen, image_height=views.cameras[v].height, prune_large=False)
+                    spent["densify"] += clock() - t
+            total += clock() - t0
+    finally:
+        for part, (owner, name) in patched.items():
+            setattr(owner, name, saved[part])
+        compiled.ProjectFunction.backward = saved_backward
+    out = {part: s / steps for part, s in spent.items()}
+    out["step"] = total / steps
+    out["other"] = out["step"] - sum(spent.values()) / steps
+    out["gaussians_end"] = float(len(model))
+    return out
+
+
+def main(argv=None) -> int:
+    """`python -m gvae_core.benchmarks.train --step CAPTURE CLOUD.ply --height H`: the step profile."""
+    import argparse  # noqa: PLC0415
+
+    import torch  # noqa: PLC0415
+
+    from ..capture import read_capture  # noqa: PLC0415
+    from ..ply import read_ply  # noqa: PLC0415
+
+    p = argparse.ArgumentParser(prog="python -m gvae_core.benchmarks.train", description=profile_step.__doc__)
+    p.add_argument("capture")
+    p.add_argument("cloud")
+    p.add_argument("--height", type=int, required=True)
+    p.add_argument("--test-every", type=int, default=8)
+    p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--warmup", type=int, default=3)
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    views = read_capture(args.capture).held_out(args.test_every).load("train", args.height)
+    cloud = read_ply(args.cloud)
+    profile_step(cloud, views, steps=args.warmup)  # kernels loaded, memory touched
+    load = os.getloadavg()[0]
+    out = profile_step(cloud, views, steps=args.steps, densify_every=10 ** 9)
+    print(f"{len(cloud)} Gaussians, {len(views)} views of {views.cameras[0].width}x{views.cameras[0].height}, "
+          f"{args.steps} steps, 1 thread, load {load:.1f} at start, {os.getloadavg()[0]:.1f} at end")
+    print("| part | CPU ms per step | share |")
+    print("|---|---:|---:|")
+    for part in (*STEP_PARTS, "other", "step"):
+        print(f"| {part} | {1000 * out[part]:.1f} | {out[part] / out['step']:.0%} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
