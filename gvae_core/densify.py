@@ -84,6 +84,30 @@ class GaussianModel:
             for name in PARAMS:
                 self.params[name].copy_(values[name])
 
+    def optimizer_state(self) -> dict[str, np.ndarray]:
+        """Adam's moments and step count of every parameter (numpy, keys "<name>.<what>"): what the
+        next stage starts from when it carries them (`load_optimizer_state`)."""
+        out = {}
+        for name in PARAMS:
+            for key, value in self.optimizer.state.get(self.params[name], {}).items():
+                out[f"{name}.{key}"] = value.detach().cpu().numpy().copy()
+        return out
+
+    def load_optimizer_state(self, state: dict[str, np.ndarray]) -> bool:
+        """Adam's state from `optimizer_state` of the same rows; nothing changes (False) when it is
+        empty or does not fit the parameters."""
+        fits = bool(state) and all(
+            state.get(f"{n}.{k}") is not None and state[f"{n}.{k}"].shape == tuple(self.params[n].shape)
+            for n in PARAMS for k in ("exp_avg", "exp_avg_sq"))
+        if not fits:
+            return False
+        for name in PARAMS:
+            param = self.params[name]
+            self.optimizer.state[param] = {
+                key.split(".", 1)[1]: torch.as_tensor(value).to(param.device).clone()
+                for key, value in state.items() if key.split(".", 1)[0] == name}
+        return True
+
     def snapshot(self) -> GaussianCloud:
         """A detached numpy copy with int64 extras `gvae_id` and `gvae_parent`."""
         c = GaussianCloud(**{n: p.detach().cpu() for n, p in self.params.items()}).numpy().copy()

@@ -35,7 +35,7 @@ import torch
 from tqdm import tqdm
 
 from .antialias import DILATION_KEY, FILTER_KEY, dilation_3d, filter_3d
-from .atomic import atomic_write_text
+from .atomic import atomic_write, atomic_write_text
 from .camera import Camera, look_target
 from .capture import Capture, SfMPoints, read_capture
 from .cloud import GaussianCloud
@@ -56,7 +56,8 @@ PROFILES: dict[str, dict[str, Any]] = {
                  max_gaussians=10_000, sh_degree=1),
     "default": dict(),
     # the default before issue 50: fixed iterations, no validation photos, no budget
-    "legacy": dict(iterations=(600, 400, 400), validation_views=0, converge=False, gaussians_per_pixel=None),
+    "legacy": dict(iterations=(600, 400, 400), validation_views=0, converge=False, gaussians_per_pixel=None,
+                   lr_schedule="stage", carry_optimizer=False),
     "full": dict(resolutions=(100, 200, 400, 800), iterations=(7000, 7000, 7000, 30000),
                  init="random", init_count=100_000, max_gaussians=None),
 }
@@ -143,6 +144,10 @@ class TrainConfig:
     min_gain: float = 0.05
     max_minutes: float | None = None
     gaussians_per_pixel: float | None = None
+    # Across stages: the position learning rate decays over the whole run ("run") or afresh in each
+    # stage ("stage"); Adam's moments carry from a stage to the next (the same rows) or restart.
+    lr_schedule: str = "run"
+    carry_optimizer: bool = True
 
     def __post_init__(self):
         self.resolutions = tuple(int(r) for r in np.atleast_1d(self.resolutions))
@@ -172,6 +177,8 @@ class TrainConfig:
                              f"{self.min_gain})")
         if self.max_minutes is not None and not self.max_minutes > 0:
             raise ValueError(f"TrainConfig.max_minutes must be positive or None, got {self.max_minutes}")
+        if self.lr_schedule not in ("run", "stage"):
+            raise ValueError(f"TrainConfig.lr_schedule must be 'run' or 'stage', got {self.lr_schedule!r}")
         if self.gaussians_per_pixel is not None and not self.gaussians_per_pixel > 0:
             raise ValueError(f"TrainConfig.gaussians_per_pixel must be positive or None, got {self.gaussians_per_pixel}")
 
@@ -232,6 +239,11 @@ class TrainConfig:
         )
 
 
+#: The file of a run directory with Adam's state at the end of its last finished stage (when
+#: `carry_optimizer`), so that a resumed run carries it as an uninterrupted one does.
+ADAM_FILE = "adam.npz"
+
+
 #: `TrainConfig` fields added after run directories and experiment cache keys were first derived
 #: from `to_dict`, with the value that trains as before they existed: `to_dict` writes them only
 #: when they differ from it, `from_dict` fills them in with it.
@@ -239,7 +251,8 @@ ADDED_FIELDS: dict[str, Any] = {
     "antialias": "classic", "test_every": None,
     # issue 50: validation photos, a last stage that trains until they stop improving, a budget
     "validation_views": 0, "converge": False, "max_iterations": 30_000, "validation_every": 100, "patience": 600,
-    "min_gain": 0.05, "max_minutes": None, "gaussians_per_pixel": None,
+    "min_gain": 0.05, "max_minutes": None, "gaussians_per_pixel": None, "lr_schedule": "stage",
+    "carry_optimizer": False,
 }
 
 
@@ -494,6 +507,7 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
     final_size = None
     global_iter = sum(config.iterations[:first_stage])
     n_stages = len(config.resolutions)
+    carried = None  # Adam's state at the end of the previous stage
 
     for s in range(first_stage, n_stages):
         height = config.resolutions[s]
@@ -526,6 +540,11 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
             snap = lineage.snapshots[-1]
             cloud, ids, parents = snap.cloud, snap.ids, snap.ids  # survivors are their own anchors
         model = GaussianModel(cloud, ids, parents, config.learning_rates(extent), extent, next_id, device)
+        if s > 0 and config.carry_optimizer:
+            if carried is None and out is not None and (out / ADAM_FILE).is_file():  # resumed
+                with np.load(out / ADAM_FILE) as z:
+                    carried = dict(z)
+            model.load_optimizer_state(carried or {})
         cam0 = train_views.cameras[0]
         limit, why = _gaussian_limit(config, len(train_views), cam0)
         strategy = dataclasses.replace(config.densify_strategy(), max_gaussians=limit)
@@ -549,10 +568,11 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         report(0, f"stage {s + 1}/{n_stages} at {height} px: {len(train_views)} photos, {len(cloud)} Gaussians")
         t0, c0 = time.perf_counter(), time.process_time()
         degree_at = (lambda it, first=global_iter: config.sh_degree_at(first + it - 1))
+        lr_window = (global_iter, sum(config.iterations)) if config.lr_schedule == "run" else (0, planned)
         check = None if watch is None else (lambda it: watch.check(model, it, degree_at(it), report))
         counts = _optimise(model, cams, targets, config, sched, rng, gen, settings, height, degree_at, bar=bar,
                            densify=strategy, progress=lambda it: report(it, f"stage {s + 1}/{n_stages}: step {it}"),
-                           check=check, check_every=config.validation_every, lr_horizon=planned)
+                           check=check, check_every=config.validation_every, lr_window=lr_window)
         n_iter = counts.pop("iterations")
         global_iter += planned
         seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
@@ -561,6 +581,7 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         stopped = counts.pop("stopped")
         if watch is not None and watch.best_params is not None and converging:
             model.load_params(watch.best_params)  # the state the validation photos liked best
+        carried = model.optimizer_state() if config.carry_optimizer and s < n_stages - 1 else None
         peak = _peak_rss_mb() if reset_ok else max(_peak_rss_mb(), rss_before)
 
         snap_cloud = model.snapshot().replace(background=bg)
@@ -598,6 +619,8 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
                test_psnr=_rounded(test_psnr, 4), test_ssim=_rounded(test_ssim, 5))
         if out is not None:
             stage_paths.append(write_ply(snap_cloud, out / f"stage_{s}.ply"))
+            if carried is not None:
+                atomic_write(out / ADAM_FILE, lambda f, state=carried: np.savez(f, **state))
             lineage.save(out / "lineage.npz")
             _write_json(out / "log.json", log)
             _write_json(out / "run.json", {"config": config.to_dict(), "stages_done": s + 1,
@@ -652,7 +675,9 @@ class _Watch:
     def check(self, model: GaussianModel, it: int, degree: int, report) -> str | None:
         value = evaluate_psnr(model.cloud().detach(), self.views, self.background, degree, None, self.settings)
         self.curve.append((it, round(value, 4)))
-        report(it, f"step {it}: validation photos {value:.2f} dB", validation_psnr=round(value, 4))
+        message = f"step {it}: validation photos {value:.2f} dB, {len(model)} Gaussians"
+        self.say(message)
+        report(it, message, validation_psnr=round(value, 4))
         if not self.converging:
             return None
         if it >= self.planned and value > self.best:  # (the best state once densification is over)
@@ -678,23 +703,23 @@ def _optimise(model: GaussianModel, cams: list[Camera], targets: torch.Tensor, c
               rng: np.random.Generator, gen: torch.Generator, settings: RenderSettings, height: int,
               degree_at: Callable[[int], int], *, densify: DensifyStrategy | None, bar=None,
               progress: Callable[[int], None] | None = None, check: Callable[[int], str | None] | None = None,
-              check_every: int = 100, lr_horizon: int | None = None) -> dict[str, Any]:
+              check_every: int = 100, lr_window: tuple[int, int] | None = None) -> dict[str, Any]:
     """One stage's iterations (`sched`, `TrainConfig.stage_schedule`) on `model`: the reference
     recipe (views in random order without repetition, the position learning rate decaying over
-    `lr_horizon` iterations (default the stage's) and staying at its final value after, 0.8·L1 +
-    0.2·(1 − SSIM)), with the `densify` strategy's density control and opacity resets when given,
+    the stage or, with `lr_window` = (offset, horizon), as at iteration offset + it of a decay
+    over horizon iterations, staying at its final value after; 0.8·L1 + 0.2·(1 − SSIM)), with the `densify` strategy's density control and opacity resets when given,
     without any when None (a fine-tune keeps its Gaussians). `degree_at(it)`: the SH degree at the
     stage's iteration `it` (1-based); `progress(it)` every 10 iterations; `check(it)` every
     `check_every` iterations: a reason to stop, or None. Returns the counts of cloned, split and
     pruned Gaussians, the iterations done and why it stopped early (None: it did not)."""
     counts: dict[str, Any] = {"cloned": 0, "split": 0, "pruned": 0}
     n_iter, bg = sched["iterations"], config.background
-    horizon = n_iter if lr_horizon is None else lr_horizon
+    offset, horizon = (0, n_iter) if lr_window is None else lr_window
     order: list[int] = []
     filt = _model_filter(model, cams) if config.antialias == "mip" else None
     stopped, it = None, 0
     for it in range(1, n_iter + 1):
-        model.set_lr("means", position_lr(config, model.extent, it - 1, horizon))
+        model.set_lr("means", position_lr(config, model.extent, offset + it - 1, horizon))
         if not order:
             order = list(rng.permutation(len(cams)))
         v = int(order.pop())

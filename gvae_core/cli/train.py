@@ -74,6 +74,9 @@ def register(subparsers) -> None:
     p.add_argument("--max-gaussians", type=int, metavar="N",
                    help="cap on the number of Gaussians (default: the profile's: none but what memory allows; tiny: "
                         "10000)")
+    p.add_argument("--gaussians-per-pixel", type=float, metavar="F",
+                   help="a budget of F Gaussians per pixel of one training photo in each stage (default: the "
+                        "profile's: none)")
     p.add_argument("--seed", type=int, help="random seed (default 0)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; 1 is "
                    "often fastest on a busy machine)")
@@ -135,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
     overrides = dict(resolutions=resolutions, sh_degree=args.sh_degree, seed=args.seed, init=args.init,
                      init_count=args.init_count, antialias=args.antialias, test_every=args.test_every,
                      background=tuple(args.background) if args.background else None, max_minutes=args.minutes,
-                     validation_views=args.validation_views)
+                     validation_views=args.validation_views, gaussians_per_pixel=args.gaussians_per_pixel)
     if args.max_gaussians is not None:
         overrides["max_gaussians"] = args.max_gaussians
     if args.iterations:
