@@ -20,6 +20,7 @@ run gives the same result as an uninterrupted one.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -180,7 +181,8 @@ class TrainConfig:
         if self.lr_schedule not in ("run", "stage"):
             raise ValueError(f"TrainConfig.lr_schedule must be 'run' or 'stage', got {self.lr_schedule!r}")
         if self.gaussians_per_pixel is not None and not self.gaussians_per_pixel > 0:
-            raise ValueError(f"TrainConfig.gaussians_per_pixel must be positive or None, got {self.gaussians_per_pixel}")
+            raise ValueError("TrainConfig.gaussians_per_pixel must be positive or None, got "
+                             f"{self.gaussians_per_pixel}")
 
     @classmethod
     def profile(cls, name: str = "default", **overrides) -> TrainConfig:
@@ -559,7 +561,9 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         cams = train_views.cameras
         planned = config.iterations[s]
         n_max = sched["iterations"]
-        watch = _Watch(config, val_views, bg, settings, started, planned, converging, say) if val_views else None
+        test_views = data.views("test", height) if converging else None
+        watch = None if val_views is None else _Watch(config, val_views, cams, bg, settings, started, planned,
+                                                      converging, say, test_views)
         report = _reporter(on_progress, s, n_stages, n_max, model)
         reset_ok = _reset_peak_rss()
         rss_before = _peak_rss_mb()
@@ -567,12 +571,13 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         bar = _progress_bar(n_max if not converging else planned, f"stage {s + 1}/{n_stages} {height}px", progress)
         report(0, f"stage {s + 1}/{n_stages} at {height} px: {len(train_views)} photos, {len(cloud)} Gaussians")
         t0, c0 = time.perf_counter(), time.process_time()
-        degree_at = (lambda it, first=global_iter: config.sh_degree_at(first + it - 1))
+        degree_at = functools.partial(_degree_at, config, global_iter)
         lr_window = (global_iter, sum(config.iterations)) if config.lr_schedule == "run" else (0, planned)
-        check = None if watch is None else (lambda it: watch.check(model, it, degree_at(it), report))
+        check = None if watch is None else functools.partial(_check, watch, model, degree_at, report)
+        step_report = functools.partial(_step_report, report, f"stage {s + 1}/{n_stages}")
         counts = _optimise(model, cams, targets, config, sched, rng, gen, settings, height, degree_at, bar=bar,
-                           densify=strategy, progress=lambda it: report(it, f"stage {s + 1}/{n_stages}: step {it}"),
-                           check=check, check_every=config.validation_every, lr_window=lr_window)
+                           densify=strategy, progress=step_report, check=check,
+                           check_every=config.validation_every, lr_window=lr_window)
         n_iter = counts.pop("iterations")
         global_iter += planned
         seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
@@ -612,8 +617,11 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
                          **watch.summary(stopped if converging else None, n_iter))
         log.append(entry)
         if converging:
-            say(f"stage {s + 1}: {entry['stopped']}; validation {val_psnr:.2f} dB"
-                + ("" if math.isnan(test_psnr) else f", held-out {test_psnr:.2f} dB") + f", {len(snap_cloud)} Gaussians")
+            said = entry.get("test_psnr_at_planned")
+            held = "" if math.isnan(test_psnr) else f", held-out {test_psnr:.2f} dB" + (
+                f" (at step {said[0]}: {said[1]:.2f})" if said else "")
+            say(f"stage {s + 1}: {entry['stopped']}; kept step {entry['best_step']}: validation {val_psnr:.2f} dB{held}"
+                f", {len(snap_cloud)} Gaussians")
         report(n_iter, f"stage {s + 1}/{n_stages} done: {len(snap_cloud)} Gaussians",
                train_psnr=_rounded(train_psnr, 4), validation_psnr=_rounded(val_psnr, 4),
                test_psnr=_rounded(test_psnr, 4), test_ssim=_rounded(test_ssim, 5))
@@ -631,6 +639,19 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         final_size = _stage_size(out, lineage.n_stages - 1, final, data, config, size_key, size_fn)
     final = final.replace(extra={**final.extra, size_key: final_size}, background=bg)
     return TrainResult(final, lineage, log, out, stage_paths)
+
+
+def _degree_at(config: TrainConfig, first: int, it: int) -> int:
+    """The SH degree at iteration `it` (1-based) of a stage that begins after `first` iterations."""
+    return config.sh_degree_at(first + it - 1)
+
+
+def _check(watch: _Watch, model: GaussianModel, degree_at, report, it: int) -> str | None:
+    return watch.check(model, it, degree_at(it), report)
+
+
+def _step_report(report, what: str, it: int) -> None:
+    report(it, f"{what}: step {it}")
 
 
 def _rounded(x: float, digits: int) -> float | None:
@@ -663,9 +684,10 @@ class _Watch:
     the best state's parameters) and, for the stage that trains until it converges, why it stops:
     the `Plateau` rule once the planned iterations are done, or the time budget."""
 
-    def __init__(self, config: TrainConfig, views: Views, background, settings: RenderSettings, started: float,
-                 planned: int, converging: bool, say):
-        self.views, self.background, self.settings = views, background, settings
+    def __init__(self, config: TrainConfig, views: Views, cameras: list[Camera], background, settings: RenderSettings,
+                 started: float, planned: int, converging: bool, say, test_views: Views | None = None):
+        self.views, self.cameras, self.background, self.settings = views, cameras, background, settings
+        self.test_views, self.test_at_planned = test_views, None
         self.plateau = Plateau(patience=config.patience, min_gain=config.min_gain)
         self.deadline = None if config.max_minutes is None else started + 60.0 * config.max_minutes
         self.planned, self.converging, self.say = planned, converging, say
@@ -673,7 +695,10 @@ class _Watch:
         self.best, self.best_step, self.best_params = -math.inf, 0, None
 
     def check(self, model: GaussianModel, it: int, degree: int, report) -> str | None:
-        value = evaluate_psnr(model.cloud().detach(), self.views, self.background, degree, None, self.settings)
+        current = model.cloud().detach()
+        if self.settings.antialias == "mip":  # drawn as training draws it: with the training cameras' filter
+            current = current.replace(extra={FILTER_KEY: _model_filter(model, self.cameras)})
+        value = evaluate_psnr(current, self.views, self.background, degree, None, self.settings)
         self.curve.append((it, round(value, 4)))
         message = f"step {it}: validation photos {value:.2f} dB, {len(model)} Gaussians"
         self.say(message)
@@ -685,6 +710,9 @@ class _Watch:
             self.best_params = {n: p.detach().clone() for n, p in model.params.items()}
         if it < self.planned:
             return None
+        if self.test_at_planned is None and self.test_views is not None:  # said in the log, never decides
+            self.test_at_planned = (it, evaluate_psnr(current, self.test_views, self.background, degree, None,
+                                                      self.settings))
         if self.plateau.update(it, value):
             return f"converged: {self.plateau.reason}"
         if self.deadline is not None and time.perf_counter() > self.deadline:
@@ -696,6 +724,8 @@ class _Watch:
         if self.converging:
             out["stopped"] = stopped or f"reached max_iterations ({iterations})"
             out["best_step"] = self.best_step if self.best_params is not None else iterations
+            if self.test_at_planned is not None:
+                out["test_psnr_at_planned"] = [self.test_at_planned[0], round(self.test_at_planned[1], 4)]
         return out
 
 
@@ -707,8 +737,9 @@ def _optimise(model: GaussianModel, cams: list[Camera], targets: torch.Tensor, c
     """One stage's iterations (`sched`, `TrainConfig.stage_schedule`) on `model`: the reference
     recipe (views in random order without repetition, the position learning rate decaying over
     the stage or, with `lr_window` = (offset, horizon), as at iteration offset + it of a decay
-    over horizon iterations, staying at its final value after; 0.8·L1 + 0.2·(1 − SSIM)), with the `densify` strategy's density control and opacity resets when given,
-    without any when None (a fine-tune keeps its Gaussians). `degree_at(it)`: the SH degree at the
+    over horizon iterations, staying at its final value after; 0.8·L1 + 0.2·(1 − SSIM)), with the
+    `densify` strategy's density control and opacity resets when given, without any when None (a
+    fine-tune keeps its Gaussians). `degree_at(it)`: the SH degree at the
     stage's iteration `it` (1-based); `progress(it)` every 10 iterations; `check(it)` every
     `check_every` iterations: a reason to stop, or None. Returns the counts of cloned, split and
     pruned Gaussians, the iterations done and why it stopped early (None: it did not)."""

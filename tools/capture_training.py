@@ -80,8 +80,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def table(rows: list[dict]) -> str:
     """The markdown table of `rows` (summary.json's)."""
-    out = ["| stored size / | variant | stages (px) | last stage iterations (why it stopped) | Gaussians | validation PSNR | "
-           "held-out PSNR / SSIM | training PSNR | wall s (CPU s) | load | more: held-out dB |",
+    out = ["| stored size / | variant | stages (px) | last stage iterations (why it stopped) | Gaussians | "
+           "validation PSNR | held-out PSNR / SSIM | training PSNR | wall s (CPU s) | load | more: held-out dB |",
            "|---|---|---|---|---:|---:|---|---:|---|---|---|"]
     for r in rows:
         last = r["stages"][-1]
@@ -93,8 +93,8 @@ def table(rows: list[dict]) -> str:
                     if more else "")
         out.append(f"| {r['downscale']:g} | {r['variant']} | {'/'.join(str(e['resolution']) for e in r['stages'])} "
                    f"| {last['iterations']} ({why}) | {last['n_gaussians']:,} | {_f(last.get('validation_psnr'))} | "
-                   f"{last['test_psnr']:.2f} / {last['test_ssim']:.3f} | {last['train_psnr']:.2f} | {wall:.0f} ({cpu:.0f}) "
-                   f"| {r['load_at_start']}-{r.get('load_at_end', '?')} | {more_txt} |")
+                   f"{last['test_psnr']:.2f} / {last['test_ssim']:.3f} | {last['train_psnr']:.2f} | "
+                   f"{wall:.0f} ({cpu:.0f}) | {r['load_at_start']}-{r.get('load_at_end', '?')} | {more_txt} |")
     return "\n".join(out)
 
 

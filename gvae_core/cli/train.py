@@ -47,7 +47,7 @@ def register(subparsers) -> None:
     p.add_argument("--iterations", type=int, nargs="+", metavar="N",
                    help="iterations per stage, fixed: one number for all stages or one per stage (default: the "
                         "profile's, the last stage then training on until the validation photos stop improving: "
-                        "%s; tiny: 200 150 150; full: 7000 7000 7000 30000)" % " ".join(map(str, _DEFAULT_ITERATIONS)))
+                        f"{' '.join(map(str, _DEFAULT_ITERATIONS))}; tiny: 200 150 150; full: 7000 7000 7000 30000)")
     p.add_argument("--minutes", type=float, metavar="M",
                    help="time budget of the whole run: the last stage stops when it is spent (once its densification "
                         "is done), and the log says so (default: none; the validation photos decide)")
@@ -77,6 +77,9 @@ def register(subparsers) -> None:
     p.add_argument("--gaussians-per-pixel", type=float, metavar="F",
                    help="a budget of F Gaussians per pixel of one training photo in each stage (default: the "
                         "profile's: none)")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="any other field of gvae_core.train.TrainConfig, VALUE in JSON (repeatable), e.g. --set "
+                        "patience=1000 (default: the profile's)")
     p.add_argument("--seed", type=int, help="random seed (default 0)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; 1 is "
                    "often fastest on a busy machine)")
@@ -87,6 +90,27 @@ def register(subparsers) -> None:
     p.add_argument("--restart", action="store_true", help="start over instead of resuming (default: resume)")
     p.add_argument("--quiet", action="store_true", help="no progress bar (default: progress shown)")
     p.set_defaults(func=run)
+
+
+def _fields(items: list[str]) -> dict:
+    """--set FIELD=VALUE items as TrainConfig overrides (VALUE in JSON)."""
+    import dataclasses
+    import json
+
+    from ..train import TrainConfig
+
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    out = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        if name not in names or not value:
+            raise ValueError(f"--set {item}: expected FIELD=VALUE, FIELD one of TrainConfig's: "
+                             f"{', '.join(sorted(names))}")
+        try:
+            out[name] = json.loads(value)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--set {item}: the value is not JSON ({exc})") from None
+    return out
 
 
 def _num(x) -> float:
@@ -141,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
                      validation_views=args.validation_views, gaussians_per_pixel=args.gaussians_per_pixel)
     if args.max_gaussians is not None:
         overrides["max_gaussians"] = args.max_gaussians
+    overrides.update(_fields(args.set))
     if args.iterations:
         n_stages = len(resolutions or base.resolutions)
         its = args.iterations * n_stages if len(args.iterations) == 1 else args.iterations
