@@ -58,7 +58,7 @@ PROFILES: dict[str, dict[str, Any]] = {
     "default": dict(),
     # the default before issue 50: fixed iterations, no validation photos, no budget
     "legacy": dict(iterations=(600, 400, 400), validation_views=0, converge=False, gaussians_per_pixel=None,
-                   lr_schedule="stage", carry_optimizer=False),
+                   lr_schedule="stage", carry_optimizer=False, opacity_resets=True),
     "full": dict(resolutions=(100, 200, 400, 800), iterations=(7000, 7000, 7000, 30000),
                  init="random", init_count=100_000, max_gaussians=None),
 }
@@ -149,6 +149,9 @@ class TrainConfig:
     # stage ("stage"); Adam's moments carry from a stage to the next (the same rows) or restart.
     lr_schedule: str = "run"
     carry_optimizer: bool = True
+    # The reference's periodic opacity reset (`opacity_reset_every`): off, the validation photos
+    # converge about 800 iterations sooner on the plush without it (docs/benchmarks/training.md).
+    opacity_resets: bool = False
 
     def __post_init__(self):
         self.resolutions = tuple(int(r) for r in np.atleast_1d(self.resolutions))
@@ -254,7 +257,7 @@ ADDED_FIELDS: dict[str, Any] = {
     # issue 50: validation photos, a last stage that trains until they stop improving, a budget
     "validation_views": 0, "converge": False, "max_iterations": 30_000, "validation_every": 100, "patience": 600,
     "min_gain": 0.05, "max_minutes": None, "gaussians_per_pixel": None, "lr_schedule": "stage",
-    "carry_optimizer": False,
+    "carry_optimizer": False, "opacity_resets": True,
 }
 
 
@@ -772,7 +775,8 @@ def _optimise(model: GaussianModel, cams: list[Camera], targets: torch.Tensor, c
                                                      prune_large=it > sched["opacity_reset_every"])
                     for k in ("cloned", "split", "pruned"):
                         counts[k] += done[k]
-                if it % sched["opacity_reset_every"] == 0 and it < sched["densify_until"]:
+                if (config.opacity_resets and it % sched["opacity_reset_every"] == 0
+                        and it < sched["densify_until"]):
                     model.reset_opacity(config.reset_opacity_value)
             if filt is not None and (it % sched["densify_every"] == 0 or len(filt) != len(model)):
                 filt = _model_filter(model, cams)  # after densification, and as the centres move
