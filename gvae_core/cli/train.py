@@ -4,13 +4,15 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from pathlib import Path
 
 from . import DEVICE_HELP
 
-#: The default profile's iterations per stage (said in --help without importing the trainer).
+#: The default profile's iterations per stage and budget (said in --help without importing the trainer).
 _DEFAULT_ITERATIONS = (300, 300, 1000)
+_DEFAULT_PER_PIXEL = 1.0
 
 
 def register(subparsers) -> None:
@@ -75,8 +77,8 @@ def register(subparsers) -> None:
                    help="cap on the number of Gaussians (default: the profile's: none but what memory allows; tiny: "
                         "10000)")
     p.add_argument("--gaussians-per-pixel", type=float, metavar="F",
-                   help="a budget of F Gaussians per pixel of one training photo in each stage (default: the "
-                        "profile's: none)")
+                   help="a budget of F Gaussians per pixel of one training photo in each stage, 0 for none "
+                        f"(default: the profile's: {_DEFAULT_PER_PIXEL:g})")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="any other field of gvae_core.train.TrainConfig, VALUE in JSON (repeatable), e.g. --set "
                         "patience=1000 (default: the profile's)")
@@ -94,7 +96,6 @@ def register(subparsers) -> None:
 
 def _fields(items: list[str]) -> dict:
     """--set FIELD=VALUE items as TrainConfig overrides (VALUE in JSON)."""
-    import dataclasses
     import json
 
     from ..train import TrainConfig
@@ -162,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
     overrides = dict(resolutions=resolutions, sh_degree=args.sh_degree, seed=args.seed, init=args.init,
                      init_count=args.init_count, antialias=args.antialias, test_every=args.test_every,
                      background=tuple(args.background) if args.background else None, max_minutes=args.minutes,
-                     validation_views=args.validation_views, gaussians_per_pixel=args.gaussians_per_pixel)
+                     validation_views=args.validation_views, gaussians_per_pixel=args.gaussians_per_pixel or None)
     if args.max_gaussians is not None:
         overrides["max_gaussians"] = args.max_gaussians
     overrides.update(_fields(args.set))
@@ -177,6 +178,8 @@ def run(args: argparse.Namespace) -> int:
         its = base.iterations
         overrides["iterations"] = (its[-1],) * len(resolutions) if len(its) != len(resolutions) else its
     config = TrainConfig.profile(args.profile, **overrides)
+    if args.gaussians_per_pixel == 0:
+        config = dataclasses.replace(config, gaussians_per_pixel=None)
     points = _load_points(args.init_points) if args.init_points else None
     result = train_progressive(args.scene, config, out_dir=args.out, init_points=points,
                                resume=not args.restart, progress=not args.quiet,
