@@ -106,9 +106,10 @@ def _new_object(context, name: str, data, axes: str, setup=None):
 
 
 def build_native_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE"):
-    """A new Blender 5.3+ Gaussian-splat point cloud object holding `cloud` (`convert.pointcloud_from_cloud`),
-    linked to the active collection (removed again if anything fails)."""
-    return _new_object(context, name, convert.pointcloud_from_cloud(cloud, name), axes)
+    """A new Blender 5.3+ Gaussian-splat point cloud object holding `cloud` (`convert.pointcloud_from_cloud`)
+    with the modifier that draws it as `gvae_core.render` does for the scene camera
+    (`nodes.add_native_modifier`), linked to the active collection (removed again if anything fails)."""
+    return _new_object(context, name, convert.pointcloud_from_cloud(cloud, name), axes, nodes.add_native_modifier)
 
 
 def remove_splat(obj) -> None:
@@ -187,10 +188,11 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
 
     splat_type: EnumProperty(
         name="Splat Type", default="MESH",
-        items=(("MESH", "Add-on Splat", "A mesh drawn by the add-on's Geometry Nodes (every Blender version; "
-                "Refine and Compact work on it)"),
+        items=(("MESH", "Add-on Splat", "A mesh drawn by the add-on's Geometry Nodes (every Blender version; the "
+                "closest to gvae render in Cycles, with the display options of the sidebar)"),
                ("NATIVE", "Blender Gaussian Splat", "A point cloud of type Gaussian Splat, drawn by Blender itself "
-                "(Blender 5.3 and later; exported back as it is, not refined or compacted)")))
+                "(Blender 5.3 and later; a modifier adds the anti-aliasing and a refinement for the scene camera; "
+                "Cycles composites it in its own order, a little further from gvae render)")))
     axis_conversion: EnumProperty(
         name="Axes", default="NONE",
         items=(("NONE", "As Stored (Z Up)", "Keep the file's axes (scenes made in Blender, NeRF-Synthetic)"),
@@ -401,6 +403,25 @@ class EXPORT_SCENE_OT_gaussian_splat_glb(_SplatExport, Operator):
         "the training resolution (glTF splats keep no other properties; 0: the splat as it was before refining)")
 
 
+class GVAE_OT_native_modifier(Operator):
+    """Draw the active Blender Gaussian splat (5.3+) as gvae render does for the scene camera: a modifier that
+    adds the reference renderer's anti-aliasing and a refined splat's changes per octave (its data stay as they
+    are)"""
+
+    bl_idname = "gvae.native_modifier"
+    bl_label = "Draw as GaussianVAE"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return convert.is_native_splat(context.active_object)
+
+    def execute(self, context):
+        nodes.add_native_modifier(context.active_object)
+        render_setup.sync_focal_length(context.scene)
+        return {"FINISHED"}
+
+
 class GVAE_FH_gaussian_splat(bpy.types.FileHandler):
     """Drag and drop of .ply, .splat, .spz, .sog, .glb/.gltf files and SOG meta.json files into the viewport
     (a .glb or .gltf dropped offers Blender's glTF importer too: the handler cannot see whether it holds
@@ -429,7 +450,8 @@ def menu_export(self, context):
 
 
 classes = (IMPORT_SCENE_OT_gaussian_splat, EXPORT_SCENE_OT_gaussian_splat, EXPORT_SCENE_OT_gaussian_splat_spz,
-           EXPORT_SCENE_OT_gaussian_splat_sog, EXPORT_SCENE_OT_gaussian_splat_glb, GVAE_FH_gaussian_splat)
+           EXPORT_SCENE_OT_gaussian_splat_sog, EXPORT_SCENE_OT_gaussian_splat_glb, GVAE_OT_native_modifier,
+           GVAE_FH_gaussian_splat)
 
 
 def register():

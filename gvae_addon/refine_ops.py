@@ -29,7 +29,7 @@ from bpy.types import Operator
 
 from gvae_core.budget import DEFAULT_FIDELITY, parse_budget
 
-from . import convert, runtime
+from . import convert, nodes, runtime
 
 
 class JobCancelled(Exception):
@@ -73,14 +73,14 @@ class CoreJob:
     # ------------------------------------------------------------------ main thread
     def start(self) -> CoreJob:
         obj = bpy.data.objects.get(self.obj_name)
-        if obj is None or not convert.is_splat(obj):
+        if obj is None or not convert.is_any_splat(obj):
             raise ValueError(f"{self.obj_name!r} is not a splat object")
         function = self._core or self._load()  # imports torch: fails here, not in the worker
         self.cloud, self.old_steps = convert.cloud_from_object(obj)
         if len(self.cloud) == 0:
             raise ValueError(f"object {obj.name!r} has no Gaussians to {self.label.lower()}")
         self._mesh_pointer = obj.data.as_pointer()
-        self._n_vertices = len(obj.data.vertices)
+        self._n_vertices = convert.splat_count(obj)
         self.started = time.perf_counter()
         self._thread = threading.Thread(target=self._work, args=(function,), name=f"gvae-{self.label.lower()}",
                                         daemon=True)
@@ -119,7 +119,7 @@ class CoreJob:
             raise JobCancelled(f"{self.label} cancelled")
         obj = bpy.data.objects.get(self.obj_name)
         if obj is None or obj.data is None or obj.data.as_pointer() != self._mesh_pointer \
-                or len(obj.data.vertices) != self._n_vertices:
+                or convert.splat_count(obj) != self._n_vertices:
             raise RuntimeError(f"object {self.obj_name!r} was deleted or changed while it was being "
                                f"{self.participle}; the result was not written")
         self._write(obj)
@@ -134,14 +134,20 @@ class CoreJob:
         raise NotImplementedError
 
     def _replace_mesh(self, obj, cloud, steps) -> None:
-        """Give the object a new mesh holding `cloud` (with `gvae_step` marks), materials kept."""
+        """Give the object new data of its kind holding `cloud` (with `gvae_step` marks), materials kept:
+        a splat mesh, or a Gaussian-splat point cloud (Blender 5.3+), which gets the modifier that draws
+        it for the scene camera (a refined one's changes per octave, the anti-aliasing: `nodes`)."""
         old = obj.data
-        new = convert.mesh_from_cloud(cloud, old.name, steps=steps)
+        native = convert.is_native_splat(obj)
+        new = (convert.pointcloud_from_cloud(cloud, old.name, steps=steps) if native
+               else convert.mesh_from_cloud(cloud, old.name, steps=steps))
         for mat in old.materials:
             new.materials.append(mat)
         obj.data = new
         if old.users == 0:
-            bpy.data.meshes.remove(old)
+            (bpy.data.pointclouds if native else bpy.data.meshes).remove(old)
+        if native:
+            nodes.add_native_modifier(obj)
 
     # ------------------------------------------------------------------ worker thread
     def _progress(self, fraction: float, message: str = "") -> None:
@@ -270,7 +276,7 @@ class JobOperator:
     @classmethod
     def poll(cls, context):
         obj = context.active_object
-        return convert.is_splat(obj) and obj.name not in RUNNING
+        return convert.is_any_splat(obj) and obj.name not in RUNNING
 
     def _job(self, context) -> CoreJob:
         raise NotImplementedError

@@ -476,6 +476,85 @@ def scenario_native(bpy, args: dict) -> dict:
     return res
 
 
+def scenario_native_jobs(bpy, args: dict) -> dict:
+    """Blender 5.3+: a splat imported by Blender's own PLY importer, refined and compacted through the
+    add-on's jobs (TEST-ONLY stand-ins for the core functions, NOT the model: the refine returns the
+    refined cloud the test made, the compaction keeps every other row), rendered by Cycles at 200% and
+    100% with the modifier's Refinement on and off; then exported."""
+    import types
+
+    import numpy as np
+
+    from bl_ext.user_default.gaussian_vae.gvae_addon import convert, nodes, refine_ops, render_setup
+    from gvae_core.ply import read_ply
+
+    def dump(obj, name):
+        pc = obj.data
+        n = len(pc.points)
+        out = {}
+        for attr in pc.attributes:
+            if attr.name.startswith("."):
+                continue
+            width = {"FLOAT_VECTOR": 3, "FLOAT4": 4, "QUATERNION": 4}.get(attr.data_type, 1)
+            buf = np.empty(n * width, np.int32 if attr.data_type == "INT" else np.float32)
+            attr.data.foreach_get("vector" if attr.data_type in ("FLOAT_VECTOR", "FLOAT4") else "value", buf)
+            out[attr.name.replace(":", "__")] = buf.reshape(n, width) if width > 1 else buf
+        np.savez(args["out"] + f".{name}.npz", **out)
+        mod = nodes.splat_modifier(obj)
+        return {"type": obj.type, "data_type": pc.type, "points": n,
+                "modifier": None if mod is None else mod.node_group.name}
+
+    scene = bpy.context.scene
+    for obj in list(bpy.data.objects):
+        bpy.data.objects.remove(obj)
+    bpy.ops.wm.ply_import(filepath=args["ply"])  # Blender's own importer: no modifier, no gvae_ply
+    name = bpy.context.active_object.name
+    res = {"imported": dump(bpy.data.objects[name], "imported")}
+    received = {}
+    refined_cloud = read_ply(args["refined"])
+
+    def refine(cloud, *, progress=None, **kw):
+        received.update(n=len(cloud), extra=sorted(cloud.extra))
+        progress(1.0, "stand-in done")
+        n = len(cloud)
+        return types.SimpleNamespace(cloud=refined_cloud, added=np.arange(n, len(refined_cloud)),
+                                     step=np.ones(len(refined_cloud) - n, np.int64), timings={"total": 0.0})
+
+    def compact(cloud, *, progress=None, **kw):
+        rows = np.arange(0, len(cloud), 2)
+        progress(1.0, "stand-in done")
+        return types.SimpleNamespace(cloud=cloud.select(rows), rows=rows, psnr=99.0, timings={}, warnings=[])
+
+    job = refine_ops.RefineJob(bpy.data.objects[name], refine=refine).start()
+    job.wait(60)
+    res["refine_info"] = {k: job.finish()[k] for k in ("before", "after", "added")}
+    res["received"] = received
+    res["refined"] = dump(bpy.data.objects[name], "refined")
+    obj = bpy.data.objects[name]
+    render_setup.add_camera(scene, args["c2w"], args["fov_x"], args["width"], args["height"])
+    _converged_cycles(scene)
+    scene.cycles.samples = args["samples"]
+    scene.cycles.min_transparent_bounces = scene.cycles.transparent_max_bounces = 256
+    render_setup.setup_scene(scene)
+    mod = nodes.splat_modifier(obj)
+    for percentage in (200, 100):
+        for on in (True, False):
+            nodes.set_modifier_input(mod, "Refinement", on)
+            obj.update_tag()
+            scene.render.resolution_percentage = percentage
+            scene.render.filepath = os.path.join(os.path.dirname(args["out"]), f"native_{percentage}_{int(on)}.png")
+            bpy.ops.render.render(write_still=True)
+    res["focal"] = nodes.get_modifier_input(mod, "Focal Length (px)")
+    bpy.ops.export_scene.gaussian_splat(filepath=args["export"])
+    job = refine_ops.CompactJob(bpy.data.objects[name], compact=compact).start()
+    job.wait(60)
+    res["compact_info"] = {k: job.finish()[k] for k in ("before", "after")}
+    res["compacted"] = dump(bpy.data.objects[name], "compacted")
+    res["native_poll"] = [bpy.ops.gvae.refine.poll(), bpy.ops.gvae.compact.poll()]
+    res["is_native"] = convert.is_native_splat(bpy.data.objects[name])
+    return res
+
+
 def _input_names(obj) -> list[str]:
     return [item.name for item in obj.modifiers[0].node_group.interface.items_tree
             if getattr(item, "in_out", None) == "INPUT"]
