@@ -2,7 +2,8 @@
 bpy module: `python -m gvae_addon.benchmark N REPEATS`). Registers the add-on from the source
 tree, times its operators (import, export, Refine) on an N-Gaussian SH-3 PLY and prints one JSON
 line. `... render PLY
-CAMERA.json OUT_DIR`: Cycles renders of an imported PLY (`render_main`)."""
+CAMERA.json OUT_DIR`: Cycles renders of an imported PLY (`render_main`); `... splat-types SPEC.json OUT_DIR`
+(Blender 5.3+): the add-on's splat and Blender's own side by side (`splat_types_main`)."""
 
 from __future__ import annotations
 
@@ -234,7 +235,51 @@ def render_main(ply: str, camera_json: str, out_dir: str) -> int:
     return 0
 
 
+def splat_types_main(spec_json: str, out_dir: str) -> int:
+    """`python -m gvae_addon.benchmark splat-types SPEC.json OUT_DIR` (Blender 5.3+): each render of the
+    spec (a list of {name, ply, kind, c2w, fov_x, width, height, percentage, samples}) in a scene of its
+    own, Cycles on the CPU (2 threads), to PNG: kind "mesh" the add-on's splat (File > Import, default
+    options; one sample at each pixel centre without Russian roulette on transparent bounces, the display
+    tests' converged setting), "native" Blender's own splat (its PLY importer, then the add-on's modifier,
+    `nodes.add_native_modifier`; its splats are drawn stochastically: `samples` at the pixel centres).
+    Prints one JSON line: per render its PNG, seconds and CPU seconds."""
+    gvae_addon.register()
+    out = {}
+    for job in json.loads(Path(spec_json).read_text()):
+        _clear()
+        for pc in list(bpy.data.pointclouds):
+            bpy.data.pointclouds.remove(pc)
+        scene = bpy.context.scene
+        if job["kind"] == "mesh":
+            bpy.ops.import_scene.gaussian_splat(filepath=job["ply"])
+        else:
+            bpy.ops.wm.ply_import(filepath=job["ply"])
+            nodes.add_native_modifier(bpy.context.active_object)
+            render_setup.setup_scene(scene)
+        render_setup.add_camera(scene, job["c2w"], job["fov_x"], job["width"], job["height"])
+        r = scene.render
+        r.resolution_percentage = job["percentage"]
+        r.engine = "CYCLES"
+        r.film_transparent = True
+        r.threads_mode, r.threads = "FIXED", 2
+        r.image_settings.file_format, r.image_settings.color_mode = "PNG", "RGBA"
+        c = scene.cycles
+        c.device, c.use_denoising, c.use_adaptive_sampling = "CPU", False, False
+        c.samples, c.filter_width = (1 if job["kind"] == "mesh" else job["samples"]), 0.01
+        c.min_transparent_bounces = c.transparent_max_bounces
+        r.filepath = str(Path(out_dir) / f"{job['name']}.png")
+        t0, cpu0 = time.perf_counter(), _cpu_seconds()
+        bpy.ops.render.render(write_still=True)
+        out[job["name"]] = {"png": r.filepath, "seconds": time.perf_counter() - t0,
+                            "cpu_seconds": _cpu_seconds() - cpu0, "samples": c.samples}
+    gvae_addon.unregister()
+    print("RESULT " + json.dumps(out))
+    return 0
+
+
 if __name__ == "__main__":
     if sys.argv[1] == "render":
         sys.exit(render_main(*sys.argv[2:5]))
+    if sys.argv[1] == "splat-types":
+        sys.exit(splat_types_main(*sys.argv[2:4]))
     sys.exit(main())

@@ -36,6 +36,32 @@ AXES = {
 }
 
 
+#: What a splat object can be: the add-on's splat mesh (every version) or Blender 5.3+'s own splat.
+SPLAT_TYPES = (
+    ("MESH", "Add-on Splat", "A mesh drawn by the add-on's Geometry Nodes (every Blender version; the closest to gvae "
+     "render in Cycles, with the display options of the sidebar)"),
+    ("NATIVE", "Blender Gaussian Splat", "A point cloud of type Gaussian Splat, drawn by Blender itself (Blender 5.3 "
+     "and later; a modifier adds the anti-aliasing and a refinement for the scene camera; Cycles blends it in its "
+     "own order, a little further from gvae render)"))
+#: The choices of `AXES`, for an operator's enum.
+AXES_ITEMS = (("NONE", "As Stored (Z Up)", "Keep the file's axes (scenes made in Blender, NeRF-Synthetic)"),
+              ("Y_DOWN", "Y Down, Z Forward", "3DGS/COLMAP/OpenCV scenes: rotate the object so that -Y becomes up "
+               "(an object rotation; the data are not changed)"))
+
+
+def set_up_scene(scene, setup: bool = True, background=None) -> list[str]:
+    """What a new splat object needs of its scene (`render_setup`): the focal length its filters follow
+    and, with `setup`, the Standard view transform, Cycles' transparent bounces and the world colour the
+    splat was trained over (`background`, when known). Returns a description of each change made."""
+    render_setup.sync_focal_length(scene)
+    if not setup:
+        return []
+    changes = render_setup.setup_scene(scene)
+    if background is not None:
+        changes.append(render_setup.set_world_colour(scene, background))
+    return changes
+
+
 def _with_messages(function, *args, **kwargs):
     """function(*args, **kwargs) and the warnings it gave (dropped rows, say), as messages."""
     with warnings.catch_warnings(record=True) as caught:
@@ -186,18 +212,8 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
     files: CollectionProperty(type=OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
     directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
 
-    splat_type: EnumProperty(
-        name="Splat Type", default="MESH",
-        items=(("MESH", "Add-on Splat", "A mesh drawn by the add-on's Geometry Nodes (every Blender version; the "
-                "closest to gvae render in Cycles, with the display options of the sidebar)"),
-               ("NATIVE", "Blender Gaussian Splat", "A point cloud of type Gaussian Splat, drawn by Blender itself "
-                "(Blender 5.3 and later; a modifier adds the anti-aliasing and a refinement for the scene camera; "
-                "Cycles composites it in its own order, a little further from gvae render)")))
-    axis_conversion: EnumProperty(
-        name="Axes", default="NONE",
-        items=(("NONE", "As Stored (Z Up)", "Keep the file's axes (scenes made in Blender, NeRF-Synthetic)"),
-               ("Y_DOWN", "Y Down, Z Forward", "3DGS/COLMAP/OpenCV scenes: rotate the object so that "
-                "-Y becomes up (an object rotation; the data are not changed)")))
+    splat_type: EnumProperty(name="Splat Type", default="MESH", items=SPLAT_TYPES)
+    axis_conversion: EnumProperty(name="Axes", default="NONE", items=AXES_ITEMS)
     scale_factor: FloatProperty(name="Scale Factor", default=nodes.DEFAULT_SCALE_FACTOR, min=0.0,
                                 soft_max=5.0, description="Multiplies every Gaussian's size (1: as trained)")
     view_dependent: BoolProperty(name="View-Dependent Colour", default=True,
@@ -284,11 +300,8 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
         """Set up (or check) the scene for splats: the INFO note of what changed; warnings when
         Set Up Scene is off and the scene would show the splats wrong. `background`: the colour
         the (last) imported splat was trained over, shown as the world's."""
-        render_setup.sync_focal_length(scene)
+        changes = set_up_scene(scene, self.setup_scene, background)
         if self.setup_scene:
-            changes = render_setup.setup_scene(scene)
-            if background is not None:
-                changes.append(render_setup.set_world_colour(scene, background))
             return f"; scene set up for splats: {', '.join(changes)}" if changes else ""
         for problem in (render_setup.view_transform_problem(scene), render_setup.bounce_problem(scene)):
             if problem:

@@ -16,6 +16,7 @@ import importlib
 import importlib.util
 import os
 import sys
+from pathlib import Path
 
 import bpy
 
@@ -24,6 +25,10 @@ import bpy
 #: torch code, several times slower). The preferences button installs all three.
 TORCH_REQUIREMENT = "torch==2.13.0"
 REFINE_REQUIREMENTS = (TORCH_REQUIREMENT, "safetensors==0.8.0", "numba==0.68.1")
+
+#: What structure from motion needs (New from Photos on a folder of photos without a model), pinned as in
+#: pyproject.toml; installed on demand by the same button, into the same directory.
+SFM_REQUIREMENTS = ("pycolmap==4.2.1",)
 
 #: Root package of the installed extension (e.g. "bl_ext.user_default.gaussian_vae"), or
 #: "gvae_addon" when the add-on is registered straight from a source checkout.
@@ -114,6 +119,36 @@ def _core(module_name: str, function: str, label: str):
     except ImportError as exc:
         raise RuntimeError(f"{label} could not be loaded: {exc}") from exc
     return getattr(module, function)
+
+
+#: The module that holds structure from motion (issue 49's `ensure_capture`, `needs_sfm`).
+SFM_MODULE = "gvae_core.capture.sfm"
+
+
+def needs_sfm(folder: str) -> bool:
+    """Whether New from Photos must run structure from motion on `folder` (photos without a COLMAP model
+    or a transforms.json): the core's `needs_sfm` where this build has it, else whether the core finds
+    no capture there (cheap: file look-ups only, nothing is imported that needs torch or pycolmap)."""
+    if _has_module(SFM_MODULE):
+        return bool(importlib.import_module(SFM_MODULE).needs_sfm(folder))
+    from gvae_core.capture import find_capture  # noqa: PLC0415 - numpy only
+
+    try:
+        find_capture(Path(folder))
+    except (ValueError, OSError):
+        return True
+    return False
+
+
+def photos_missing(folder: str) -> list[tuple[str, tuple[str, ...]]]:
+    """What New from Photos needs that this Blender lacks, as (what, pinned requirements) pairs, said
+    before the job starts: PyTorch (training), and pycolmap where `folder` needs structure from motion."""
+    missing = []
+    if not torch_available():
+        missing.append(("PyTorch (training)", REFINE_REQUIREMENTS))
+    if folder and os.path.isdir(folder) and needs_sfm(folder) and not _has_module("pycolmap"):
+        missing.append(("pycolmap (structure from motion)", SFM_REQUIREMENTS))
+    return missing
 
 
 def prepare_kernels(progress) -> None:

@@ -6,7 +6,7 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 from bpy.types import Panel, PropertyGroup
 
-from . import convert, nodes, refine_ops, runtime
+from . import convert, io_ops, nodes, photos_ops, refine_ops, runtime
 
 
 class GVAE_Settings(PropertyGroup):
@@ -37,6 +37,17 @@ class GVAE_Settings(PropertyGroup):
     compact_removal: EnumProperty(name="Removal", default="MERGE", items=refine_ops.REMOVAL_ITEMS)
     compact_distill: IntProperty(name="Fine-Tune Iterations", default=-1, min=-1,
                                  description=refine_ops.DISTILL_DESCRIPTION)
+    photos_folder: StringProperty(name="Folder", subtype="DIR_PATH", default="",
+                                  description="A folder of photos (in it or in its images/), or a COLMAP capture "
+                                  "(sparse/0 and images/) or a transforms.json capture")
+    photos_height: IntProperty(name="Size", default=0, min=0, soft_max=1080, subtype="PIXEL",
+                               description="Height in pixels the splat is trained at (0: 200 px, gvae train's "
+                               "default)")
+    photos_held_out: BoolProperty(name="Held-Out Photos", default=True,
+                                  description="Set every 8th photo aside and report how well the splat draws them")
+    photos_splat_type: EnumProperty(name="Splat Type", default="MESH", items=io_ops.SPLAT_TYPES)
+    photos_cameras: BoolProperty(name="Cameras", default=True,
+                                 description="Also add the capture's cameras as Blender cameras")
 
 
 class GVAE_PT_main(Panel):
@@ -222,7 +233,65 @@ class GVAE_PT_compact(_JobPanel):
         op.distill = settings.compact_distill
 
 
-classes = (GVAE_Settings, GVAE_PT_main, GVAE_PT_display, GVAE_PT_refine, GVAE_PT_compact)
+#: What New from Photos does, under its button.
+PHOTOS_NOTE = (
+    "Structure from motion when the folder has",
+    "only photos, then 3DGS training on the CPU, as",
+    "gvae train does; the run folder is kept (gvae",
+    "train RUN --more N; the same options again",
+    "resume it). The scene changes only at the end.",
+)
+
+
+class GVAE_PT_photos(Panel):
+    """New from Photos: the folder and options, what must be installed first, then the button, or the
+    running job's stage, step and held-out figure."""
+
+    bl_label = "New from Photos"
+    bl_parent_id = "GVAE_PT_main"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "GaussianVAE"
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.gvae
+        col = layout.column()
+        col.use_property_split = True
+        for prop in ("photos_folder", "photos_height", "photos_held_out", "photos_cameras"):
+            col.prop(settings, prop)
+        if convert.native_available():
+            col.prop(settings, "photos_splat_type")
+        job = refine_ops.RUNNING.get(photos_ops.JOB_KEY)
+        if job is not None:
+            layout.progress(factor=job.fraction, type="BAR", text=f"{100 * job.fraction:.0f}%")
+            box = layout.box().column(align=True)
+            box.label(text=job.message, icon="TIME")
+            if job.heldout is not None:
+                box.label(text=f"Held-out photos: {job.heldout:.2f} dB PSNR")
+            box.label(text="Running in the background (Esc: cancel)")
+            return
+        folder = bpy.path.abspath(settings.photos_folder) if settings.photos_folder else ""
+        missing = runtime.photos_missing(folder)
+        if missing:
+            box = layout.box()
+            for what, requirements in missing:
+                box.label(text=f"Needs {what}", icon="ERROR")
+                op = box.operator("gvae.install_torch", text=f"Install {' '.join(requirements)}", icon="IMPORT")
+                op.requirement = " ".join(requirements)
+        row = layout.row()
+        row.enabled = bool(folder) and not missing
+        row.scale_y = 1.4
+        op = row.operator(photos_ops.GVAE_OT_new_from_photos.bl_idname, icon="IMAGE_DATA")
+        op.folder, op.height, op.held_out = settings.photos_folder, settings.photos_height, settings.photos_held_out
+        op.cameras = settings.photos_cameras
+        op.splat_type = settings.photos_splat_type if convert.native_available() else "MESH"
+        box = layout.box().column(align=True)
+        for line in PHOTOS_NOTE:
+            box.label(text=line)
+
+
+classes = (GVAE_Settings, GVAE_PT_main, GVAE_PT_photos, GVAE_PT_display, GVAE_PT_refine, GVAE_PT_compact)
 
 
 def register():

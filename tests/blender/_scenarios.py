@@ -251,7 +251,7 @@ def draw_panels(bpy) -> list[str]:
     from unittest import mock
 
     labels = []
-    for name in ("GVAE_PT_main", "GVAE_PT_display", "GVAE_PT_refine", "GVAE_PT_compact"):
+    for name in ("GVAE_PT_main", "GVAE_PT_photos", "GVAE_PT_display", "GVAE_PT_refine", "GVAE_PT_compact"):
         cls = getattr(bpy.types, name)
         layout = mock.MagicMock()
         layout.label.side_effect = lambda text="", **kw: labels.append(text)
@@ -552,6 +552,72 @@ def scenario_native_jobs(bpy, args: dict) -> dict:
     res["compacted"] = dump(bpy.data.objects[name], "compacted")
     res["native_poll"] = [bpy.ops.gvae.refine.poll(), bpy.ops.gvae.compact.poll()]
     res["is_native"] = convert.is_native_splat(bpy.data.objects[name])
+    return res
+
+
+def scenario_photos(bpy, args: dict) -> dict:
+    """New from Photos on a small posed capture, in Blender's default scene: said what it needs before
+    it starts (torch blocked); cancelled before it trains and between stages (the scene as it was, the
+    run folder kept); then the operator as a batch run calls it, and again with the same options (the
+    run resumes: nothing more to train)."""
+    import time
+
+    from bl_ext.user_default.gaussian_vae.gvae_addon import photos_ops, runtime
+
+    scene = bpy.context.scene
+
+    def state():
+        return {**counts(bpy), "cameras": sorted(c.name for c in bpy.data.cameras),
+                "collections": sorted(c.name for c in bpy.data.collections),
+                "view": scene.view_settings.view_transform, "camera": getattr(scene.camera, "name", None),
+                "active": getattr(bpy.context.active_object, "name", None)}
+
+    res = {}
+    before = state()
+    stash = sys.modules.get("torch")
+    sys.modules["torch"] = None  # as in a Blender without torch
+    try:
+        res["missing"] = [what for what, _ in runtime.photos_missing(args["folder"])]
+        res["refused"] = failure(bpy, lambda: bpy.ops.gvae.new_from_photos(folder=args["folder"]))
+    finally:
+        if stash is None:
+            sys.modules.pop("torch")
+        else:
+            sys.modules["torch"] = stash
+    res["refused_same"] = state() == before
+    res["available"] = runtime.torch_available()
+    if not res["available"]:
+        return res
+    options = {"height": args["height"], "profile": "TINY", "iterations": args["iterations"]}
+    job = photos_ops.PhotosJob(args["folder"], run_dir=args["run_cancel"], **options).start()
+    job.cancel()
+    job.wait(120)
+    res["cancel"] = failure(bpy, job.finish)
+    res["cancel_same"] = state() == before
+    job = photos_ops.PhotosJob(args["folder"], run_dir=args["run_cancel"], **options).start()
+    t0, messages = time.perf_counter(), []
+    while not job.wait(0.02):
+        messages.append(job.message)
+        if job.message.startswith("stage 2"):
+            job.cancel()
+        assert time.perf_counter() - t0 < 300, "the job did not end"
+    res["cancel_later"] = failure(bpy, job.finish)
+    res["cancel_later_messages"] = sorted(set(messages))
+    res["cancel_later_same"] = state() == before
+    res["kept"] = sorted(os.listdir(args["run_cancel"]))
+
+    res["batch"] = sorted(bpy.ops.gvae.new_from_photos(folder=args["folder"], run_dir=args["run"], **options))
+    obj = bpy.context.active_object
+    res["object"] = {"name": obj.name, "type": obj.type, "count": len(obj.data.vertices),
+                     "modifiers": [m.type for m in obj.modifiers], "rotation": list(obj.rotation_euler)}
+    cams = bpy.data.collections.get(f"{obj.name} cameras")
+    res["cameras"] = sorted(o.name for o in cams.objects) if cams is not None else None
+    res["camera_parent"] = sorted({o.parent.name for o in cams.objects}) if cams is not None else None
+    res["after"] = state()
+    res["run"] = sorted(os.listdir(args["run"]))
+    res["again"] = sorted(bpy.ops.gvae.new_from_photos(folder=args["folder"], run_dir=args["run"], cameras=False,
+                                                       **options))
+    res["again_count"] = len(bpy.context.active_object.data.vertices)
     return res
 
 

@@ -1,0 +1,59 @@
+"""Sidebar > GaussianVAE > New from Photos (`gvae_addon.photos_ops`): a small posed capture made here becomes a
+splat object through the background job, as `gvae train` trains it; cancel before and during the training
+leaves the scene as it was and keeps the run folder; without PyTorch the job is refused before it starts,
+saying so."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from tests.blender.conftest import requires_blender_torch, run_scenario
+from tests.conftest import requires_bpy
+
+pytestmark = requires_bpy
+
+
+def test_new_from_photos_job(extension_zip, tmp_path):
+    pytest.importorskip("torch", reason="training needs PyTorch (an optional runtime in Blender)")
+    requires_blender_torch()
+    from gvae_core.cli import main  # noqa: PLC0415 - after the check for torch
+    from tests.test_superres import _capture, _write_capture  # noqa: PLC0415
+
+    _, _, views = _capture(n_views=9, n=300)
+    folder = _write_capture(views, tmp_path / "photos")
+    (folder / "transforms_train.json").rename(folder / "transforms.json")  # one set of photos: 2 of 9 held out
+    options = {"height": 16, "iterations": 20}
+    res = run_scenario("photos", tmp_path, extension_zip, folder=str(folder), run=str(tmp_path / "run"),
+                       run_cancel=str(tmp_path / "run_cancel"), timeout=600, **options)
+
+    assert res["missing"] == ["PyTorch (training)"]  # (a posed capture: no structure from motion to install)
+    assert "New from Photos needs PyTorch (training)" in res["refused"]["error"] and res["refused_same"]
+    assert res["cancel"]["error"] == "New from Photos cancelled" and res["cancel_same"]
+    assert res["cancel_later"]["error"] == "New from Photos cancelled" and res["cancel_later_same"]
+    assert any(m.startswith("stage 2/3") for m in res["cancel_later_messages"]), res["cancel_later_messages"]
+    assert {"stage_0.ply", "run.json", "log.json"} <= set(res["kept"]) and "stage_2.ply" not in res["kept"]
+
+    assert res["batch"] == ["FINISHED"] and res["again"] == ["FINISHED"]
+    obj = res["object"]
+    assert obj["name"] == "photos" and obj["type"] == "MESH" and obj["count"] > 100 and obj["modifiers"] == ["NODES"]
+    assert obj["rotation"] == [0.0, 0.0, 0.0]  # (a transforms.json capture: its axes as stored)
+    assert len(res["cameras"]) == 9 and sum("(held out)" in c for c in res["cameras"]) == 2
+    assert res["camera_parent"] == ["photos"]
+    assert {"stage_2.ply", "run.json", "log.json", "lineage.npz"} <= set(res["run"])
+    assert res["after"]["view"] == "Standard" and res["after"]["camera"] == "Camera"  # (the scene had a camera)
+    assert res["again_count"] == obj["count"]  # resumed: every stage was done
+    report = res["_output"].split("New from Photos: photos, ")[1]
+    assert "Gaussians trained at 16 px" in report and "held-out photos" in report and " dB PSNR" in report
+
+    # `gvae train` with the same options gives the same held-out figure
+    cli = tmp_path / "cli"
+    assert main(["train", str(folder), "--out", str(cli), "--image-height", "16", "--profile", "tiny",
+                 "--iterations", "20", "--test-every", "8", "--quiet"]) == 0
+    ours, theirs = (json.loads((p / "log.json").read_text())[-1]["test_psnr"] for p in (tmp_path / "run", cli))
+    assert abs(ours - theirs) <= 0.1, (ours, theirs)
+    shutil.rmtree(cli)
+    assert np.isfinite(ours)
