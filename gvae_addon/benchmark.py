@@ -277,7 +277,47 @@ def splat_types_main(spec_json: str, out_dir: str) -> int:
     return 0
 
 
+def photos_main(folder: str, run_dir: str, height: str, out_dir: str, width: str, threads: str) -> int:
+    """`python -m gvae_addon.benchmark photos FOLDER RUN_DIR HEIGHT OUT_DIR WIDTH THREADS`: New from Photos as
+    a batch run calls it (`bpy.ops.gvae.new_from_photos`, held-out photos on, THREADS torch threads, 0: its
+    choice) in Blender's default scene emptied of its objects, timed; then a
+    Cycles render of the result (the add-on's splat, the display tests' converged setting) through the
+    first held-out photo's camera at the training size (WIDTH x the last stage's height), to
+    OUT_DIR/photos.png. Prints one JSON line."""
+    gvae_addon.register()
+    _clear()  # (the default cube would stand in front of the capture; its camera goes too: the job sets one)
+    t0, cpu0 = time.perf_counter(), _cpu_seconds()
+    status = bpy.ops.gvae.new_from_photos(folder=folder, run_dir=run_dir, height=int(height), threads=int(threads))
+    out = {"status": sorted(status), "seconds": time.perf_counter() - t0, "cpu_seconds": _cpu_seconds() - cpu0}
+    obj = bpy.context.active_object
+    out["count"] = len(obj.data.vertices)
+    scene = bpy.context.scene
+    cams = bpy.data.collections[f"{obj.name} cameras"].objects
+    held = sorted((c for c in cams if c.name.endswith("(held out)")), key=lambda c: c.name)
+    scene.camera = held[0]
+    out["camera"] = held[0].name
+    log = json.loads((Path(run_dir) / "log.json").read_text())
+    out["log"] = log
+    r = scene.render
+    r.resolution_x, r.resolution_y = int(width), log[-1]["resolution"]
+    r.engine, r.film_transparent, r.resolution_percentage = "CYCLES", True, 100
+    r.threads_mode, r.threads = "FIXED", 2
+    r.image_settings.file_format, r.image_settings.color_mode = "PNG", "RGBA"
+    c = scene.cycles
+    c.device, c.use_denoising, c.use_adaptive_sampling, c.samples, c.filter_width = "CPU", False, False, 1, 0.01
+    c.min_transparent_bounces = c.transparent_max_bounces
+    r.filepath = str(Path(out_dir) / "photos.png")
+    out["render_size"] = [r.resolution_x, r.resolution_y]
+    bpy.ops.render.render(write_still=True)
+    out["png"] = r.filepath
+    gvae_addon.unregister()
+    print("RESULT " + json.dumps(out))
+    return 0
+
+
 if __name__ == "__main__":
+    if sys.argv[1] == "photos":
+        sys.exit(photos_main(*sys.argv[2:8]))
     if sys.argv[1] == "render":
         sys.exit(render_main(*sys.argv[2:5]))
     if sys.argv[1] == "splat-types":

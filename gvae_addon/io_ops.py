@@ -135,7 +135,18 @@ def build_native_splat(context, cloud: GaussianCloud, name: str, *, axes: str = 
     """A new Blender 5.3+ Gaussian-splat point cloud object holding `cloud` (`convert.pointcloud_from_cloud`)
     with the modifier that draws it as `gvae_core.render` does for the scene camera
     (`nodes.add_native_modifier`), linked to the active collection (removed again if anything fails)."""
-    return _new_object(context, name, convert.pointcloud_from_cloud(cloud, name), axes, nodes.add_native_modifier)
+    cloud, steps = _split_steps(cloud)
+    return _new_object(context, name, convert.pointcloud_from_cloud(cloud, name, steps=steps), axes,
+                       nodes.add_native_modifier)
+
+
+def _split_steps(cloud: GaussianCloud):
+    """(cloud without its integer `gvae_step` property, those steps or None): Export's "Write Refine Step"
+    property becomes the object's `gvae_step` attribute again."""
+    steps = cloud.extra.get(convert.STEP_ATTR)
+    if steps is None or not np.issubdtype(steps.dtype, np.integer):
+        return cloud, None
+    return cloud.replace(extra={k: v for k, v in cloud.extra.items() if k != convert.STEP_ATTR}), steps
 
 
 def remove_splat(obj) -> None:
@@ -159,11 +170,7 @@ def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
     """A new splat object holding `cloud`, linked to the active collection (removed again if
     anything fails). An integer `gvae_step` property (written by Export with "Write Refine Step")
     becomes the object's `gvae_step` attribute again."""
-    steps = cloud.extra.get(convert.STEP_ATTR)
-    if steps is not None and np.issubdtype(steps.dtype, np.integer):
-        cloud = cloud.replace(extra={k: v for k, v in cloud.extra.items() if k != convert.STEP_ATTR})
-    else:
-        steps = None
+    cloud, steps = _split_steps(cloud)
     return _new_object(context, name, convert.mesh_from_cloud(cloud, name, steps=steps), axes, lambda obj:
                        nodes.add_splat_modifier(obj, scale_factor=scale_factor, fraction=fraction,
                                                 points_only=points_only, min_opacity=min_opacity,

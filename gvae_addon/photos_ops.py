@@ -57,13 +57,18 @@ def train_capture(folder: str, run_dir: str, *, height: int, profile: str, itera
 
     sfm, share = None, 0.0
     if runtime.needs_sfm(folder):
-        ensure = getattr(core_capture, "ensure_capture", None)
+        ensure = runtime.core_ensure_capture()
         if ensure is None:
             raise RuntimeError(f"{folder}: photos without a COLMAP model or transforms.json, and structure from "
                                "motion (gvae_core.capture.ensure_capture) is not in this build")
         share = SFM_SHARE
-        sfm = ensure(folder, progress=lambda stage, fraction, message: report(
-            share * fraction, f"structure from motion: {stage} {message}".strip(), None), cancel=cancelled)
+        try:
+            sfm = ensure(folder, progress=lambda stage, fraction, message: report(
+                share * fraction, f"structure from motion: {stage} {message}".strip(), None), cancel=cancelled)
+        except Exception:
+            if cancelled():  # (SfM's own cancel error, or ours raised through its progress report)
+                report(share, "cancelled", None)
+            raise
     kind = core_capture.find_capture(Path(folder))[0]
     # (a NeRF-Synthetic folder holds its test views apart already: they are the held-out ones)
     test_every = HELD_OUT_EVERY if held_out and kind != "nerf-synthetic" else None
@@ -144,6 +149,10 @@ class PhotosJob(refine_ops.BackgroundJob):
     @property
     def key(self) -> str:
         return JOB_KEY
+
+    def status_text(self) -> str:
+        heldout = f", held-out photos {self.heldout:.2f} dB" if self.heldout is not None else ""
+        return f"{self.label} ({Path(self.folder).name}): {100 * self.fraction:.0f}% {self.message}{heldout}"
 
     def start(self) -> PhotosJob:
         if not self.folder or not os.path.isdir(self.folder):

@@ -72,6 +72,10 @@ class BackgroundJob:
     def key(self) -> str:
         raise NotImplementedError
 
+    def status_text(self) -> str:
+        """What the status bar says while the job runs."""
+        return f"{self.label} {self.key}: {100 * self.fraction:.0f}% {self.message}"
+
     def _launch(self, work, *args) -> None:
         """Run `work(*args)` in the worker thread; what it returns becomes `result`, what it raises `error`
         (JobCancelled: neither)."""
@@ -374,8 +378,7 @@ class JobOperator:
 
     def _status(self, context) -> None:
         job = self._running
-        context.workspace.status_text_set(
-            f"GaussianVAE {job.label} {job.key}: {100 * job.fraction:.0f}% {job.message}   (Esc: cancel)")
+        context.workspace.status_text_set(f"GaussianVAE {job.status_text()}   (Esc: cancel)")
         context.window_manager.progress_update(job.fraction)
         _redraw(context)
 

@@ -140,6 +140,15 @@ def needs_sfm(folder: str) -> bool:
     return False
 
 
+def core_ensure_capture():
+    """`gvae_core.capture.ensure_capture` (structure from motion when a folder needs it), or None where this
+    build has none."""
+    ensure = getattr(importlib.import_module("gvae_core.capture"), "ensure_capture", None)
+    if ensure is None and _has_module(SFM_MODULE):
+        ensure = getattr(importlib.import_module(SFM_MODULE), "ensure_capture", None)
+    return ensure
+
+
 def photos_missing(folder: str) -> list[tuple[str, tuple[str, ...]]]:
     """What New from Photos needs that this Blender lacks, as (what, pinned requirements) pairs, said
     before the job starts: PyTorch (training), and pycolmap where `folder` needs structure from motion."""
