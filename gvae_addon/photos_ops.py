@@ -51,6 +51,7 @@ def train_capture(folder: str, run_dir: str, *, height: int, profile: str, itera
     `report(fraction, message, heldout)` is called as the work goes (it raises to cancel);
     `cancelled()` says whether to stop. Returns the final cloud, the log, the capture's cameras (the
     held-out ones marked) and what structure from motion did."""
+    report(0.0, "starting", None)  # (a cancel before the first stage needs no torch)
     from gvae_core import capture as core_capture  # noqa: PLC0415 - imported in the worker (torch)
     from gvae_core import train as core_train  # noqa: PLC0415
     from gvae_core.cli.train import stage_heights  # noqa: PLC0415

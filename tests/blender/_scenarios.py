@@ -290,6 +290,9 @@ def scenario_refine_glue(bpy, args: dict) -> dict:
     for module in ("torch", "safetensors"):
         if importlib.util.find_spec(module) is None:
             sys.modules[module] = types.ModuleType(f"{module} (test placeholder)")
+            if module == "torch":  # nor can the core's CPU kernels be made ready (the job does that first)
+                warmup = sys.modules["gvae_core.warmup"] = types.ModuleType("gvae_core.warmup (test placeholder)")
+                warmup.compile_kernels = lambda progress: None
     sys.modules["gvae_core.refinement"] = _stand_in_module(fail=True)
     res["failing"] = failure(bpy, lambda: bpy.ops.gvae.refine(steps=1))
     res["failing_count"] = len(obj.data.vertices)
@@ -585,10 +588,60 @@ def scenario_photos(bpy, args: dict) -> dict:
         else:
             sys.modules["torch"] = stash
     res["refused_same"] = state() == before
+
+    # The Blender side with a TEST-ONLY stand-in for the core's training (NOT a training: it returns the
+    # cloud the test wrote, the capture's cameras read by the core): a Blender splat where Blender has
+    # them, else the add-on's; cancel while it "trains".
+    import threading
+
+    from bl_ext.user_default.gaussian_vae.gvae_addon import convert
+    from gvae_core.capture import read_capture
+    from gvae_core.ply import read_ply
+
+    def stand_in(folder, run_dir, *, report, cancelled, **kw):
+        report(0.5, "stand-in training", 20.0)
+        while args_release.is_set() is False and not cancelled():
+            time.sleep(0.01)
+        report(1.0, "stand-in done", 21.5)
+        capture = read_capture(folder, 8, images=False)
+        return {"cloud": read_ply(args["cloud"]), "log": [{"test_psnr": 21.5, "resolution": 16}], "sfm": None,
+                "cameras": capture.cameras, "names": capture.names, "splits": capture.splits, "kind": capture.kind}
+
+    native = convert.native_available()
+    args_release = threading.Event()
+    job = photos_ops.PhotosJob(args["folder"], run_dir=args["run_cancel"], train=stand_in).start()
+    time.sleep(0.1)
+    res["stand_in_heldout"] = job.heldout
+    job.cancel()
+    job.wait(30)
+    res["stand_in_cancel"] = failure(bpy, job.finish)
+    res["stand_in_cancel_same"] = state() == before
+    args_release.set()
+    job = photos_ops.PhotosJob(args["folder"], run_dir=args["run_cancel"], train=stand_in,
+                               splat_type="NATIVE" if native else "MESH").start()
+    job.wait(30)
+    info = job.finish()
+    obj = bpy.data.objects[info["object"]]
+    res["stand_in"] = {"type": obj.type, "native": convert.is_native_splat(obj), "count": convert.splat_count(obj),
+                       "modifier": [m.node_group.name for m in obj.modifiers], "cameras": info["cameras"],
+                       "heldout": info["heldout"], "rotation": list(obj.rotation_euler)}
+    cams = bpy.data.collections[f"{obj.name} cameras"]
+    bpy.data.objects.remove(obj)  # (back to the scene as it was, for the real job below)
+    for cam in list(cams.objects):
+        data = cam.data
+        bpy.data.objects.remove(cam)
+        bpy.data.cameras.remove(data)
+    bpy.data.collections.remove(cams)
+    for name in ("meshes", "pointclouds"):
+        for data in list(getattr(bpy.data, name)):
+            if data.users == 0:
+                getattr(bpy.data, name).remove(data)
     res["available"] = runtime.torch_available()
+    before = state()  # (the scene now: the stand-in's node group and material stay in the file)
     if not res["available"]:
         return res
     options = {"height": args["height"], "profile": "TINY", "iterations": args["iterations"]}
+    t_start = time.perf_counter()
     job = photos_ops.PhotosJob(args["folder"], run_dir=args["run_cancel"], **options).start()
     job.cancel()
     job.wait(120)
@@ -605,6 +658,7 @@ def scenario_photos(bpy, args: dict) -> dict:
     res["cancel_later_messages"] = sorted(set(messages))
     res["cancel_later_same"] = state() == before
     res["kept"] = sorted(os.listdir(args["run_cancel"]))
+    res["seconds"] = {"cancels": time.perf_counter() - t_start}
 
     res["batch"] = sorted(bpy.ops.gvae.new_from_photos(folder=args["folder"], run_dir=args["run"], **options))
     obj = bpy.context.active_object
@@ -615,8 +669,10 @@ def scenario_photos(bpy, args: dict) -> dict:
     res["camera_parent"] = sorted({o.parent.name for o in cams.objects}) if cams is not None else None
     res["after"] = state()
     res["run"] = sorted(os.listdir(args["run"]))
+    res["seconds"]["batch"] = time.perf_counter() - t_start - res["seconds"]["cancels"]
     res["again"] = sorted(bpy.ops.gvae.new_from_photos(folder=args["folder"], run_dir=args["run"], cameras=False,
                                                        **options))
+    res["seconds"]["all"] = time.perf_counter() - t_start
     res["again_count"] = len(bpy.context.active_object.data.vertices)
     return res
 
