@@ -277,13 +277,12 @@ def splat_types_main(spec_json: str, out_dir: str) -> int:
     return 0
 
 
-def photos_main(folder: str, run_dir: str, height: str, out_dir: str, width: str, threads: str) -> int:
-    """`python -m gvae_addon.benchmark photos FOLDER RUN_DIR HEIGHT OUT_DIR WIDTH THREADS`: New from Photos as
-    a batch run calls it (`bpy.ops.gvae.new_from_photos`, held-out photos on, THREADS torch threads, 0: its
-    choice) in Blender's default scene emptied of its objects, timed; then a
-    Cycles render of the result (the add-on's splat, the display tests' converged setting) through the
-    first held-out photo's camera at the training size (WIDTH x the last stage's height), to
-    OUT_DIR/photos.png. Prints one JSON line."""
+def photos_main(folder: str, run_dir: str, height: str, out_dir: str, threads: str) -> int:
+    """`python -m gvae_addon.benchmark photos FOLDER RUN_DIR HEIGHT OUT_DIR THREADS`: New from Photos as a
+    batch run calls it (`bpy.ops.gvae.new_from_photos`, held-out photos on, THREADS torch threads, 0: its
+    choice) in Blender's default scene emptied of its objects, timed; then a Cycles render of the result
+    (the add-on's splat, the display tests' converged setting) through the first held-out photo's camera
+    at the training size, to OUT_DIR/photos.png. Prints one JSON line."""
     gvae_addon.register()
     _clear()  # (the default cube would stand in front of the capture; its camera goes too: the job sets one)
     t0, cpu0 = time.perf_counter(), _cpu_seconds()
@@ -299,7 +298,11 @@ def photos_main(folder: str, run_dir: str, height: str, out_dir: str, width: str
     log = json.loads((Path(run_dir) / "log.json").read_text())
     out["log"] = log
     r = scene.render
-    r.resolution_x, r.resolution_y = int(width), log[-1]["resolution"]
+    from gvae_core.capture import read_capture  # noqa: PLC0415 - the capture as the job left it (SfM'd)
+
+    capture = read_capture(folder, 8, images=False)
+    photo = capture.cameras[capture.indices("test")[0]].scaled(log[-1]["resolution"])
+    r.resolution_x, r.resolution_y = photo.width, photo.height
     r.engine, r.film_transparent, r.resolution_percentage = "CYCLES", True, 100
     r.threads_mode, r.threads = "FIXED", 2
     r.image_settings.file_format, r.image_settings.color_mode = "PNG", "RGBA"
@@ -317,7 +320,7 @@ def photos_main(folder: str, run_dir: str, height: str, out_dir: str, width: str
 
 if __name__ == "__main__":
     if sys.argv[1] == "photos":
-        sys.exit(photos_main(*sys.argv[2:8]))
+        sys.exit(photos_main(*sys.argv[2:7]))
     if sys.argv[1] == "render":
         sys.exit(render_main(*sys.argv[2:5]))
     if sys.argv[1] == "splat-types":

@@ -54,22 +54,21 @@ def train_capture(folder: str, run_dir: str, *, height: int, profile: str, itera
     report(0.0, "starting", None)  # (a cancel before the first stage needs no torch)
     from gvae_core import capture as core_capture  # noqa: PLC0415 - imported in the worker (torch)
     from gvae_core import train as core_train  # noqa: PLC0415
+    from gvae_core.capture.sfm import SfMOptions, ensure_capture  # noqa: PLC0415
     from gvae_core.cli.train import stage_heights  # noqa: PLC0415
 
-    sfm, share = None, 0.0
-    if runtime.needs_sfm(folder):
-        ensure = runtime.core_ensure_capture()
-        if ensure is None:
-            raise RuntimeError(f"{folder}: photos without a COLMAP model or transforms.json, and structure from "
-                               "motion (gvae_core.capture.ensure_capture) is not in this build")
-        share = SFM_SHARE
-        try:
-            sfm = ensure(folder, progress=lambda stage, fraction, message: report(
-                share * fraction, f"structure from motion: {stage} {message}".strip(), None), cancel=cancelled)
-        except Exception:
-            if cancelled():  # (SfM's own cancel error, or ours raised through its progress report)
-                report(share, "cancelled", None)
-            raise
+    # What `gvae train` does first: structure from motion for photos without cameras, points triangulated
+    # with the poses of a capture that has none (pycolmap; the SfM options' defaults, its threads).
+    work = runtime.pycolmap_work(folder)
+    share = SFM_SHARE if work else 0.0
+    try:
+        sfm = ensure_capture(folder, SfMOptions(threads=threads), points=True, cancel=cancelled,
+                             progress=lambda stage, fraction, message: report(
+                                 share * fraction, f"{work}: {message or stage}", None))
+    except Exception:
+        if cancelled():  # (SfM's own cancel error, or ours raised through its progress report)
+            report(share, "cancelled", None)
+        raise
     kind = core_capture.find_capture(Path(folder))[0]
     # (a NeRF-Synthetic folder holds its test views apart already: they are the held-out ones)
     test_every = HELD_OUT_EVERY if held_out and kind != "nerf-synthetic" else None

@@ -12,11 +12,11 @@ add-on registers.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import importlib.util
 import os
 import sys
-from pathlib import Path
 
 import bpy
 
@@ -121,42 +121,50 @@ def _core(module_name: str, function: str, label: str):
     return getattr(module, function)
 
 
-#: The module that holds structure from motion (issue 49's `ensure_capture`, `needs_sfm`).
-SFM_MODULE = "gvae_core.capture.sfm"
+def _stamp(folder: str):
+    """What changes when a folder's contents do (its own and its images/ and sparse/ folders' times)."""
+    stamps = []
+    for sub in ("", "images", "sparse", os.path.join("sparse", "0")):
+        try:
+            stamps.append(os.stat(os.path.join(folder, sub)).st_mtime_ns)
+        except OSError:
+            stamps.append(None)
+    return tuple(stamps)
 
 
-def needs_sfm(folder: str) -> bool:
-    """Whether New from Photos must run structure from motion on `folder` (photos without a COLMAP model
-    or a transforms.json): the core's `needs_sfm` where this build has it, else whether the core finds
-    no capture there (cheap: file look-ups only, nothing is imported that needs torch or pycolmap)."""
-    if _has_module(SFM_MODULE):
-        return bool(importlib.import_module(SFM_MODULE).needs_sfm(folder))
-    from gvae_core.capture import find_capture  # noqa: PLC0415 - numpy only
+@functools.lru_cache(maxsize=16)
+def _pycolmap_work(folder: str, stamp) -> str | None:
+    from gvae_core.capture import read_capture  # noqa: PLC0415 - numpy only
+    from gvae_core.capture.sfm import needs_sfm  # noqa: PLC0415 - pycolmap is imported only when SfM runs
 
+    if needs_sfm(folder):
+        return "structure from motion"
     try:
-        find_capture(Path(folder))
+        capture = read_capture(folder)
     except (ValueError, OSError):
-        return True
-    return False
+        return None  # (not a capture: the job says what is wrong)
+    if capture.points is None and capture.kind != "nerf-synthetic" and capture.opaque():
+        return "points for the photos' poses"
+    return None
 
 
-def core_ensure_capture():
-    """`gvae_core.capture.ensure_capture` (structure from motion when a folder needs it), or None where this
-    build has none."""
-    ensure = getattr(importlib.import_module("gvae_core.capture"), "ensure_capture", None)
-    if ensure is None and _has_module(SFM_MODULE):
-        ensure = getattr(importlib.import_module(SFM_MODULE), "ensure_capture", None)
-    return ensure
+def pycolmap_work(folder: str) -> str | None:
+    """What New from Photos needs pycolmap for in `folder`, as `gvae train` does it first
+    (`gvae_core.capture.sfm.ensure_capture`): "structure from motion" for photos without cameras,
+    "points for the photos' poses" (triangulation) for a capture of photos with poses and no points, or
+    None. Remembered per folder until its contents change (the panel asks at every redraw)."""
+    return _pycolmap_work(folder, _stamp(folder)) if folder and os.path.isdir(folder) else None
 
 
 def photos_missing(folder: str) -> list[tuple[str, tuple[str, ...]]]:
     """What New from Photos needs that this Blender lacks, as (what, pinned requirements) pairs, said
-    before the job starts: PyTorch (training), and pycolmap where `folder` needs structure from motion."""
+    before the job starts: PyTorch (training), and pycolmap where `folder` needs it (`pycolmap_work`)."""
     missing = []
     if not torch_available():
         missing.append(("PyTorch (training)", REFINE_REQUIREMENTS))
-    if folder and os.path.isdir(folder) and needs_sfm(folder) and not _has_module("pycolmap"):
-        missing.append(("pycolmap (structure from motion)", SFM_REQUIREMENTS))
+    work = pycolmap_work(folder)
+    if work is not None and not _has_module("pycolmap"):
+        missing.append((f"pycolmap ({work})", SFM_REQUIREMENTS))
     return missing
 
 

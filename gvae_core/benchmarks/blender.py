@@ -215,19 +215,19 @@ def run_photos(args) -> None:
     root = Path(__file__).resolve().parents[2]
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
-    capture = read_capture(args.capture, 8)
-    test = capture.indices("test")[0]
-    cam = capture.cameras[test].scaled(args.height)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
     run = work / "run"
     load = os.getloadavg()[0]
     proc = subprocess.run([sys.executable, "-m", "gvae_addon.benchmark", "photos", str(Path(args.capture).resolve()),
-                           str(run), str(args.height), str(work), str(cam.width), str(args.threads or 0)],
+                           str(run), str(args.height), str(work), str(args.threads or 0)],
                           capture_output=True, text=True, cwd=root, env=env)
     lines = [s for s in proc.stdout.splitlines() if s.startswith("RESULT ")]
     if proc.returncode != 0 or not lines:
         raise RuntimeError(f"Blender photos benchmark failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}")
     r = json.loads(lines[-1][len("RESULT "):])
+    said = (proc.stdout + proc.stderr).split("New from Photos: ", 1)
+    if len(said) > 1:  # the operator's report (with what structure from motion did, when it ran)
+        print("the operator's report: New from Photos: " + said[1].split("\nRESULT ")[0].strip())
     print(f"New from Photos on {args.capture} at {args.height} px (Blender {_blender_version()}, {r['status']}): "
           f"{r['count']:,} Gaussians in {r['seconds']:.0f} s ({r['cpu_seconds']:.0f} CPU s), load {load:.1f} at the "
           f"start, {os.getloadavg()[0]:.1f} at the end")
@@ -237,6 +237,8 @@ def run_photos(args) -> None:
     for i, e in enumerate(r["log"]):
         theirs = f"{against[i]['test_psnr']:.2f}" if i < len(against) else "-"
         print(f"| {e['stage']:>5} | {e['resolution']:>4} | {e['test_psnr']:>19.2f} | {theirs:>22} |")
+    capture = read_capture(args.capture, 8)  # (after the job: a folder of photos has its SfM model now)
+    cam = capture.cameras[capture.indices("test")[0]].scaled(args.height)
     photo = capture.load("test", args.height).images[0]
     ref = render(read_ply(run / f"stage_{len(r['log']) - 1}.ply"), cam, background=(1.0, 1.0, 1.0))
     shown, _ = _display(r["png"])

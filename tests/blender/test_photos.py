@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,17 +19,39 @@ from tests.conftest import requires_bpy
 pytestmark = requires_bpy
 
 
+def photo_capture(folder: Path, views: int = 9) -> tuple:
+    """A small capture of photos with their poses: an object over a transparent background (so training
+    starts from the masks' hull, as `gvae train` does for one, with no points to triangulate) drawn by
+    gvae_core.render from `views` cameras around it, 24 px, in a transforms.json (one set of photos: with
+    held-out photos 2 of 9 set aside)."""
+    from PIL import Image  # noqa: PLC0415
+
+    from gvae_core import render  # noqa: PLC0415 - needs torch
+    from gvae_core.examples import example_cloud  # noqa: PLC0415
+    from tests.test_superres import _cameras  # noqa: PLC0415
+
+    truth = example_cloud(300, seed=0).with_sh_degree(1)
+    folder.mkdir()
+    frames = []
+    for i, cam in enumerate(_cameras(views)):
+        out = render(truth, cam, background=(0.0, 0.0, 0.0))
+        alpha = out.alpha.numpy()[..., None]
+        rgb = np.where(alpha > 0, out.image.numpy() / np.maximum(alpha, 1e-6), 0.0)  # straight colour
+        rgba = np.concatenate([rgb, alpha], -1).clip(0.0, 1.0)
+        Image.fromarray((rgba * 255).round().astype(np.uint8), "RGBA").save(folder / f"r_{i}.png")
+        frames.append({"file_path": f"r_{i}.png", "transform_matrix": cam.to_blender_c2w().tolist()})
+    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": cam.fov_x, "frames": frames}))
+    return truth, folder
+
+
 def test_new_from_photos_job(extension_zip, tmp_path):
     """Where Blender has no PyTorch (here: Blender 5.1 and later), the real training is skipped after the
     rest, saying why; the Blender side runs everywhere (with a stand-in for the training: on 5.3 it gives
     a Blender splat)."""
     pytest.importorskip("torch", reason="the test's capture is rendered with gvae_core.render (PyTorch)")
     from gvae_core.cli import main  # noqa: PLC0415 - after the check for torch
-    from tests.test_superres import _capture, _write_capture  # noqa: PLC0415
 
-    truth, _, views = _capture(n_views=9, n=300)
-    folder = _write_capture(views, tmp_path / "photos")
-    (folder / "transforms_train.json").rename(folder / "transforms.json")  # one set of photos: 2 of 9 held out
+    truth, folder = photo_capture(tmp_path / "photos")
     write_ply(truth, tmp_path / "stand_in.ply")
     options = {"height": 16, "iterations": 10}
     res = run_scenario("photos", tmp_path, extension_zip, folder=str(folder), run=str(tmp_path / "run"),
