@@ -204,6 +204,17 @@ def _cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
+def _cycles(scene):
+    """(render settings, Cycles settings) of `scene` set for the benchmark renders: Cycles on the CPU with
+    2 threads, no denoising or adaptive sampling, film transparent, to 8-bit RGBA PNG."""
+    r, c = scene.render, scene.cycles
+    r.engine, r.film_transparent = "CYCLES", True
+    r.threads_mode, r.threads = "FIXED", 2
+    r.image_settings.file_format, r.image_settings.color_mode = "PNG", "RGBA"
+    c.device, c.use_denoising, c.use_adaptive_sampling = "CPU", False, False
+    return r, c
+
+
 def render_main(ply: str, camera_json: str, out_dir: str) -> int:
     """`python -m gvae_addon.benchmark render PLY CAMERA.json OUT_DIR`: import with the default
     options, then a Cycles render (CPU, 2 threads) per RENDER_CONFIGS to PNG; prints one JSON line."""
@@ -215,13 +226,7 @@ def render_main(ply: str, camera_json: str, out_dir: str) -> int:
     bpy.ops.import_scene.gaussian_splat(filepath=ply)
     out = {"import_s": time.perf_counter() - t0, "n": len(bpy.context.active_object.data.vertices), "renders": {}}
     render_setup.add_camera(scene, cam_args["c2w"], cam_args["fov_x"], cam_args["width"], cam_args["height"])
-    r = scene.render
-    r.engine = "CYCLES"
-    r.film_transparent = True
-    r.threads_mode, r.threads = "FIXED", 2
-    r.image_settings.file_format, r.image_settings.color_mode = "PNG", "RGBA"
-    c = scene.cycles
-    c.device, c.use_denoising, c.use_adaptive_sampling = "CPU", False, False
+    r, c = _cycles(scene)
     for i, (name, cfg) in enumerate(RENDER_CONFIGS.items()):
         c.samples, c.filter_width = cfg["samples"], cfg["filter_width"]
         c.min_transparent_bounces = 0 if cfg["roulette"] else c.transparent_max_bounces
@@ -257,14 +262,8 @@ def splat_types_main(spec_json: str, out_dir: str) -> int:
             nodes.add_native_modifier(bpy.context.active_object)
             render_setup.setup_scene(scene)
         render_setup.add_camera(scene, job["c2w"], job["fov_x"], job["width"], job["height"])
-        r = scene.render
+        r, c = _cycles(scene)
         r.resolution_percentage = job["percentage"]
-        r.engine = "CYCLES"
-        r.film_transparent = True
-        r.threads_mode, r.threads = "FIXED", 2
-        r.image_settings.file_format, r.image_settings.color_mode = "PNG", "RGBA"
-        c = scene.cycles
-        c.device, c.use_denoising, c.use_adaptive_sampling = "CPU", False, False
         c.samples, c.filter_width = (1 if job["kind"] == "mesh" else job["samples"]), 0.01
         c.min_transparent_bounces = c.transparent_max_bounces
         r.filepath = str(Path(out_dir) / f"{job['name']}.png")
@@ -297,17 +296,13 @@ def photos_main(folder: str, run_dir: str, height: str, out_dir: str, threads: s
     out["camera"] = held[0].name
     log = json.loads((Path(run_dir) / "log.json").read_text())
     out["log"] = log
-    r = scene.render
     from gvae_core.capture import read_capture  # noqa: PLC0415 - the capture as the job left it (SfM'd)
 
     capture = read_capture(folder, 8, images=False)
     photo = capture.cameras[capture.indices("test")[0]].scaled(log[-1]["resolution"])
-    r.resolution_x, r.resolution_y = photo.width, photo.height
-    r.engine, r.film_transparent, r.resolution_percentage = "CYCLES", True, 100
-    r.threads_mode, r.threads = "FIXED", 2
-    r.image_settings.file_format, r.image_settings.color_mode = "PNG", "RGBA"
-    c = scene.cycles
-    c.device, c.use_denoising, c.use_adaptive_sampling, c.samples, c.filter_width = "CPU", False, False, 1, 0.01
+    r, c = _cycles(scene)
+    r.resolution_x, r.resolution_y, r.resolution_percentage = photo.width, photo.height, 100
+    c.samples, c.filter_width = 1, 0.01
     c.min_transparent_bounces = c.transparent_max_bounces
     r.filepath = str(Path(out_dir) / "photos.png")
     out["render_size"] = [r.resolution_x, r.resolution_y]

@@ -850,24 +850,30 @@ def set_modifier_input(mod, name: str, value) -> None:
         owner[path[2:-2]] = value
 
 
-def add_splat_modifier(obj, *, scale_factor: float = DEFAULT_SCALE_FACTOR, fraction: float = 1.0,
-                       points_only: bool = False, min_opacity: float = 0.0, view_dependent: bool = True):
-    """Give `obj` the splat Geometry Nodes modifier (and material), or update its inputs."""
-    ng = ensure_node_group(int(layout(obj.data)["sh_degree"]))
-    mat = ensure_material()
+def _set_modifier(obj, ng, values: dict):
+    """`obj`'s splat modifier (made when it has none) on group `ng`, its inputs set from `values` and
+    the screen filter of the reference renderer's "auto" mode: Mip-Splatting's 2D filter for a cloud
+    with a 3D filter, the classic dilation for one without."""
     mod = obj.modifiers.get(MODIFIER_NAME)
     if mod is None or mod.type != "NODES":
         mod = obj.modifiers.new(MODIFIER_NAME, "NODES")
     mod.node_group = ng
-    # The screen filter of the reference renderer's "auto" mode: Mip-Splatting's 2D filter for a
-    # cloud with a 3D filter, the classic dilation for one without.
     mip = FILTER_KEY in obj.data.attributes
-    values = {"Scale Factor": float(scale_factor), "View-Dependent Colour": bool(view_dependent),
-              "Display Fraction": float(fraction), "Points Only": bool(points_only),
-              "Min Opacity": float(min_opacity), "Material": mat,
-              "Screen Filter": MIP_2D_VARIANCE if mip else CLASSIC_DILATION, "Compensate Screen Filter": mip}
+    values = {**values, "Screen Filter": MIP_2D_VARIANCE if mip else CLASSIC_DILATION, "Compensate Screen Filter": mip}
     for name, value in values.items():
         set_modifier_input(mod, name, value)
+    obj.update_tag()
+    return mod
+
+
+def add_splat_modifier(obj, *, scale_factor: float = DEFAULT_SCALE_FACTOR, fraction: float = 1.0,
+                       points_only: bool = False, min_opacity: float = 0.0, view_dependent: bool = True):
+    """Give `obj` the splat Geometry Nodes modifier (and material), or update its inputs."""
+    mat = ensure_material()
+    mod = _set_modifier(obj, ensure_node_group(int(layout(obj.data)["sh_degree"])), {
+        "Scale Factor": float(scale_factor), "View-Dependent Colour": bool(view_dependent),
+        "Display Fraction": float(fraction), "Points Only": bool(points_only), "Min Opacity": float(min_opacity),
+        "Material": mat})
     if mat.name not in obj.data.materials:
         obj.data.materials.append(mat)
     return mod
@@ -876,18 +882,8 @@ def add_splat_modifier(obj, *, scale_factor: float = DEFAULT_SCALE_FACTOR, fract
 def add_native_modifier(obj, *, refinement: bool = True, anti_aliasing: bool = True):
     """Give a Gaussian-splat point cloud object (Blender 5.3+) the modifier that draws it as
     `gvae_core.render` does for the scene camera (`_build_native_group`), or update its inputs."""
-    ng = ensure_node_group(native_sh_degree(obj.data), native=True)
-    mod = obj.modifiers.get(MODIFIER_NAME)
-    if mod is None or mod.type != "NODES":
-        mod = obj.modifiers.new(MODIFIER_NAME, "NODES")
-    mod.node_group = ng
-    mip = FILTER_KEY in obj.data.attributes
-    values = {"Refinement": bool(refinement), "Anti-Aliasing": bool(anti_aliasing),
-              "Screen Filter": MIP_2D_VARIANCE if mip else CLASSIC_DILATION, "Compensate Screen Filter": mip}
-    for name, value in values.items():
-        set_modifier_input(mod, name, value)
-    obj.update_tag()
-    return mod
+    return _set_modifier(obj, ensure_node_group(native_sh_degree(obj.data), native=True),
+                         {"Refinement": bool(refinement), "Anti-Aliasing": bool(anti_aliasing)})
 
 
 def splat_modifier(obj):

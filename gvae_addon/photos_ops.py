@@ -37,6 +37,13 @@ SFM_SHARE = 0.2
 #: Every n-th photo (sorted by name) held out to judge the training (LLFF / Mip-NeRF 360's 8).
 HELD_OUT_EVERY = 8
 JOB_KEY = "New from Photos"
+#: What the folder, size and held-out options mean (the operator's and the panel's).
+FOLDER_DESCRIPTION = ("A folder of photos (in it or in its images/), or a COLMAP capture (sparse/0 and images/) or a "
+                      "transforms.json capture")
+SIZE_DESCRIPTION = ("Height in pixels of the last training stage, the size the splat is trained at (0: the profile's, "
+                    "200 px by default; as gvae train --image-height)")
+HELD_OUT_DESCRIPTION = ("Set every 8th photo aside and report how well the splat draws them (the held-out PSNR; as "
+                        "gvae train --test-every 8); off: train on every photo")
 
 
 def run_name(height: int, profile: str, held_out: bool) -> str:
@@ -266,15 +273,9 @@ class GVAE_OT_new_from_photos(refine_ops.JobOperator, Operator):
     bl_label = "New from Photos"
     bl_options = {"REGISTER", "UNDO"}
 
-    folder: StringProperty(name="Folder", subtype="DIR_PATH", default="",
-                           description="A folder of photos (in it or in its images/), or a COLMAP capture (sparse/0 "
-                           "and images/) or a transforms.json capture")
-    height: IntProperty(name="Size", default=0, min=0, soft_max=1080, subtype="PIXEL",
-                        description="Height in pixels of the last training stage, the size the splat is trained at "
-                        "(0: the profile's, 200 px by default; as gvae train --image-height)")
-    held_out: BoolProperty(name="Held-Out Photos", default=True,
-                           description="Set every 8th photo aside and report how well the splat draws them (the "
-                           "held-out PSNR; as gvae train --test-every 8); off: train on every photo")
+    folder: StringProperty(name="Folder", subtype="DIR_PATH", default="", description=FOLDER_DESCRIPTION)
+    height: IntProperty(name="Size", default=0, min=0, soft_max=1080, subtype="PIXEL", description=SIZE_DESCRIPTION)
+    held_out: BoolProperty(name="Held-Out Photos", default=True, description=HELD_OUT_DESCRIPTION)
     profile: EnumProperty(name="Profile", default="DEFAULT", items=PROFILES)
     iterations: IntProperty(name="Iterations", default=0, min=0,
                             description="Iterations of every stage (0: the profile's)")

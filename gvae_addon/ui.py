@@ -38,13 +38,10 @@ class GVAE_Settings(PropertyGroup):
     compact_distill: IntProperty(name="Fine-Tune Iterations", default=-1, min=-1,
                                  description=refine_ops.DISTILL_DESCRIPTION)
     photos_folder: StringProperty(name="Folder", subtype="DIR_PATH", default="",
-                                  description="A folder of photos (in it or in its images/), or a COLMAP capture "
-                                  "(sparse/0 and images/) or a transforms.json capture")
+                                  description=photos_ops.FOLDER_DESCRIPTION)
     photos_height: IntProperty(name="Size", default=0, min=0, soft_max=1080, subtype="PIXEL",
-                               description="Height in pixels the splat is trained at (0: 200 px, gvae train's "
-                               "default)")
-    photos_held_out: BoolProperty(name="Held-Out Photos", default=True,
-                                  description="Set every 8th photo aside and report how well the splat draws them")
+                               description=photos_ops.SIZE_DESCRIPTION)
+    photos_held_out: BoolProperty(name="Held-Out Photos", default=True, description=photos_ops.HELD_OUT_DESCRIPTION)
     photos_splat_type: EnumProperty(name="Splat Type", default="MESH", items=io_ops.SPLAT_TYPES)
     photos_cameras: BoolProperty(name="Cameras", default=True,
                                  description="Also add the capture's cameras as Blender cameras")

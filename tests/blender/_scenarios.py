@@ -88,6 +88,24 @@ def attributes(obj) -> dict:
     return out
 
 
+def native_attributes(obj, path: str) -> None:
+    """Every attribute of a Gaussian-splat point cloud object's data into the .npz `path` (":" in a name
+    written "__")."""
+    import numpy as np
+
+    pc = obj.data
+    n = len(pc.points)
+    out = {}
+    for attr in pc.attributes:
+        if attr.name.startswith("."):
+            continue
+        width = {"FLOAT_VECTOR": 3, "FLOAT4": 4, "QUATERNION": 4}.get(attr.data_type, 1)
+        buf = np.empty(n * width, np.int32 if attr.data_type == "INT" else np.float32)
+        attr.data.foreach_get("vector" if attr.data_type in ("FLOAT_VECTOR", "FLOAT4") else "value", buf)
+        out[attr.name.replace(":", "__")] = buf.reshape(n, width) if width > 1 else buf
+    np.savez(path, **out)
+
+
 def failure(bpy, call) -> dict:
     """Run `call`; report whether it raised, its message, and the datablocks before and after."""
     before = counts(bpy)
@@ -441,21 +459,9 @@ def scenario_formats(bpy, args: dict) -> dict:
 def scenario_native(bpy, args: dict) -> dict:
     """Blender 5.3+: File > Import as a Gaussian-splat point cloud (beside Blender's own PLY importer
     on the same file), File > Export of such an object (ours and Blender's own) to .ply and .glb."""
-    import numpy as np
-
     def dump(obj, name):
-        pc = obj.data
-        n = len(pc.points)
-        out = {}
-        for attr in pc.attributes:
-            if attr.name.startswith("."):
-                continue
-            width = {"FLOAT_VECTOR": 3, "FLOAT4": 4, "QUATERNION": 4}.get(attr.data_type, 1)
-            buf = np.empty(n * width, np.float32)
-            attr.data.foreach_get("vector" if attr.data_type in ("FLOAT_VECTOR", "FLOAT4") else "value", buf)
-            out[attr.name.replace(":", "__")] = buf.reshape(n, width) if width > 1 else buf
-        np.savez(args["out"] + f".{name}.npz", **out)
-        return {"type": obj.type, "data_type": pc.type, "points": n}
+        native_attributes(obj, args["out"] + f".{name}.npz")
+        return {"type": obj.type, "data_type": obj.data.type, "points": len(obj.data.points)}
 
     res = {}
     before = counts(bpy)
@@ -492,19 +498,9 @@ def scenario_native_jobs(bpy, args: dict) -> dict:
     from gvae_core.ply import read_ply
 
     def dump(obj, name):
-        pc = obj.data
-        n = len(pc.points)
-        out = {}
-        for attr in pc.attributes:
-            if attr.name.startswith("."):
-                continue
-            width = {"FLOAT_VECTOR": 3, "FLOAT4": 4, "QUATERNION": 4}.get(attr.data_type, 1)
-            buf = np.empty(n * width, np.int32 if attr.data_type == "INT" else np.float32)
-            attr.data.foreach_get("vector" if attr.data_type in ("FLOAT_VECTOR", "FLOAT4") else "value", buf)
-            out[attr.name.replace(":", "__")] = buf.reshape(n, width) if width > 1 else buf
-        np.savez(args["out"] + f".{name}.npz", **out)
+        native_attributes(obj, args["out"] + f".{name}.npz")
         mod = nodes.splat_modifier(obj)
-        return {"type": obj.type, "data_type": pc.type, "points": n,
+        return {"type": obj.type, "data_type": obj.data.type, "points": len(obj.data.points),
                 "modifier": None if mod is None else mod.node_group.name}
 
     scene = bpy.context.scene
