@@ -18,7 +18,8 @@ from gvae_core.capture.dataset import find_photos, triangulated_folder
 from gvae_core.capture import sfm
 from gvae_core.capture.sfm import (SfMCancelled, SfMError, SfMOptions, ensure_capture, needs_sfm, pose_pairs,
                                    run_sfm, sequential_pairs)
-from gvae_core.cli import main
+from gvae_core.cli import build_parser, main
+from gvae_core.cli.sfm import sfm_options
 from gvae_core.datasets import DatasetError
 
 from .photo_set import SCENE_SIZE, on_surface, photo_set, ring_cameras
@@ -213,3 +214,21 @@ def test_gvae_train_takes_a_folder_of_photos(solved, photos, tmp_path, capsys, m
         main(["train", str(unsolved), "--out", str(tmp_path / "run2"), "--matcher", "sequential", "--camera",
               "per-image", "--sfm-image-size", "800"])
     assert calls == [(unsolved, SfMOptions(matcher="sequential", camera="per-image", max_image_size=800))]
+    assert sfm_options(build_parser("sfm").parse_args(["sfm", "photos"])) == SfMOptions()  # the same defaults
+
+
+@pytest.mark.parametrize("command", [["render", "in.ply", "--out", "o", "--cameras"],
+                                     ["refine", "in.ply", "out.ply", "--images"],
+                                     ["compact", "in.ply", "out.ply", "--keep", "0.5", "--images"],
+                                     ["compact", "in.ply", "out.ply", "--keep", "0.5", "--cameras"]])
+def test_every_command_that_takes_a_capture_runs_sfm_on_a_folder_of_photos(command, photos, tmp_path, monkeypatch):
+    calls = []
+
+    def fake_sfm(path, options=None, **kwargs):
+        calls.append(Path(path))
+        raise SfMCancelled("stop here")
+
+    monkeypatch.setattr(sfm, "run_sfm", fake_sfm)
+    with pytest.raises(SfMCancelled):
+        main([str(tmp_path / a) if a.endswith(".ply") else a for a in command] + [str(photos)])
+    assert calls == [photos]

@@ -11,6 +11,10 @@ import time
 from pathlib import Path
 
 
+#: `capture.sfm.SfMOptions`' defaults, here so that `--help` imports nothing (a test holds them equal).
+SFM_IMAGE_SIZE = 1000
+
+
 def add_sfm_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of structure from motion, for the commands that may run it."""
     g = parser.add_argument_group("structure from motion (a folder of photos with no cameras yet)")
@@ -22,7 +26,7 @@ def add_sfm_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--camera", choices=("auto", "single", "per-image"), default="auto", dest="sfm_camera",
                    help="one camera shared by all photos, or one per photo; auto: shared when the photos have one "
                         "size and lens (default: %(default)s)")
-    g.add_argument("--sfm-image-size", type=int, default=1600, metavar="PX",
+    g.add_argument("--sfm-image-size", type=int, default=SFM_IMAGE_SIZE, metavar="PX",
                    help="features are found with photos scaled to at most this many pixels on the long side "
                         "(default: %(default)s)")
 
@@ -31,7 +35,7 @@ def sfm_options(args: argparse.Namespace):
     from ..capture.sfm import SfMOptions
 
     return SfMOptions(matcher=getattr(args, "matcher", "auto"), camera=getattr(args, "sfm_camera", "auto"),
-                      max_image_size=getattr(args, "sfm_image_size", 1600),
+                      max_image_size=getattr(args, "sfm_image_size", SFM_IMAGE_SIZE),
                       threads=getattr(args, "threads", None))
 
 
