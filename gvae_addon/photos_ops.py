@@ -116,12 +116,14 @@ def train_capture(folder: str, run_dir: str, *, height: int, profile: str, itera
     kwargs = {}
     if "on_progress" in inspect.signature(core_train.train_progressive).parameters:  # (issue 50's hook)
         def on_progress(event: dict) -> None:
-            s = int(event.get("stage", 0))
+            # {stage (0-based), stages, step, steps, message, ...; test_psnr at a stage's end}
+            s = min(int(event.get("stage", 0)), stages - 1)
             if event.get("test_psnr") is not None:
                 last["heldout"] = float(event["test_psnr"])
-            step = int(event.get("iteration", event.get("step", 0)))
-            at(min(s, stages - 1), step, f"stage {s + 1}/{stages} at {config.resolutions[min(s, stages - 1)]} px, "
-               f"step {step}/{config.iterations[min(s, stages - 1)]}")
+            steps = max(int(event.get("steps") or config.iterations[s]), 1)
+            step = min(int(event.get("step", 0)), steps)
+            at(s, round(step * config.iterations[s] / steps),
+               f"stage {s + 1}/{stages} at {config.resolutions[s]} px, step {step}/{steps}")
 
         kwargs["on_progress"] = on_progress
     result = core_train.train_progressive(

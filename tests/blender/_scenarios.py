@@ -530,6 +530,8 @@ def scenario_native_jobs(bpy, args: dict) -> dict:
     res["received"] = received
     res["refined"] = dump(bpy.data.objects[name], "refined")
     obj = bpy.data.objects[name]
+    bpy.context.view_layer.objects.active = obj
+    res["panels"] = draw_panels(bpy)
     render_setup.add_camera(scene, args["c2w"], args["fov_x"], args["width"], args["height"])
     _converged_cycles(scene)
     scene.cycles.samples = args["samples"]
