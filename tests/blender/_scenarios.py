@@ -509,6 +509,8 @@ def scenario_native_jobs(bpy, args: dict) -> dict:
     bpy.ops.wm.ply_import(filepath=args["ply"])  # Blender's own importer: no modifier, no gvae_ply
     name = bpy.context.active_object.name
     res = {"imported": dump(bpy.data.objects[name], "imported")}
+    res["draw_as_gvae"] = sorted(bpy.ops.gvae.native_modifier())  # (Display's button; Refine would add it too)
+    res["drawn"] = getattr(nodes.splat_modifier(bpy.data.objects[name]), "node_group", None) is not None
     received = {}
     refined_cloud = read_ply(args["refined"])
 

@@ -58,6 +58,7 @@ def test_refine_and_compact_blenders_own_splat(extension_zip, tmp_path):
                        timeout=600)
 
     assert res["imported"]["data_type"] == "GAUSSIAN_SPLAT" and res["imported"]["modifier"] is None
+    assert res["draw_as_gvae"] == ["FINISHED"] and res["drawn"]
     assert res["received"] == {"n": n, "extra": [DILATION_KEY]}  # Blender's importer kept it as an attribute
     assert res["refine_info"] == {"before": n, "after": n + kids, "added": kids}
     r = res["refined"]
