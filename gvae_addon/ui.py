@@ -151,7 +151,7 @@ NATIVE_NOTE = (
     "the scene camera. Not as the add-on's splat:",
     "Cycles blends overlapping Gaussians in its own",
     "order (chair: 38.1 dB to gvae render, the",
-    "add-on's splat 45.2); no Scale Factor, Display",
+    "add-on's splat 44.8); no Scale Factor, Display",
     "Fraction, Points Only or Min Opacity.",
 )
 
