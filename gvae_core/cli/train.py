@@ -107,6 +107,12 @@ def _resolutions(args: argparse.Namespace, profile: tuple[int, ...]) -> tuple[in
         if not args.downscale >= 1:
             raise ValueError(f"--downscale must be 1 or more, got {args.downscale}")
         height = int(read_capture(args.scene, images=False).cameras[0].height / args.downscale)
+    return stage_heights(height, profile)
+
+
+def stage_heights(height: int, profile: tuple[int, ...]) -> tuple[int, ...]:
+    """The stage heights of `--image-height H`: the last stage at `height`, the earlier ones in the
+    profile's proportions (Blender's New from Photos asks for the same)."""
     if height <= 0:
         raise ValueError(f"the last stage's image height must be positive, got {height}")
     return tuple(max(1, round(height * r / profile[-1])) for r in profile)
