@@ -144,7 +144,9 @@ class TrainConfig:
     patience: int = 600
     min_gain: float = 0.05
     max_minutes: float | None = None
-    gaussians_per_pixel: float | None = None
+    # A budget that follows the photos: on the plush at 1/16, 1 per pixel (45k Gaussians) held out
+    # 29.6 dB where no budget grew to 189k for 28.6 (docs/benchmarks/training.md).
+    gaussians_per_pixel: float | None = 1.0
     # Across stages: the position learning rate decays over the whole run ("run") or afresh in each
     # stage ("stage"); Adam's moments carry from a stage to the next (the same rows) or restart.
     lr_schedule: str = "run"
@@ -369,7 +371,8 @@ def _peak_rss_mb() -> float:
 
 # ------------------------------------------------------------------ training
 
-def _targets(views, background) -> torch.Tensor:
+def training_targets(views, background) -> torch.Tensor:
+    """The views' photos composited on `background`, as the trainer's (N, H, W, 3) float tensor."""
     return torch.from_numpy(np.ascontiguousarray(views.composite(background)))
 
 
@@ -560,7 +563,7 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         converging = config.converge and s == n_stages - 1 and val_views is not None
         if converging:
             sched["iterations"] = max(config.max_iterations, sched["iterations"])
-        targets = _targets(train_views, bg).to(device)
+        targets = training_targets(train_views, bg).to(device)
         cams = train_views.cameras
         planned = config.iterations[s]
         n_max = sched["iterations"]
@@ -837,7 +840,8 @@ def fine_tune(cloud: GaussianCloud, views: Views, iterations: int, *, config: Tr
             if config.antialias == "mip":
                 current = current.replace(extra={FILTER_KEY: _model_filter(model, views.cameras)})
             return "should_stop" if should_stop(it, current) else None
-    _optimise(model, views.cameras, _targets(views, config.background).to(dev), config, sched, rng, gen,
+    targets = training_targets(views, config.background).to(dev)
+    _optimise(model, views.cameras, targets, config, sched, rng, gen,
               RenderSettings(antialias=config.antialias), views.cameras[0].height, lambda it: src.sh_degree,
               densify=None, progress=say, check=check, check_every=check_every)
     out = model.snapshot()

@@ -22,8 +22,9 @@ from gvae_core.ply import read_ply
 from gvae_core.quaternions import from_rotmat
 from gvae_core.rendering import RenderSettings, render
 from gvae_core.initialization import hull_points, initial_bounds, initial_cloud
-from gvae_core.train import (ADDED_FIELDS, PROGRESS_KEYS, TrainConfig, evaluate_psnr, fine_tune, position_lr,
-                             scene_extent, split_validation, train_progressive)
+from gvae_core.cli.train import _DEFAULT_ITERATIONS, _DEFAULT_PER_PIXEL
+from gvae_core.train import (ADDED_FIELDS, PROGRESS_KEYS, TrainConfig, _gaussian_limit, evaluate_psnr, fine_tune,
+                             position_lr, scene_extent, split_validation, train_progressive)
 
 
 def test_schedules_scale_with_the_budget():
@@ -262,6 +263,19 @@ def test_added_fields_read_back_as_the_training_before_them():
     assert TrainConfig.from_dict(legacy.to_dict()) == legacy
     assert TrainConfig.from_dict(default.to_dict()) == default
     assert not TrainConfig.from_dict({"resolutions": [10], "iterations": [5]}).converge
+
+
+def test_the_budget_follows_the_photos_pixels():
+    """`gaussians_per_pixel` caps a stage at that many Gaussians per pixel of one training photo,
+    the smaller of it and `max_gaussians` wins and says so; the CLI's --help states the defaults."""
+    cam = orbit(1, 2.5, 0.5, width=40, height=30, fov_x=1.0)[0]
+    assert _gaussian_limit(TrainConfig(gaussians_per_pixel=0.5, max_gaussians=None), 8, cam) == (
+        600, "0.5 per pixel of a photo")
+    assert _gaussian_limit(TrainConfig(gaussians_per_pixel=0.5, max_gaussians=100), 8, cam) == (100, "max_gaussians")
+    assert _gaussian_limit(TrainConfig(gaussians_per_pixel=None, max_gaussians=None), 8, cam)[1] == "what memory allows"
+    assert TrainConfig().gaussians_per_pixel == _DEFAULT_PER_PIXEL and TrainConfig().iterations == _DEFAULT_ITERATIONS
+    with pytest.raises(ValueError, match="gaussians_per_pixel"):
+        TrainConfig(gaussians_per_pixel=0)
 
 
 def test_validation_photos_are_set_aside_evenly():

@@ -104,13 +104,13 @@ def profile_step(cloud, views, *, steps: int = 20, sh_degree: int = 3, densify_e
                "composite": (compiled, "composite_forward"), "composite backward": (compiled, "composite_backward")}
     saved = {part: getattr(owner, name) for part, (owner, name) in patched.items()}
     saved_backward = compiled.ProjectFunction.backward
-    from ..train import _targets, scene_extent  # noqa: PLC0415
+    from ..train import scene_extent, training_targets  # noqa: PLC0415
 
     _, extent = scene_extent(views.cameras)
     model = GaussianModel(cloud.replace(extra={}), np.arange(len(cloud)), np.full(len(cloud), -1),
                           config.learning_rates(extent), extent, len(cloud), None)
     strategy = dataclasses.replace(config.densify_strategy(), max_gaussians=len(cloud))  # at its budget
-    targets = _targets(views, config.background)
+    targets = training_targets(views, config.background)
     settings = RenderSettings(antialias=config.antialias)
     order = np.random.default_rng(seed).permutation(max(steps, len(views)))
     gen = torch.Generator().manual_seed(seed)
