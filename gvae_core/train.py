@@ -53,8 +53,9 @@ from .resources import estimate_train_memory, train_cap
 
 #: Profiles: overrides of the `TrainConfig` defaults. `default` is the benchmark profile.
 PROFILES: dict[str, dict[str, Any]] = {
+    # a quick look (and the tests'): fixed counts, no training on until convergence
     "tiny": dict(resolutions=(32, 48, 64), iterations=(200, 150, 150), init_count=2000,
-                 max_gaussians=10_000, sh_degree=1),
+                 max_gaussians=10_000, sh_degree=1, converge=False),
     "default": dict(),
     # the default before issue 50: fixed iterations, no validation photos, no budget
     "legacy": dict(iterations=(600, 400, 400), validation_views=0, converge=False, gaussians_per_pixel=None,
