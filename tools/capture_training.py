@@ -12,7 +12,7 @@ Usage: python tools/capture_training.py CAPTURE --out RUNS [--downscale 4 2] [--
                                         [-- extra gvae train options for every run]
 e.g.   python tools/capture_training.py ../shared/captures/plush --out runs/plush --downscale 4 --init sfm
        python tools/capture_training.py ../shared/captures/plush --out runs/plush --variant default= \\
-           --variant cap50k="--max-gaussians 50000" --variant legacy="--profile legacy"
+           --variant cap50k="--gaussians-per-pixel 0 --max-gaussians 50000" --variant legacy="--profile legacy"
 Without `--variant`, one variant per `--init` (named after it). `--picture`: three held-out photos above
 the first run's renders of them (at its resolution). Runs that finished already are reused (gvae train
 resumes); a long job: start it in the background with its log on disk.
