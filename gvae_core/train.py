@@ -513,13 +513,16 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
 def _optimise(model: GaussianModel, cams: list[Camera], targets: torch.Tensor, config: TrainConfig, sched: dict,
               rng: np.random.Generator, gen: torch.Generator, settings: RenderSettings, height: int,
               degree_at: Callable[[int], int], *, densify: DensifyStrategy | None, bar=None,
-              progress: Callable[[int], None] | None = None) -> dict[str, int]:
+              progress: Callable[[int], None] | None = None,
+              should_stop: Callable[[int, GaussianCloud], bool] | None = None,
+              check_every: int = 100) -> dict[str, int]:
     """One stage's iterations (`sched`, `TrainConfig.stage_schedule`) on `model`: the reference
     recipe (views in random order without repetition, the position learning rate decaying over
     the stage, 0.8·L1 + 0.2·(1 − SSIM)), with the `densify` strategy's density control and opacity
     resets when given, without any when None (a fine-tune keeps its Gaussians). `degree_at(it)`:
-    the SH degree at the stage's iteration `it` (1-based); `progress(it)` every 10 iterations.
-    Returns the counts of cloned, split and pruned Gaussians."""
+    the SH degree at the stage's iteration `it` (1-based); `progress(it)` every 10 iterations;
+    `should_stop(it, cloud)` every `check_every` iterations with the current torch cloud (True ends
+    the iterations there). Returns the counts of cloned, split and pruned Gaussians."""
     counts = {"cloned": 0, "split": 0, "pruned": 0}
     n_iter, bg = sched["iterations"], config.background
     order: list[int] = []
@@ -558,11 +561,17 @@ def _optimise(model: GaussianModel, cams: list[Camera], targets: torch.Tensor, c
                 bar.update(10 if it % 10 == 0 else it % 10)
             if progress is not None:
                 progress(it)
+        if should_stop is not None and it % check_every == 0 and it < n_iter:
+            with torch.no_grad():
+                if should_stop(it, model.cloud()):
+                    break
     return counts
 
 
 def fine_tune(cloud: GaussianCloud, views: Views, iterations: int, *, config: TrainConfig | None = None,
-              seed: int = 0, progress: Callable[[float, str], None] | None = None, device=None) -> GaussianCloud:
+              seed: int = 0, progress: Callable[[float, str], None] | None = None, device=None,
+              should_stop: Callable[[int, GaussianCloud], bool] | None = None,
+              check_every: int = 100) -> GaussianCloud:
     """`cloud` trained on `views` (at their resolution) for `iterations` more iterations with
     the trainer's recipe and one stage's schedule (`_optimise`: its learning rates, the position
     rate decaying over the iterations, the anti-aliasing of `config.antialias`), without density
@@ -570,7 +579,9 @@ def fine_tune(cloud: GaussianCloud, views: Views, iterations: int, *, config: Tr
     fine-tunes after pruning). The SH degree is the cloud's. Returns a numpy cloud with the input's
     extra properties, its anti-aliasing size (`gvae_dilation_3D`, or `filter_3D` when
     `config.antialias` is "mip") recomputed from the views' cameras. `progress(fraction, message)`
-    every 10 iterations (an exception it raises stops the fine-tune)."""
+    every 10 iterations (an exception it raises stops the fine-tune). `should_stop(it, cloud)`:
+    called every `check_every` iterations with the current torch cloud; True ends the fine-tune
+    there, `iterations` being then the most it runs (the schedule is still that of `iterations`)."""
     config = config or TrainConfig()
     iterations = int(iterations)
     if iterations < 0:
@@ -590,7 +601,7 @@ def fine_tune(cloud: GaussianCloud, views: Views, iterations: int, *, config: Tr
     say = (lambda it: progress(it / max(iterations, 1), f"fine-tuning {it}/{iterations}")) if progress else None
     _optimise(model, views.cameras, _targets(views, config.background).to(dev), config, sched, rng, gen,
               RenderSettings(antialias=config.antialias), views.cameras[0].height, lambda it: src.sh_degree,
-              densify=None, progress=say)
+              densify=None, progress=say, should_stop=should_stop, check_every=max(1, int(check_every)))
     out = model.snapshot()
     key, size_fn = (FILTER_KEY, filter_3d) if config.antialias == "mip" else (DILATION_KEY, dilation_3d)
     extra = {k: v for k, v in src.extra.items() if k not in (FILTER_KEY, DILATION_KEY)}

@@ -1,0 +1,123 @@
+"""Compaction's fine-tuning judged on views it does not train on (`compaction.finetune`,
+`compaction.plateau`): the plateau rule, the images set aside, the trainer's `should_stop` hook,
+the best state kept, and the time estimate said before the fine-tuning starts."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import gvae_core.compaction as compaction
+import gvae_core.compaction.finetune as finetune
+from gvae_core import Camera
+from gvae_core.antialias import DILATION_KEY
+from gvae_core.compaction import compact, set_aside
+from gvae_core.compaction.finetune import Tuning, tune, tuning_config
+from gvae_core.compaction.plateau import Plateau
+from gvae_core.datasets import Views
+from gvae_core.examples import example_cloud
+from gvae_core.rendering import RenderSettings, render
+from gvae_core.train import TrainConfig, fine_tune
+
+
+def test_plateau_stops_after_patience_checks_without_gain_and_keeps_the_best():
+    p = Plateau(patience=2, min_gain=0.1)
+    assert not p.update(0, 20.0) and not p.update(100, 20.5)  # paying
+    assert not p.update(200, 20.55)  # a rise under min_gain: the best moves, the wait starts
+    assert (p.best, p.best_at, p.waited) == (20.55, 200, 1)
+    assert p.update(300, 20.3)  # a second check without gain: stop
+    assert p.best_at == 200 and [it for it, _ in p.history] == [0, 100, 200, 300]
+    q = Plateau(patience=2, min_gain=0.1)
+    for it, value in ((0, 1.0), (1, 1.05), (2, 1.2), (3, 1.25)):
+        stop = q.update(it, value)
+    assert not stop and q.best_at == 3  # the gain at 2 reset the wait
+    with pytest.raises(ValueError, match="patience"):
+        Plateau(patience=0)
+
+
+def _views(cloud, n, size=24):
+    cams = [Camera.look_at((3 * math.cos(a), 3 * math.sin(a), 1.5), (0, 0, 0), width=size, height=size, fov_x=1.0)
+            for a in np.linspace(0, 2 * math.pi, n, endpoint=False)]
+    imgs = np.stack([render(cloud, c, background=(1.0, 1.0, 1.0)).image.numpy() for c in cams])
+    return Views(cams, np.clip(imgs, 0, 1), np.ones(imgs.shape[:3], np.float32), [f"v{i:02d}" for i in range(n)])
+
+
+def test_set_aside_takes_every_nth_by_name_and_leaves_the_rest():
+    views = _views(example_cloud(50, seed=0), 17, size=8)
+    views.names = [f"v{(i * 7) % 17:02d}" for i in range(17)]  # names not in capture order
+    fit, aside = set_aside(views, 8)
+    assert sorted(aside.names) == ["v04", "v12"] and len(fit) == 15
+    assert not set(fit.names) & set(aside.names)
+    for sub in (fit, aside):  # each camera and image stays with its name
+        for name, cam, img in zip(sub.names, sub.cameras, sub.images):
+            i = views.names.index(name)
+            assert cam is views.cameras[i] and np.array_equal(img, views.images[i])
+    assert set_aside(_views(example_cloud(50), 4, size=8), 8)[1] is None  # too few to set any aside
+
+
+def test_fine_tune_stops_when_should_stop_says_so():
+    cloud = example_cloud(80, seed=1).with_sh_degree(0)
+    views = _views(cloud, 3, size=16)
+    calls = []
+
+    def should_stop(it, current):
+        assert len(current) == 80 and isinstance(current.means, torch.Tensor)
+        calls.append(it)
+        return it >= 4
+
+    out = fine_tune(cloud, views, 50, config=TrainConfig(), should_stop=should_stop, check_every=2)
+    assert calls == [2, 4] and len(out) == 80 and DILATION_KEY in out.extra
+
+
+def test_tune_keeps_the_best_state_the_set_aside_views_saw(monkeypatch):
+    """The fine-tuning's judge is the set-aside views' PSNR: when it only falls, the input's own
+    parameters are what comes back (the anti-aliasing size recomputed); the record says so."""
+    cloud = example_cloud(60, seed=2).with_sh_degree(0)
+    views = _views(cloud, 4, size=16)
+    values = iter([10.0, 9.0, 8.0, 7.0, 6.0])
+    monkeypatch.setattr(finetune, "aside_psnr", lambda *a, **k: next(values))
+    config = tuning_config(cloud, RenderSettings(), 0)
+    tuning = Tuning(Views(views.cameras[:3], views.images[:3]), Views(views.cameras[3:], views.images[3:]),
+                    iterations=40, rounds=1, check_every=5, patience=3)
+    out, record = tune(cloud, tuning, config, seed=0)
+    assert record["iterations"] == 20 and record["best_at"] == 0  # (the plateau counts from the first check)
+    assert (record["psnr_before"], record["psnr_after"]) == (10.0, 10.0)
+    np.testing.assert_array_equal(out.means, cloud.means)
+    assert out.extra[DILATION_KEY].min() > 0
+
+
+def test_compact_with_images_sets_some_aside_and_says_what_it_will_take():
+    cloud = example_cloud(120, seed=3).with_sh_degree(1)
+    images = _views(cloud, 16, size=20)
+    said = []
+    r = compact(cloud, keep=0.5, images=images, rounds=1, iterations=30, views=2, resolution=20,
+                progress=lambda f, msg: said.append(msg))
+    rec = r.rounds[0]
+    assert len(r.cloud) == 60 and rec["judged_on"] == "the 2 of the training images set aside"
+    assert rec["psnr_after"] >= rec["psnr_before"] and 0 <= rec["best_at"] <= rec["iterations"] <= 30
+    assert any("s an iteration" in m and "set-aside" in m for m in said)  # the estimate, before fine-tuning
+    first = next(i for i, m in enumerate(said) if "s an iteration" in m)
+    assert not any("fine-tuning 1" in m for m in said[:first])
+    fixed = compact(cloud, keep=0.5, images=images, rounds=1, iterations=6, views=2, resolution=20, plateau=False)
+    assert fixed.rounds[0]["iterations"] == 6 and fixed.rounds[0]["judged_on"] == "the training images"
+
+
+def test_distillation_targets_are_drawn_as_the_fine_tuning_draws(monkeypatch):
+    """A cloud trained the classic way carries its dilation (rendered `matched` by default); its own
+    renders are drawn classic, as the fine-tuning draws (a mismatch the fine-tuning would learn)."""
+    cloud = example_cloud(80, seed=4).with_sh_degree(0)
+    cloud = cloud.replace(extra={DILATION_KEY: np.full(80, 0.004, np.float32)})
+    modes = []
+    real = finetune.own_renders
+
+    def own_renders(src, cameras, resolution, settings, views):
+        modes.append(settings.antialias)
+        return real(src, cameras, resolution, settings, views)
+
+    monkeypatch.setattr(compaction, "own_renders", own_renders)
+    r = compact(cloud, keep=0.5, resolution=24, distill=4)
+    assert modes == ["classic"] and len(r.rounds) == 1
+    monkeypatch.setattr(finetune, "DISTILL_TARGET", "auto")
+    compact(cloud, keep=0.5, resolution=24, distill=4)
+    assert modes[-1] == "auto"
