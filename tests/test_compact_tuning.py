@@ -85,6 +85,11 @@ def test_tune_keeps_the_best_state_the_set_aside_views_saw(monkeypatch):
     assert (record["psnr_before"], record["psnr_after"]) == (10.0, 10.0)
     np.testing.assert_array_equal(out.means, cloud.means)
     assert out.extra[DILATION_KEY].min() > 0
+    rising = iter(range(100))  # still paying, but past its time: the first check ends it
+    monkeypatch.setattr(finetune, "aside_psnr", lambda *a, **k: float(next(rising)))
+    timed = Tuning(tuning.images, tuning.aside, iterations=40, rounds=1, check_every=5, seconds=0.0)
+    _, record = tune(cloud, timed, config, seed=0)
+    assert record["iterations"] == 5 and record["best_at"] == 5
 
 
 def test_compact_with_images_sets_some_aside_and_says_what_it_will_take():

@@ -212,7 +212,8 @@ CAPTURE_METHODS = (("ours, photos", "hessian", "merge", True, False, "auto"),
                    ("LightGaussian prune + fine-tune", "lightgaussian", "prune", True, False, "auto"),
                    ("ours, no photos, placed views", "hessian", "merge", False, False, "auto"),
                    ("ours, no photos, capture cameras", "hessian", "merge", False, True, "auto"),
-                   ("ours, no photos, placed views, --distill 1000", "hessian", "merge", False, False, 1000))
+                   ("ours, no photos, placed views, --distill 1000", "hessian", "merge", False, False, 1000),
+                   ("ours, no photos, placed views, --distill 0", "hessian", "merge", False, False, 0))
 INPUT_TUNED = "input + fine-tune as long"
 
 
@@ -304,11 +305,12 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
     most = DEFAULT_ITERATIONS if iterations is None else iterations
     for fraction in fractions:
         tuned_iterations = None
-        for label, score_name, removal, with_photos, with_cameras, distill in methods:
+        for label, score_name, removal, with_photos, with_cameras, distill, *drop in methods:
             r, seconds, cpu, peak = timed(
                 compact, base, keep=fraction, images=photos if with_photos else None, score=score_name,
                 removal=removal, cameras=cameras if with_cameras else None, iterations=most, distill=distill,
-                rounds=rounds if with_photos else None, plateau=plateau, seed=seed, progress=checks)
+                rounds=rounds if with_photos else None, plateau=plateau, seed=seed, progress=checks,
+                prune=drop[0] if drop else PRUNE_FRACTION)
             info = {}
             if r.rounds:
                 its = sum(x["iterations"] for x in r.rounds)
@@ -563,9 +565,12 @@ def main(argv=None) -> int:
                         "scored on its held-out photos (capture_rows)")
     parser.add_argument("--base", type=Path, default=None, metavar="PLY", help="the capture's trained cloud")
     parser.add_argument("--test-every", type=int, default=8, help="the capture's held-out photos (default: 8)")
-    parser.add_argument("--capture-methods", nargs="+", type=int, default=None, metavar="K",
-                        help="rows of the capture's table, by number (0-5: " +
+    parser.add_argument("--capture-methods", nargs="*", type=int, default=None, metavar="K",
+                        help="rows of the capture's table, by number (0-6: " +
                         "; ".join(m[0] for m in CAPTURE_METHODS) + "; default: all)")
+    parser.add_argument("--capture-row", nargs=3, action="append", default=[], metavar=("SCORE", "REMOVAL", "PRUNE"),
+                        help="with --capture: also a row with photos of this score, removal and fraction dropped "
+                        "before merging (repeatable)")
     parser.add_argument("--iterations", type=int, default=None, help="with --capture: the most fine-tuning iterations "
                         "a round (default: compact's)")
     parser.add_argument("--tuning", nargs="+", default=[], metavar="FIELD=VALUE",
@@ -601,7 +606,10 @@ def main(argv=None) -> int:
     if args.capture is not None:
         if args.base is None:
             parser.error("--capture needs --base")
-        methods = [CAPTURE_METHODS[k] for k in args.capture_methods or range(len(CAPTURE_METHODS))]
+        methods = [CAPTURE_METHODS[k] for k in (range(len(CAPTURE_METHODS)) if args.capture_methods is None
+                                                 else args.capture_methods)]
+        methods += [(f"{score} {removal}, {float(q):g} dropped first + fine-tune", score, removal, True, False, "auto",
+                     float(q)) for score, removal, q in args.capture_row]
         print(f"compaction of {args.base} (capture {args.capture}); load {_loadavg()}", flush=True)
         rows = capture_rows(args.base, args.capture, args.test_every, tuple(args.fractions), methods=methods,
                             splat=not args.no_splat_transform, input_tuned=args.input_tuned,

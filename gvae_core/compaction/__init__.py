@@ -56,9 +56,9 @@ from ..hessian import scoring_settings
 from ..rendering import RenderSettings
 from ..resources import check_compact_memory, reuse_freed_memory
 from . import finetune
-from .finetune import (AUTO_DISTILL, AUTO_DISTILL_MAX, CHECK_EVERY, DEFAULT_ITERATIONS, DISTILL_ASIDE,
-                       DISTILL_CHECK_EVERY, DISTILL_VIEWS,
-                       SET_ASIDE_EVERY, Tuning, compact_with_images, fine_tune_height, own_renders, set_aside)
+from .finetune import (AUTO_DISTILL, AUTO_DISTILL_MAX, AUTO_DISTILL_SECONDS, CHECK_EVERY, DEFAULT_ITERATIONS,
+                       DISTILL_ASIDE, DISTILL_CHECK_EVERY, DISTILL_VIEWS, SET_ASIDE_EVERY, Tuning, compact_with_images,
+                       fine_tune_height, own_renders, set_aside)
 from .graph import NEIGHBOURS, owner_root
 from .merge import merge_groups, merge_groups_reference, ordered
 from .moments import COLOUR_WEIGHT
@@ -178,6 +178,7 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     src = cloud.numpy()
     _check_input(src, score, removal, prune)
     n = len(src)
+    auto = isinstance(distill, str)
     distill = distill_iterations(distill, n, images, tolerance)
     target = _check_arguments(n, keep, count, tolerance, images, distill, rounds, iterations)
     if check_memory:
@@ -200,7 +201,7 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
             renders = own_renders(src, cameras, resolution, drawn, DISTILL_VIEWS + aside)
             fit, judge = set_aside(renders, (DISTILL_VIEWS + aside) // aside) if aside else (renders, None)
             tuning = Tuning(fit, judge, distill, 1 if rounds is None else rounds, "the input's own renders",
-                            DISTILL_CHECK_EVERY)
+                            DISTILL_CHECK_EVERY, seconds=AUTO_DISTILL_SECONDS if auto else None)
         elif images is not None:
             fit, judge = set_aside(images) if plateau else (images, None)
             tuning = Tuning(fit, judge, iterations, 1 if rounds is None else rounds)

@@ -59,6 +59,8 @@ DISTILL_CHECK_EVERY = 25
 #: plateau (250-575 ran) -0.19 / -0.32, -0.06 / -0.12 (docs/benchmarks/compact.md).
 AUTO_DISTILL = 1000
 AUTO_DISTILL_MAX = 50_000
+#: The default distillation stops at its first check after this many seconds (the best state kept).
+AUTO_DISTILL_SECONDS = 180.0
 #: Changes to the trainer's configuration (`train.TrainConfig` fields) for compaction's fine-tuning.
 TUNING: dict = {}
 #: A cloud's trainable fields.
@@ -113,7 +115,7 @@ def set_aside(images, every: int = SET_ASIDE_EVERY):
     aside = sorted(i for rank, i in enumerate(order) if rank % every == every // 2)
     if len(aside) < 2 or n - len(aside) < 2:
         return images, None
-    fit = [i for i in range(n) if i not in set(aside)]
+    fit = sorted(set(range(n)) - set(aside))
 
     def pick(rows):
         return Views([images.cameras[i] for i in rows], images.images[rows], images.alphas[rows],
@@ -127,7 +129,8 @@ class Tuning:
     """How compaction fine-tunes: `images` to train on, `aside` to judge (None: no plateau rule,
     every iteration runs), `iterations` the most a round, `rounds`, `target` what `images` are
     ("the training images", "the input's own renders"), `check_every` iterations between checks,
-    `patience` checks without gain before it stops."""
+    `patience` checks without gain before it stops, `seconds` (None: no limit) a round's fine-tuning
+    stops at the first check past (the default distillation's bound on its cost)."""
 
     images: object
     aside: object | None
@@ -136,6 +139,7 @@ class Tuning:
     target: str = "the training images"
     check_every: int = CHECK_EVERY
     patience: int = PATIENCE
+    seconds: float | None = None
 
 
 def aside_psnr(cloud: GaussianCloud, aside, config, fit_cameras: Sequence[Camera]) -> float:
@@ -194,7 +198,8 @@ def tune(cloud: GaussianCloud, tuning: Tuning, config, seed: int,
         value = aside_psnr(current, tuning.aside, config, fit_cams)
         if value > best[0]:
             best[:] = [value, it, GaussianCloud(**{k: getattr(current, k).detach().cpu().clone() for k in PARAMETERS})]
-        stopped[0] = plateau.update(it, value)
+        stopped[0] = plateau.update(it, value) or (tuning.seconds is not None
+                                                    and time.perf_counter() - t0 > tuning.seconds)
         say(it / max(tuning.iterations, 1), f"fine-tuning {it}/{tuning.iterations}, set-aside PSNR {value:.2f} dB "
             f"(best {best[0]:.2f} at {best[1]}; {before:.2f} before)")
         return stopped[0]
