@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import importlib
 
-_MODULES = ("preferences", "io_ops", "refine_ops", "ui", "render_setup")
+_MODULES = ("preferences", "io_ops", "refine_ops", "photos_ops", "ui", "render_setup")
 
 
 def _modules():

@@ -2,7 +2,8 @@
 bpy module: `python -m gvae_addon.benchmark N REPEATS`). Registers the add-on from the source
 tree, times its operators (import, export, Refine) on an N-Gaussian SH-3 PLY and prints one JSON
 line. `... render PLY
-CAMERA.json OUT_DIR`: Cycles renders of an imported PLY (`render_main`)."""
+CAMERA.json OUT_DIR`: Cycles renders of an imported PLY (`render_main`); `... splat-types SPEC.json OUT_DIR`
+(Blender 5.3+): the add-on's splat and Blender's own side by side (`splat_types_main`)."""
 
 from __future__ import annotations
 
@@ -203,6 +204,17 @@ def _cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
+def _cycles(scene):
+    """(render settings, Cycles settings) of `scene` set for the benchmark renders: Cycles on the CPU with
+    2 threads, no denoising or adaptive sampling, film transparent, to 8-bit RGBA PNG."""
+    r, c = scene.render, scene.cycles
+    r.engine, r.film_transparent = "CYCLES", True
+    r.threads_mode, r.threads = "FIXED", 2
+    r.image_settings.file_format, r.image_settings.color_mode = "PNG", "RGBA"
+    c.device, c.use_denoising, c.use_adaptive_sampling = "CPU", False, False
+    return r, c
+
+
 def render_main(ply: str, camera_json: str, out_dir: str) -> int:
     """`python -m gvae_addon.benchmark render PLY CAMERA.json OUT_DIR`: import with the default
     options, then a Cycles render (CPU, 2 threads) per RENDER_CONFIGS to PNG; prints one JSON line."""
@@ -214,13 +226,7 @@ def render_main(ply: str, camera_json: str, out_dir: str) -> int:
     bpy.ops.import_scene.gaussian_splat(filepath=ply)
     out = {"import_s": time.perf_counter() - t0, "n": len(bpy.context.active_object.data.vertices), "renders": {}}
     render_setup.add_camera(scene, cam_args["c2w"], cam_args["fov_x"], cam_args["width"], cam_args["height"])
-    r = scene.render
-    r.engine = "CYCLES"
-    r.film_transparent = True
-    r.threads_mode, r.threads = "FIXED", 2
-    r.image_settings.file_format, r.image_settings.color_mode = "PNG", "RGBA"
-    c = scene.cycles
-    c.device, c.use_denoising, c.use_adaptive_sampling = "CPU", False, False
+    r, c = _cycles(scene)
     for i, (name, cfg) in enumerate(RENDER_CONFIGS.items()):
         c.samples, c.filter_width = cfg["samples"], cfg["filter_width"]
         c.min_transparent_bounces = 0 if cfg["roulette"] else c.transparent_max_bounces
@@ -234,7 +240,84 @@ def render_main(ply: str, camera_json: str, out_dir: str) -> int:
     return 0
 
 
+def splat_types_main(spec_json: str, out_dir: str) -> int:
+    """`python -m gvae_addon.benchmark splat-types SPEC.json OUT_DIR` (Blender 5.3+): each render of the
+    spec (a list of {name, ply, kind, c2w, fov_x, width, height, percentage, samples}) in a scene of its
+    own, Cycles on the CPU (2 threads), to PNG: kind "mesh" the add-on's splat (File > Import, default
+    options; one sample at each pixel centre without Russian roulette on transparent bounces, the display
+    tests' converged setting), "native" Blender's own splat (its PLY importer, then the add-on's modifier,
+    `nodes.add_native_modifier`; its splats are drawn stochastically: `samples` at the pixel centres).
+    Prints one JSON line: per render its PNG, seconds and CPU seconds."""
+    gvae_addon.register()
+    out = {}
+    for job in json.loads(Path(spec_json).read_text()):
+        _clear()
+        for pc in list(bpy.data.pointclouds):
+            bpy.data.pointclouds.remove(pc)
+        scene = bpy.context.scene
+        if job["kind"] == "mesh":
+            bpy.ops.import_scene.gaussian_splat(filepath=job["ply"])
+        else:
+            bpy.ops.wm.ply_import(filepath=job["ply"])
+            nodes.add_native_modifier(bpy.context.active_object)
+            render_setup.setup_scene(scene)
+        render_setup.add_camera(scene, job["c2w"], job["fov_x"], job["width"], job["height"])
+        r, c = _cycles(scene)
+        r.resolution_percentage = job["percentage"]
+        c.samples, c.filter_width = (1 if job["kind"] == "mesh" else job["samples"]), 0.01
+        c.min_transparent_bounces = c.transparent_max_bounces
+        r.filepath = str(Path(out_dir) / f"{job['name']}.png")
+        t0, cpu0 = time.perf_counter(), _cpu_seconds()
+        bpy.ops.render.render(write_still=True)
+        out[job["name"]] = {"png": r.filepath, "seconds": time.perf_counter() - t0,
+                            "cpu_seconds": _cpu_seconds() - cpu0, "samples": c.samples}
+    gvae_addon.unregister()
+    print("RESULT " + json.dumps(out))
+    return 0
+
+
+def photos_main(folder: str, run_dir: str, height: str, out_dir: str, threads: str) -> int:
+    """`python -m gvae_addon.benchmark photos FOLDER RUN_DIR HEIGHT OUT_DIR THREADS`: New from Photos as a
+    batch run calls it (`bpy.ops.gvae.new_from_photos`, held-out photos on, THREADS torch threads, 0: its
+    choice) in Blender's default scene emptied of its objects, timed; then a Cycles render of the result
+    (the add-on's splat, the display tests' converged setting) through the first held-out photo's camera
+    at the training size, to OUT_DIR/photos.png. Prints one JSON line."""
+    gvae_addon.register()
+    _clear()  # (the default cube would stand in front of the capture; its camera goes too: the job sets one)
+    t0, cpu0 = time.perf_counter(), _cpu_seconds()
+    status = bpy.ops.gvae.new_from_photos(folder=folder, run_dir=run_dir, height=int(height), threads=int(threads))
+    out = {"status": sorted(status), "seconds": time.perf_counter() - t0, "cpu_seconds": _cpu_seconds() - cpu0}
+    obj = bpy.context.active_object
+    out["count"] = len(obj.data.vertices)
+    scene = bpy.context.scene
+    cams = bpy.data.collections[f"{obj.name} cameras"].objects
+    held = sorted((c for c in cams if c.name.endswith("(held out)")), key=lambda c: c.name)
+    scene.camera = held[0]
+    out["camera"] = held[0].name
+    log = json.loads((Path(run_dir) / "log.json").read_text())
+    out["log"] = log
+    from gvae_core.capture import read_capture  # noqa: PLC0415 - the capture as the job left it (SfM'd)
+
+    capture = read_capture(folder, 8, images=False)
+    photo = capture.cameras[capture.indices("test")[0]].scaled(log[-1]["resolution"])
+    r, c = _cycles(scene)
+    r.resolution_x, r.resolution_y, r.resolution_percentage = photo.width, photo.height, 100
+    c.samples, c.filter_width = 1, 0.01
+    c.min_transparent_bounces = c.transparent_max_bounces
+    r.filepath = str(Path(out_dir) / "photos.png")
+    out["render_size"] = [r.resolution_x, r.resolution_y]
+    bpy.ops.render.render(write_still=True)
+    out["png"] = r.filepath
+    gvae_addon.unregister()
+    print("RESULT " + json.dumps(out))
+    return 0
+
+
 if __name__ == "__main__":
+    if sys.argv[1] == "photos":
+        sys.exit(photos_main(*sys.argv[2:7]))
     if sys.argv[1] == "render":
         sys.exit(render_main(*sys.argv[2:5]))
+    if sys.argv[1] == "splat-types":
+        sys.exit(splat_types_main(*sys.argv[2:4]))
     sys.exit(main())

@@ -232,14 +232,17 @@ def cloud_from_mesh(me: bpy.types.Mesh) -> tuple[GaussianCloud, np.ndarray | Non
 
 def cloud_from_object(obj) -> tuple[GaussianCloud, np.ndarray | None]:
     """The Gaussians of a splat object's own (unevaluated) data, edit-mode changes included: a
-    splat mesh (`cloud_from_mesh`) or a Blender 5.3+ Gaussian-splat point cloud (no steps)."""
+    splat mesh (`cloud_from_mesh`) or a Blender 5.3+ Gaussian-splat point cloud (`cloud_from_pointcloud`),
+    and its `gvae_step` values (None when it has none)."""
     if not (is_splat(obj) or is_native_splat(obj)):
         raise ValueError(f"object {getattr(obj, 'name', None)!r} is not a Gaussian splat object "
                          "(import one with File > Import > Gaussian Splat)")
     if obj.mode == "EDIT":
         obj.update_from_editmode()
     if is_native_splat(obj):
-        return cloud_from_pointcloud(obj.data), None
+        pc = obj.data
+        steps = _get(pc, STEP_ATTR, "INT", 1, len(pc.points)) if STEP_ATTR in pc.attributes else None
+        return cloud_from_pointcloud(pc), steps
     return cloud_from_mesh(obj.data)
 
 
@@ -265,10 +268,31 @@ def is_native_splat(obj) -> bool:
     return obj is not None and obj.type == "POINTCLOUD" and getattr(obj.data, "type", None) == "GAUSSIAN_SPLAT"
 
 
-def pointcloud_from_cloud(cloud: GaussianCloud, name: str) -> bpy.types.PointCloud:
+def is_any_splat(obj) -> bool:
+    """A splat object of either kind: the add-on's splat mesh or Blender's own Gaussian-splat point cloud."""
+    return is_splat(obj) or is_native_splat(obj)
+
+
+def splat_count(obj) -> int:
+    """How many Gaussians a splat object of either kind holds."""
+    return len(obj.data.points) if is_native_splat(obj) else len(obj.data.vertices)
+
+
+def native_sh_degree(pc) -> int:
+    """The SH degree of a Gaussian-splat point cloud, from its `radiance:sh_*` attributes."""
+    k = sum(1 for a in pc.attributes if a.name.startswith("radiance:sh_") and a.name[12:].isdigit())
+    degree = {count: d for d, count in SH_REST_COUNTS.items()}.get(k)
+    if degree is None or any(native_sh(j) not in pc.attributes for j in range(k)):
+        raise ValueError(f"point cloud {pc.name!r} has {k} radiance:sh_* attributes; expected 0, 3, 8 or 15 "
+                         "numbered from 0")
+    return degree
+
+
+def pointcloud_from_cloud(cloud: GaussianCloud, name: str, steps: np.ndarray | None = None) -> bpy.types.PointCloud:
     """A new Gaussian-splat point cloud (Blender 5.3+) holding `cloud`, the attributes as Blender's own
     PLY importer makes them (exp and sigmoid in float64; quaternions normalised, zero: the identity);
-    extra properties as point attributes. Removed again if anything fails."""
+    extra properties as point attributes; `steps` (N,) ints, when given, the `gvae_step` attribute. Removed
+    again if anything fails."""
     if not native_available():
         raise ValueError(f"Blender {bpy.app.version_string} has no Gaussian-splat point clouds (5.3 and later)")
     c = cloud.numpy()
@@ -302,6 +326,8 @@ def pointcloud_from_cloud(cloud: GaussianCloud, name: str) -> bpy.types.PointClo
                  np.ascontiguousarray(c.sh_rest[:, j], np.float32).ravel())
         for key, kind, buf in buffers:
             _set(_new_attribute(pc, key, kind), "value", buf)
+        if steps is not None:
+            _set(_new_attribute(pc, STEP_ATTR, "INT"), "value", np.ascontiguousarray(steps, np.int32).ravel())
         pc[LAYOUT_KEY] = _layout_json(c)
     except BaseException:
         bpy.data.pointclouds.remove(pc)
@@ -309,10 +335,27 @@ def pointcloud_from_cloud(cloud: GaussianCloud, name: str) -> bpy.types.PointClo
     return pc
 
 
+#: The PLY type a point attribute that `gvae_ply` does not record is read back as (Blender's own PLY importer
+#: keeps a file's extra properties as point attributes of these types).
+_PLAIN_EXTRA = {"FLOAT": "<f4", "INT": "<i4", "INT8": "|i1", "BOOLEAN": "|b1"}
+
+
+def _unrecorded_extras(pc, info: dict) -> list:
+    """[name, dtype] of the point attributes of a Gaussian-splat point cloud that are extra properties
+    but not recorded in its `gvae_ply` (all of them for one made by Blender's own PLY importer, which
+    keeps a file's extra properties, `filter_3D` or a refinement's `gvae_octave_*`, as attributes):
+    plain one-value attributes, in the cloud's order, but the add-on's own and Blender's point `radius`."""
+    known = {key for key, _ in info["extra"]} | _NATIVE_RESERVED | _RESERVED | {"radius"}
+    return [[a.name, _PLAIN_EXTRA[a.data_type]] for a in pc.attributes
+            if a.domain == "POINT" and a.data_type in _PLAIN_EXTRA and a.name not in known
+            and not a.name.startswith((".", "radiance:"))]
+
+
 def cloud_from_pointcloud(pc) -> GaussianCloud:
     """The Gaussians of a Gaussian-splat point cloud (made here or by Blender itself): log-scales and
     logits in float64 of its linear values, a zero scale read as a flat axis (LOG_SCALE_RANGE[0]) and
-    an opacity of 0 or 1 as the ends of OPACITY_LOGIT_RANGE; extras as recorded in `gvae_ply`."""
+    an opacity of 0 or 1 as the ends of OPACITY_LOGIT_RANGE; extras as recorded in `gvae_ply`, then every
+    other plain point attribute (`_unrecorded_extras`)."""
     n = len(pc.points)
     for name, kind in (("position", "FLOAT_VECTOR"), (NATIVE_BASE, "FLOAT4"), (NATIVE_SCALE, "FLOAT_VECTOR"),
                        (NATIVE_ROTATION, "QUATERNION")):
@@ -320,10 +363,7 @@ def cloud_from_pointcloud(pc) -> GaussianCloud:
         if attr is None or attr.domain != "POINT" or attr.data_type != kind:
             raise ValueError(f"point cloud {pc.name!r} has no {kind} point attribute {name!r}: not a complete "
                              "Gaussian splat")
-    k = sum(1 for a in pc.attributes if a.name.startswith("radiance:sh_") and a.name[12:].isdigit())
-    if k not in SH_REST_COUNTS.values() or any(native_sh(j) not in pc.attributes for j in range(k)):
-        raise ValueError(f"point cloud {pc.name!r} has {k} radiance:sh_* attributes; expected 0, 3, 8 or 15 "
-                         "numbered from 0")
+    k = SH_REST_COUNTS[native_sh_degree(pc)]
 
     def get(name: str, prop: str, width: int) -> np.ndarray:
         buf = np.empty(n * width, np.float32)
@@ -342,7 +382,7 @@ def cloud_from_pointcloud(pc) -> GaussianCloud:
         rest[:, j] = get(native_sh(j), "vector", 3)
     extra = {}
     info = json.loads(pc.get(LAYOUT_KEY, '{"extra": []}'))
-    for key, dt in info["extra"]:
+    for key, dt in info["extra"] + _unrecorded_extras(pc, info):
         dtype = np.dtype(dt)
         kind = _EXTRA_STORAGE[dtype.str[1:]][0]
         extra[key] = _extra_from_buffer(_get(pc, key, kind, 2 if kind == "INT32_2D" else 1, n), dtype)

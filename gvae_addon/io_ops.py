@@ -36,6 +36,32 @@ AXES = {
 }
 
 
+#: What a splat object can be: the add-on's splat mesh (every version) or Blender 5.3+'s own splat.
+SPLAT_TYPES = (
+    ("MESH", "Add-on Splat", "A mesh drawn by the add-on's Geometry Nodes (every Blender version; the closest to gvae "
+     "render in Cycles, with the display options of the sidebar)"),
+    ("NATIVE", "Blender Gaussian Splat", "A point cloud of type Gaussian Splat, drawn by Blender itself (Blender 5.3 "
+     "and later; a modifier adds the anti-aliasing and a refinement for the scene camera; Cycles blends it in its "
+     "own order, a little further from gvae render)"))
+#: The choices of `AXES`, for an operator's enum.
+AXES_ITEMS = (("NONE", "As Stored (Z Up)", "Keep the file's axes (scenes made in Blender, NeRF-Synthetic)"),
+              ("Y_DOWN", "Y Down, Z Forward", "3DGS/COLMAP/OpenCV scenes: rotate the object so that -Y becomes up "
+               "(an object rotation; the data are not changed)"))
+
+
+def set_up_scene(scene, setup: bool = True, background=None) -> list[str]:
+    """What a new splat object needs of its scene (`render_setup`): the focal length its filters follow
+    and, with `setup`, the Standard view transform, Cycles' transparent bounces and the world colour the
+    splat was trained over (`background`, when known). Returns a description of each change made."""
+    render_setup.sync_focal_length(scene)
+    if not setup:
+        return []
+    changes = render_setup.setup_scene(scene)
+    if background is not None:
+        changes.append(render_setup.set_world_colour(scene, background))
+    return changes
+
+
 def _with_messages(function, *args, **kwargs):
     """function(*args, **kwargs) and the warnings it gave (dropped rows, say), as messages."""
     with warnings.catch_warnings(record=True) as caught:
@@ -106,9 +132,21 @@ def _new_object(context, name: str, data, axes: str, setup=None):
 
 
 def build_native_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE"):
-    """A new Blender 5.3+ Gaussian-splat point cloud object holding `cloud` (`convert.pointcloud_from_cloud`),
-    linked to the active collection (removed again if anything fails)."""
-    return _new_object(context, name, convert.pointcloud_from_cloud(cloud, name), axes)
+    """A new Blender 5.3+ Gaussian-splat point cloud object holding `cloud` (`convert.pointcloud_from_cloud`)
+    with the modifier that draws it as `gvae_core.render` does for the scene camera
+    (`nodes.add_native_modifier`), linked to the active collection (removed again if anything fails)."""
+    cloud, steps = _split_steps(cloud)
+    return _new_object(context, name, convert.pointcloud_from_cloud(cloud, name, steps=steps), axes,
+                       nodes.add_native_modifier)
+
+
+def _split_steps(cloud: GaussianCloud):
+    """(cloud without its integer `gvae_step` property, those steps or None): Export's "Write Refine Step"
+    property becomes the object's `gvae_step` attribute again."""
+    steps = cloud.extra.get(convert.STEP_ATTR)
+    if steps is None or not np.issubdtype(steps.dtype, np.integer):
+        return cloud, None
+    return cloud.replace(extra={k: v for k, v in cloud.extra.items() if k != convert.STEP_ATTR}), steps
 
 
 def remove_splat(obj) -> None:
@@ -132,11 +170,7 @@ def build_splat(context, cloud: GaussianCloud, name: str, *, axes: str = "NONE",
     """A new splat object holding `cloud`, linked to the active collection (removed again if
     anything fails). An integer `gvae_step` property (written by Export with "Write Refine Step")
     becomes the object's `gvae_step` attribute again."""
-    steps = cloud.extra.get(convert.STEP_ATTR)
-    if steps is not None and np.issubdtype(steps.dtype, np.integer):
-        cloud = cloud.replace(extra={k: v for k, v in cloud.extra.items() if k != convert.STEP_ATTR})
-    else:
-        steps = None
+    cloud, steps = _split_steps(cloud)
     return _new_object(context, name, convert.mesh_from_cloud(cloud, name, steps=steps), axes, lambda obj:
                        nodes.add_splat_modifier(obj, scale_factor=scale_factor, fraction=fraction,
                                                 points_only=points_only, min_opacity=min_opacity,
@@ -185,17 +219,8 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
     files: CollectionProperty(type=OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
     directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
 
-    splat_type: EnumProperty(
-        name="Splat Type", default="MESH",
-        items=(("MESH", "Add-on Splat", "A mesh drawn by the add-on's Geometry Nodes (every Blender version; "
-                "Refine and Compact work on it)"),
-               ("NATIVE", "Blender Gaussian Splat", "A point cloud of type Gaussian Splat, drawn by Blender itself "
-                "(Blender 5.3 and later; exported back as it is, not refined or compacted)")))
-    axis_conversion: EnumProperty(
-        name="Axes", default="NONE",
-        items=(("NONE", "As Stored (Z Up)", "Keep the file's axes (scenes made in Blender, NeRF-Synthetic)"),
-               ("Y_DOWN", "Y Down, Z Forward", "3DGS/COLMAP/OpenCV scenes: rotate the object so that "
-                "-Y becomes up (an object rotation; the data are not changed)")))
+    splat_type: EnumProperty(name="Splat Type", default="MESH", items=SPLAT_TYPES)
+    axis_conversion: EnumProperty(name="Axes", default="NONE", items=AXES_ITEMS)
     scale_factor: FloatProperty(name="Scale Factor", default=nodes.DEFAULT_SCALE_FACTOR, min=0.0,
                                 soft_max=5.0, description="Multiplies every Gaussian's size (1: as trained)")
     view_dependent: BoolProperty(name="View-Dependent Colour", default=True,
@@ -282,11 +307,8 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
         """Set up (or check) the scene for splats: the INFO note of what changed; warnings when
         Set Up Scene is off and the scene would show the splats wrong. `background`: the colour
         the (last) imported splat was trained over, shown as the world's."""
-        render_setup.sync_focal_length(scene)
+        changes = set_up_scene(scene, self.setup_scene, background)
         if self.setup_scene:
-            changes = render_setup.setup_scene(scene)
-            if background is not None:
-                changes.append(render_setup.set_world_colour(scene, background))
             return f"; scene set up for splats: {', '.join(changes)}" if changes else ""
         for problem in (render_setup.view_transform_problem(scene), render_setup.bounce_problem(scene)):
             if problem:
@@ -401,6 +423,25 @@ class EXPORT_SCENE_OT_gaussian_splat_glb(_SplatExport, Operator):
         "the training resolution (glTF splats keep no other properties; 0: the splat as it was before refining)")
 
 
+class GVAE_OT_native_modifier(Operator):
+    """Draw the active Blender Gaussian splat (5.3+) as gvae render does for the scene camera: a modifier that
+    adds the reference renderer's anti-aliasing and a refined splat's changes per octave (its data stay as they
+    are)"""
+
+    bl_idname = "gvae.native_modifier"
+    bl_label = "Draw as GaussianVAE"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return convert.is_native_splat(context.active_object)
+
+    def execute(self, context):
+        nodes.add_native_modifier(context.active_object)
+        render_setup.sync_focal_length(context.scene)
+        return {"FINISHED"}
+
+
 class GVAE_FH_gaussian_splat(bpy.types.FileHandler):
     """Drag and drop of .ply, .splat, .spz, .sog, .glb/.gltf files and SOG meta.json files into the viewport
     (a .glb or .gltf dropped offers Blender's glTF importer too: the handler cannot see whether it holds
@@ -429,7 +470,8 @@ def menu_export(self, context):
 
 
 classes = (IMPORT_SCENE_OT_gaussian_splat, EXPORT_SCENE_OT_gaussian_splat, EXPORT_SCENE_OT_gaussian_splat_spz,
-           EXPORT_SCENE_OT_gaussian_splat_sog, EXPORT_SCENE_OT_gaussian_splat_glb, GVAE_FH_gaussian_splat)
+           EXPORT_SCENE_OT_gaussian_splat_sog, EXPORT_SCENE_OT_gaussian_splat_glb, GVAE_OT_native_modifier,
+           GVAE_FH_gaussian_splat)
 
 
 def register():

@@ -53,9 +53,12 @@ from gvae_core.octaves import SIZE, field_keys
 from gvae_core.conventions import (ALPHA_MAX, ALPHA_MIN, LOG_SCALE_RANGE, MIP_2D_VARIANCE, OPACITY_LOGIT_RANGE,
                                    SH_C0, SH_C1, SH_C2, SH_C3, SH_REST_COUNTS, SRGB_EOTF)
 
-from .convert import layout
+from .convert import layout, native_sh_degree
 
 GROUP_NAME = "GaussianVAE Splats"
+#: The group of the modifier on Blender 5.3+'s own Gaussian-splat point clouds (`add_native_modifier`).
+NATIVE_GROUP_NAME = "GaussianVAE Native Splats"
+GROUP_NAMES = (GROUP_NAME, NATIVE_GROUP_NAME)
 MATERIAL_NAME = "GaussianVAE Splat"
 MODIFIER_NAME = "GaussianVAE Splats"
 COLOR_ATTR = "gvae_color"
@@ -110,11 +113,23 @@ HIDDEN_INPUTS = (
 )
 
 
+#: The inputs of the modifier on a Gaussian-splat point cloud (beside HIDDEN_INPUTS).
+NATIVE_INPUTS = (
+    ("Refinement", "NodeSocketBool", True, None, None,
+     "A refined splat's changes per octave, drawn by the rate the scene camera samples each Gaussian at (none "
+     "at or below its training resolution); off: the splat as it was before refining"),
+    ("Anti-Aliasing", "NodeSocketBool", True, None, None,
+     "The reference renderer's anti-aliasing for the scene camera (3DGS's screen-space dilation, or "
+     "Mip-Splatting's filters for a splat trained with them), as gvae render and 3DGS viewers draw it; off: "
+     "Blender draws the stored Gaussians as they are (thinner, aliased where they are smaller than a pixel)"),
+)
+
+
 #: Socket type (`NodeSocket.type`) of each interface socket type and node data type used here.
 SOCKET_KIND = {"NodeSocketFloat": "VALUE", "NodeSocketBool": "BOOLEAN", "NodeSocketInt": "INT",
                "NodeSocketMaterial": "MATERIAL", "NodeSocketGeometry": "GEOMETRY", "FLOAT": "VALUE",
                "FLOAT_VECTOR": "VECTOR", "VECTOR": "VECTOR", "BOOLEAN": "BOOLEAN", "ROTATION": "ROTATION",
-               "GEOMETRY": "GEOMETRY"}
+               "GEOMETRY": "GEOMETRY", "QUATERNION": "ROTATION", "FLOAT_COLOR": "RGBA"}
 
 
 def sockets(node, name: str, kind: str, *, output: bool = False) -> list:
@@ -358,45 +373,63 @@ def _octaves_seen(b: _Builder, depth, focal):
     return m("MULTIPLY", t, m("GREATER_THAN", t, OCTAVE_DEADBAND))
 
 
-def _refined(b: _Builder, name: str, change: str, octaves):
-    """Attribute `name` plus `octaves` times its change per octave (attribute `change`, 0 if absent)."""
-    return b.math("MULTIPLY_ADD", _named(b, change), octaves, _named(b, name))
+def _plus(b: _Builder, value, change: str, octaves):
+    """`value` (a node output) plus `octaves` times its change per octave (attribute `change`, 0 if absent)."""
+    return b.math("MULTIPLY_ADD", _named(b, change), octaves, value)
 
 
-def _build_group(ng, degree: int) -> None:
-    ng.nodes.clear()
-    ng.interface.clear()
-    ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
-    ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
-    for name, kind, default, lo, hi, desc in INPUTS + HIDDEN_INPUTS:
-        s = ng.interface.new_socket(name, description=desc, in_out="INPUT", socket_type=kind)
-        if default is not None:
-            s.default_value = default
-        if lo is not None:
-            s.min_value, s.max_value = lo, hi
-        if kind == "NodeSocketFloat" and hi == 1.0:
-            s.subtype = "FACTOR"
+class _Raw:
+    """Node outputs of each Gaussian's raw parameters as the PLY stores them (log-scales, w,x,y,z
+    quaternion, opacity logit, DC colour, SH rest coefficient j's RGB), read from a splat mesh's
+    attributes or a Blender 5.3+ Gaussian-splat point cloud's."""
 
-    b = _Builder(ng)
-    group_in = b.node("NodeGroupInput")
-    gin = {name: outp(group_in, name, SOCKET_KIND[kind]) for name, kind, *_ in INPUTS + HIDDEN_INPUTS}
-    gin["Geometry"] = outp(group_in, "Geometry", "GEOMETRY")
-    gout = b.node("NodeGroupOutput")
-    m = b.math
+    def __init__(self, log_scales, quat, logit, dc, rest):
+        self.log_scales, self.quat, self.logit, self.dc, self.rest = log_scales, quat, logit, dc, rest
 
-    # The scene's active camera in the object's own frame (the frame of the Gaussians' data).
+
+def _mesh_raw(b: _Builder, degree: int) -> _Raw:
+    """The PLY's columns of a splat mesh (`f_rest` channel-major: coefficient j, channel c is c K + j)."""
+    k = SH_REST_COUNTS[degree]
+    return _Raw([_named(b, f"scale_{i}") for i in range(3)], [_named(b, f"rot_{i}") for i in range(4)],
+                _named(b, "opacity"), [_named(b, f"f_dc_{i}") for i in range(3)],
+                [[_named(b, f"f_rest_{c * k + j}") for c in range(3)] for j in range(k)])
+
+
+def _camera(b: _Builder):
+    """(location, forward direction) of the scene's active camera in the object's own frame (the
+    frame of the Gaussians' data)."""
     cam = b.node("GeometryNodeObjectInfo", transform_space="RELATIVE")
     b.link(outp(b.node("GeometryNodeInputActiveCamera"), "Active Camera", "OBJECT"), inp(cam, "Object", "OBJECT"))
     forward = b.node("FunctionNodeRotateVector")
     inp(forward, "Vector", "VECTOR").default_value = (0.0, 0.0, -1.0)
     b.link(outp(cam, "Rotation", "ROTATION"), inp(forward, "Rotation", "ROTATION"))
-    forward = outp(forward, "Vector", "VECTOR")
-    cam_at = outp(cam, "Location", "VECTOR")
+    return outp(cam, "Location", "VECTOR"), outp(forward, "Vector", "VECTOR")
+
+
+class _Drawn:
+    """What the reference renderer draws of each Gaussian for the scene camera (`_drawn`)."""
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+
+def _drawn(b: _Builder, gin: dict, raw: _Raw, *, factor=None, filters=None, refine=None) -> _Drawn:
+    """Each Gaussian as the reference renderer draws it from the scene camera (module docstring):
+    a refined cloud's changes per octave applied (`octaves`: t; `refine`, a boolean input, off: t = 0),
+    the centre as drawn, the view direction camera -> centre (`view_dir`; `u` in the Gaussian's own
+    frame), the rotation (a rotation socket), the
+    standard deviations with the anti-aliasing filters added (`std`, three values; `filters`, a boolean
+    input, off: none), the opacity with their compensations, and the refined DC colour and SH
+    coefficients (`dc`: three values, `rest[j]`: three values). `factor`: multiplies the std-devs."""
+    m = b.math
+    cam_at, forward = _camera(b)
     base = outp(b.node("GeometryNodeInputPosition"), "Position", "VECTOR")
     # A refined cloud: the octaves above its training rate at which the camera draws each Gaussian,
     # from its stored (unchanged) centre; every other quantity from the centre as drawn.
     octaves = _octaves_seen(b, m("ABSOLUTE", b.vmath("DOT_PRODUCT", b.vmath("SUBTRACT", base, cam_at), forward)),
                             gin["Focal Length (px)"])
+    if refine is not None:
+        octaves = b.switch("FLOAT", refine, 0.0, octaves)
     centre = b.vmath("MULTIPLY_ADD", b.combine([_named(b, key) for key in field_keys("means", 3)]), octaves, base)
     rel = b.vmath("SUBTRACT", centre, cam_at)
     view_dir = b.vmath("NORMALIZE", rel)  # camera -> centre
@@ -408,8 +441,8 @@ def _build_group(ng, degree: int) -> None:
 
     # Rotation from the w,x,y,z quaternion (normalised by the node).
     q = b.node("FunctionNodeQuaternionToRotation")
-    for i, (comp, change) in enumerate(zip("WXYZ", field_keys("quats", 4))):
-        b.link(_refined(b, f"rot_{i}", change, octaves), inp(q, comp, "VALUE"))
+    for comp, value, change in zip("WXYZ", raw.quat, field_keys("quats", 4)):
+        b.link(_plus(b, value, change, octaves), inp(q, comp, "VALUE"))
     rotation = outp(q, "Rotation", "ROTATION")
 
     # Variances: s² (std-devs exp(clamp(log-scale)) x factor); with the 3D filter f:
@@ -420,6 +453,9 @@ def _build_group(ng, degree: int) -> None:
     # det Σ2D = det Σ · uᵀ Σ⁻¹ u.
     # A refined cloud's anti-aliasing size (either one) times e^min(t x its change per octave, 0).
     shrink = m("EXPONENT", m("MINIMUM", m("MULTIPLY", octaves, _named(b, field_keys(SIZE, 1)[0])), 0.0))
+    if filters is not None:  # filters off: no size, no screen variance
+        shrink = b.switch("FLOAT", filters, 0.0, shrink)
+        screen_var = b.switch("FLOAT", filters, 0.0, screen_var)
     f = m("MULTIPLY", _named(b, FILTER_KEY), shrink)
     ff = m("MULTIPLY", f, f)
     # "matched" (a cloud with the classic dilation held in world units, DILATION_KEY = d): the
@@ -434,9 +470,10 @@ def _build_group(ng, degree: int) -> None:
     u = outp(u, "Vector", "VECTOR")
     uu = [m("MULTIPLY", c, c) for c in b.separate(u)]
     std_tot, ratio_3d, ratio_det, quad_eff, quad_tot = [], [], [], [], []
-    for i in range(3):
-        log_s = _refined(b, f"scale_{i}", field_keys("scales", 3)[i], octaves)
-        s = m("MULTIPLY", m("EXPONENT", _clamp(b, log_s, LOG_SCALE_RANGE)), gin["Scale Factor"])
+    for i, change in enumerate(field_keys("scales", 3)):
+        s = m("EXPONENT", _clamp(b, _plus(b, raw.log_scales[i], change, octaves), LOG_SCALE_RANGE))
+        if factor is not None:
+            s = m("MULTIPLY", s, factor)
         var_eff = m("MULTIPLY_ADD", s, s, ff)
         var_tot = m("ADD", var_eff, screen_var)
         std_tot.append(m("SQRT", var_tot))
@@ -447,9 +484,51 @@ def _build_group(ng, degree: int) -> None:
     det_ratio = m("MULTIPLY", b.product(ratio_det), m("DIVIDE", b.total(quad_eff), b.total(quad_tot)))
     comp_2d = b.switch("FLOAT", gin["Compensate Screen Filter"], 1.0, m("SQRT", det_ratio))
 
-    logit = _clamp(b, _refined(b, "opacity", field_keys("opacities", 1)[0], octaves), OPACITY_LOGIT_RANGE)
+    logit = _clamp(b, _plus(b, raw.logit, field_keys("opacities", 1)[0], octaves), OPACITY_LOGIT_RANGE)
     sigmoid = m("DIVIDE", 1.0, m("ADD", m("EXPONENT", m("MULTIPLY", logit, -1.0)), 1.0))
     opacity = b.product([sigmoid, b.product(ratio_3d), comp_2d])
+
+    # A refined cloud's changes per octave of the DC colour and of each SH coefficient (`sh_rest`
+    # (K, 3) flattened: column 3 j + c).
+    dc = [_plus(b, value, change, octaves) for value, change in zip(raw.dc, field_keys("sh_dc", 3))]
+    rest_changes = field_keys("sh_rest", 3 * len(raw.rest))
+    rest = [[_plus(b, value, rest_changes[3 * j + c], octaves) for c, value in enumerate(coeff)]
+            for j, coeff in enumerate(raw.rest)]
+    return _Drawn(octaves=octaves, centre=centre, view_dir=view_dir, u=u, rotation=rotation, std=std_tot,
+                  opacity=opacity, dc=dc, rest=rest)
+
+
+def _new_interface(ng, inputs) -> None:
+    """Give `ng` a geometry input and output and the `inputs` (INPUTS-style rows)."""
+    ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    for name, kind, default, lo, hi, desc in inputs:
+        s = ng.interface.new_socket(name, description=desc, in_out="INPUT", socket_type=kind)
+        if default is not None:
+            s.default_value = default
+        if lo is not None:
+            s.min_value, s.max_value = lo, hi
+        if kind == "NodeSocketFloat" and hi == 1.0:
+            s.subtype = "FACTOR"
+
+
+def _group_io(b: _Builder, inputs) -> tuple[dict, object]:
+    """The group's input sockets by name ("Geometry" too) and its output node."""
+    group_in = b.node("NodeGroupInput")
+    gin = {name: outp(group_in, name, SOCKET_KIND[kind]) for name, kind, *_ in inputs}
+    gin["Geometry"] = outp(group_in, "Geometry", "GEOMETRY")
+    return gin, b.node("NodeGroupOutput")
+
+
+def _build_group(ng, degree: int) -> None:
+    ng.nodes.clear()
+    ng.interface.clear()
+    _new_interface(ng, INPUTS + HIDDEN_INPUTS)
+    b = _Builder(ng)
+    gin, gout = _group_io(b, INPUTS + HIDDEN_INPUTS)
+    m = b.math
+    g = _drawn(b, gin, _mesh_raw(b, degree), factor=gin["Scale Factor"])
+    opacity, std_tot, rotation, centre, u = g.opacity, g.std, g.rotation, g.centre, g.u
 
     # Radius of the visible part: sqrt(2 ln(255 o)) std-devs; the icosphere encloses that ellipsoid.
     radius = m("SQRT", m("MAXIMUM", m("MULTIPLY", m("LOGARITHM", m("MULTIPLY", opacity, 1.0 / ALPHA_MIN), math.e),
@@ -468,16 +547,11 @@ def _build_group(ng, degree: int) -> None:
                        _compare(b, "LESS_THAN", outp(rand, "Value", "VALUE"), fraction))
 
     # Colour: SH_C0 * f_dc + 0.5 (+ the SH bands seen from the active camera), clamped at 0.
-    # A refined cloud's changes per octave of the DC colour and of each SH coefficient (`sh_rest`
-    # (K, 3) flattened: column 3 j + c; the PLY's f_rest is channel-major: c K + j).
-    dc = b.combine([_refined(b, f"f_dc_{i}", change, octaves) for i, change in enumerate(field_keys("sh_dc", 3))])
-    colour = b.vmath("MULTIPLY_ADD", dc, SH_C0, 0.5)
-    k = SH_REST_COUNTS[degree]
-    if k:
+    colour = b.vmath("MULTIPLY_ADD", b.combine(g.dc), SH_C0, 0.5)
+    if g.rest:
         rest = None
-        rest_changes = field_keys("sh_rest", 3 * k)
-        for j, basis in enumerate(sh_basis_terms(b, view_dir, degree)):
-            coeff = b.combine([_refined(b, f"f_rest_{c * k + j}", rest_changes[3 * j + c], octaves) for c in range(3)])
+        for coeff, basis in zip(g.rest, sh_basis_terms(b, g.view_dir, degree)):
+            coeff = b.combine(coeff)
             rest = (b.vmath("SCALE", coeff, scale=basis) if rest is None
                     else b.vmath("MULTIPLY_ADD", coeff, basis, rest))
         colour = b.vmath("ADD", colour, b.switch("VECTOR", gin["View-Dependent Colour"], 0.0, rest))
@@ -557,20 +631,76 @@ def _build_group(ng, degree: int) -> None:
     ng["gvae_sh_degree"] = degree
 
 
-def group_name(degree: int) -> str:
-    return f"{GROUP_NAME} (SH {degree})"
+# ------------------------------------------------------------------ Blender's own Gaussian splats (5.3+)
+
+def _native_raw(b: _Builder, degree: int) -> _Raw:
+    """The raw parameters of a Gaussian-splat point cloud's attributes (`convert`: `scale` linear,
+    `rotation` a unit quaternion, `radiance:base` the DC colour and the opacity, `radiance:sh_j`):
+    log-scales (a zero scale is the flat axis LOG_SCALE_RANGE[0]: Blender's logarithm of 0 is 0) and
+    the opacity logit (the opacity held inside (0, 1), so that 0 and 1 give finite logits)."""
+    m = b.math
+    floor = math.exp(LOG_SCALE_RANGE[0])
+    scales = b.separate(_named(b, "scale", "FLOAT_VECTOR"))
+    log_scales = [m("LOGARITHM", m("MAXIMUM", c, floor), math.e) for c in scales]
+    quat = b.node("FunctionNodeRotationToQuaternion")
+    b.link(_named(b, "rotation", "QUATERNION"), inp(quat, "Rotation", "ROTATION"))
+    base = b.node("FunctionNodeSeparateColor")
+    b.link(_named(b, "radiance:base", "FLOAT_COLOR"), inp(base, "Color", "RGBA"))
+    a = _clamp(b, outp(base, "Alpha", "VALUE"), (1e-7, 1.0 - 1e-7))
+    logit = m("SUBTRACT", m("LOGARITHM", a, math.e), m("LOGARITHM", m("SUBTRACT", 1.0, a), math.e))
+    return _Raw(log_scales, [outp(quat, c, "VALUE") for c in "WXYZ"], logit,
+                [outp(base, c, "VALUE") for c in ("Red", "Green", "Blue")],
+                [b.separate(_named(b, f"radiance:sh_{j}", "FLOAT_VECTOR")) for j in range(SH_REST_COUNTS[degree])])
 
 
-def ensure_node_group(degree: int = 0):
-    """The shared node group of clouds of SH degree `degree`, built (or rebuilt when outdated)."""
+def _build_native_group(ng, degree: int) -> None:
+    """The modifier of a Gaussian-splat point cloud: its own attributes rewritten as `_drawn` gives them
+    for the scene camera (Blender then draws them): `position`, `rotation`, `scale` (the filters
+    added), `radiance:base` (the refined colour, the compensated opacity) and `radiance:sh_j`."""
+    ng.nodes.clear()
+    ng.interface.clear()
+    inputs = NATIVE_INPUTS + HIDDEN_INPUTS
+    _new_interface(ng, inputs)
+    b = _Builder(ng)
+    gin, gout = _group_io(b, inputs)
+    g = _drawn(b, gin, _native_raw(b, degree), filters=gin["Anti-Aliasing"], refine=gin["Refinement"])
+    moved = b.node("GeometryNodeSetPosition")
+    b.link(gin["Geometry"], inp(moved, "Geometry", "GEOMETRY"))
+    b.link(g.centre, inp(moved, "Position", "VECTOR"))
+    geo = _store(b, outp(moved, "Geometry", "GEOMETRY"), "rotation", g.rotation, "QUATERNION")
+    geo = _store(b, geo, "scale", b.combine(g.std), "FLOAT_VECTOR")
+    base = b.node("FunctionNodeCombineColor")
+    for channel, value in zip(("Red", "Green", "Blue", "Alpha"), (*g.dc, g.opacity)):
+        b.link(value, inp(base, channel, "VALUE"))
+    geo = _store(b, geo, "radiance:base", outp(base, "Color", "RGBA"), "FLOAT_COLOR")
+    for j, coeff in enumerate(g.rest):
+        geo = _store(b, geo, f"radiance:sh_{j}", b.combine(coeff), "FLOAT_VECTOR")
+    b.link(geo, inp(gout, "Geometry", "GEOMETRY"))
+    b.arrange()
+    ng["gvae_nodes_version"] = NODES_VERSION
+    ng["gvae_sh_degree"] = degree
+    ng["gvae_native"] = True
+
+
+def group_name(degree: int, native: bool = False) -> str:
+    return f"{NATIVE_GROUP_NAME if native else GROUP_NAME} (SH {degree})"
+
+
+def _builder(native: bool):
+    return _build_native_group if native else _build_group
+
+
+def ensure_node_group(degree: int = 0, native: bool = False):
+    """The shared node group of clouds of SH degree `degree` (`native`: of Blender's own Gaussian-splat
+    point clouds), built (or rebuilt when outdated)."""
     if degree not in SH_REST_COUNTS:
         raise ValueError(f"SH degree must be 0..3, got {degree}")
-    name = group_name(degree)
+    name = group_name(degree, native)
     ng = bpy.data.node_groups.get(name)
     if ng is None or ng.bl_idname != "GeometryNodeTree":
         ng = bpy.data.node_groups.new(name, "GeometryNodeTree")
     if ng.get("gvae_nodes_version") != NODES_VERSION or ng.get("gvae_sh_degree") != degree:
-        _rebuild_group(ng, degree)
+        _rebuild_group(ng, degree, _builder(native))
     return ng
 
 
@@ -580,7 +710,7 @@ def _input_defaults(ng) -> dict:
             if getattr(item, "in_out", None) == "INPUT" and item.socket_type != "NodeSocketGeometry"}
 
 
-def _rebuild_group(ng, degree: int) -> None:
+def _rebuild_group(ng, degree: int, build=_build_group) -> None:
     """Build `ng` anew, keeping the input values of every modifier that uses it (by name: a rebuilt
     interface has new socket identifiers, and the modifiers' values would otherwise become zeros:
     Scale Factor 0, a Mip-Splatting cloud's Compensate Screen Filter off); inputs new to the group
@@ -597,7 +727,7 @@ def _rebuild_group(ng, degree: int) -> None:
                     except (LookupError, KeyError, ValueError):
                         pass  # never set: it takes the default
                 kept.append((obj, mod, values))
-    _build_group(ng, degree)
+    build(ng, degree)
     defaults = _input_defaults(ng)
     for obj, mod, values in kept:
         for name, default in defaults.items():
@@ -614,9 +744,9 @@ def upgrade_outdated() -> int:
     count = 0
     for ng in list(bpy.data.node_groups):
         degree = ng.get("gvae_sh_degree")
-        if (ng.bl_idname == "GeometryNodeTree" and ng.name.startswith(GROUP_NAME) and ng.library is None
+        if (ng.bl_idname == "GeometryNodeTree" and ng.name.startswith(GROUP_NAMES) and ng.library is None
                 and degree in SH_REST_COUNTS and ng.get("gvae_nodes_version") != NODES_VERSION):
-            _rebuild_group(ng, int(degree))
+            _rebuild_group(ng, int(degree), _builder(bool(ng.get("gvae_native"))))
             count += 1
     mat = bpy.data.materials.get(MATERIAL_NAME)
     if mat is not None and mat.library is None and mat.get("gvae_nodes_version") != NODES_VERSION:
@@ -720,27 +850,40 @@ def set_modifier_input(mod, name: str, value) -> None:
         owner[path[2:-2]] = value
 
 
-def add_splat_modifier(obj, *, scale_factor: float = DEFAULT_SCALE_FACTOR, fraction: float = 1.0,
-                       points_only: bool = False, min_opacity: float = 0.0, view_dependent: bool = True):
-    """Give `obj` the splat Geometry Nodes modifier (and material), or update its inputs."""
-    ng = ensure_node_group(int(layout(obj.data)["sh_degree"]))
-    mat = ensure_material()
+def _set_modifier(obj, ng, values: dict):
+    """`obj`'s splat modifier (made when it has none) on group `ng`, its inputs set from `values` and
+    the screen filter of the reference renderer's "auto" mode: Mip-Splatting's 2D filter for a cloud
+    with a 3D filter, the classic dilation for one without."""
     mod = obj.modifiers.get(MODIFIER_NAME)
     if mod is None or mod.type != "NODES":
         mod = obj.modifiers.new(MODIFIER_NAME, "NODES")
     mod.node_group = ng
-    # The screen filter of the reference renderer's "auto" mode: Mip-Splatting's 2D filter for a
-    # cloud with a 3D filter, the classic dilation for one without.
     mip = FILTER_KEY in obj.data.attributes
-    values = {"Scale Factor": float(scale_factor), "View-Dependent Colour": bool(view_dependent),
-              "Display Fraction": float(fraction), "Points Only": bool(points_only),
-              "Min Opacity": float(min_opacity), "Material": mat,
-              "Screen Filter": MIP_2D_VARIANCE if mip else CLASSIC_DILATION, "Compensate Screen Filter": mip}
+    values = {**values, "Screen Filter": MIP_2D_VARIANCE if mip else CLASSIC_DILATION, "Compensate Screen Filter": mip}
     for name, value in values.items():
         set_modifier_input(mod, name, value)
+    obj.update_tag()
+    return mod
+
+
+def add_splat_modifier(obj, *, scale_factor: float = DEFAULT_SCALE_FACTOR, fraction: float = 1.0,
+                       points_only: bool = False, min_opacity: float = 0.0, view_dependent: bool = True):
+    """Give `obj` the splat Geometry Nodes modifier (and material), or update its inputs."""
+    mat = ensure_material()
+    mod = _set_modifier(obj, ensure_node_group(int(layout(obj.data)["sh_degree"])), {
+        "Scale Factor": float(scale_factor), "View-Dependent Colour": bool(view_dependent),
+        "Display Fraction": float(fraction), "Points Only": bool(points_only), "Min Opacity": float(min_opacity),
+        "Material": mat})
     if mat.name not in obj.data.materials:
         obj.data.materials.append(mat)
     return mod
+
+
+def add_native_modifier(obj, *, refinement: bool = True, anti_aliasing: bool = True):
+    """Give a Gaussian-splat point cloud object (Blender 5.3+) the modifier that draws it as
+    `gvae_core.render` does for the scene camera (`_build_native_group`), or update its inputs."""
+    return _set_modifier(obj, ensure_node_group(native_sh_degree(obj.data), native=True),
+                         {"Refinement": bool(refinement), "Anti-Aliasing": bool(anti_aliasing)})
 
 
 def splat_modifier(obj):

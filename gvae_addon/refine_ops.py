@@ -1,5 +1,7 @@
 """Refine and Compact: run `gvae_core.refine` / `gvae_core.compaction.compact` on the active splat
-object and write the result back into it.
+object (the add-on's splat mesh, or Blender 5.3+'s own Gaussian-splat point cloud) and write the result
+back into it; and the machinery of every background job (`BackgroundJob`, `JobOperator`: New from Photos
+uses them too).
 
 Both take seconds to minutes on a capture, so the work runs as a job that keeps Blender alive:
 a `CoreJob` reads the object's Gaussians on the main thread (`start`), runs the core function in a
@@ -29,7 +31,7 @@ from bpy.types import Operator
 
 from gvae_core.budget import DEFAULT_FIDELITY, parse_budget
 
-from . import convert, runtime
+from . import convert, nodes, runtime
 
 
 class JobCancelled(Exception):
@@ -39,53 +41,58 @@ class JobCancelled(Exception):
 RefineCancelled = JobCancelled  # (the name the Refine job's callers knew first)
 
 
-class CoreJob:
-    """One run of a `gvae_core` function on a splat object, in steps that need no window (the modal
-    operator, `execute` and the tests drive it the same way):
+class BackgroundJob:
+    """Work in a worker thread that Blender's main thread follows (the modal operator, `execute` and
+    the tests drive it the same way, without a window):
 
-    - `start()` (main thread): read the object's Gaussians, start the worker thread;
+    - `start()` (main thread): check and read what the work needs, start the worker thread;
     - `poll()` (main thread, any time): (done, fraction, message);
     - `cancel()`: ask the worker to stop; it does at its next progress report;
-    - `finish()` (main thread, once done): write the result into the object and return counts and
-      timings; raises JobCancelled when cancelled, or the worker's error, leaving the object as
-      it was. Also refuses to write when the object was deleted or its mesh replaced meanwhile.
+    - `finish()` (main thread, once done): write the result into the blend file and return what the
+      operator reports; raises JobCancelled when cancelled, or the worker's error, leaving the blend
+      file as it was.
 
-    Subclasses set `label` and define `_load()` (the core function, imported on the main thread),
-    `_run(function, cloud, progress)` (in the worker) and `_write(obj)` / `_info()` (main thread).
-    Only the worker thread runs torch: once the main thread has run torch's parallel loops, their
-    idle OpenMP threads make the worker's twice as slow (measured on two cores).
-    """
+    `key` names the job in RUNNING (one job per key). The worker reports through `_progress`, which
+    raises JobCancelled once the job is cancelled."""
 
     label, participle = "Job", "worked on"
+    #: What a cancel leaves (the operator's report says it).
+    unchanged = "nothing was changed"
 
-    def __init__(self, obj, core=None):
-        self.obj_name = obj.name
-        self._core = core
+    def __init__(self):
         self.fraction, self.message = 0.0, "starting"
         self.result = None
         self.info: dict | None = None
         self.error: BaseException | None = None
         self._cancel = threading.Event()
         self._thread: threading.Thread | None = None
-        self._mesh_pointer = None
         self.started = self.ended = None
 
-    # ------------------------------------------------------------------ main thread
-    def start(self) -> CoreJob:
-        obj = bpy.data.objects.get(self.obj_name)
-        if obj is None or not convert.is_splat(obj):
-            raise ValueError(f"{self.obj_name!r} is not a splat object")
-        function = self._core or self._load()  # imports torch: fails here, not in the worker
-        self.cloud, self.old_steps = convert.cloud_from_object(obj)
-        if len(self.cloud) == 0:
-            raise ValueError(f"object {obj.name!r} has no Gaussians to {self.label.lower()}")
-        self._mesh_pointer = obj.data.as_pointer()
-        self._n_vertices = len(obj.data.vertices)
+    @property
+    def key(self) -> str:
+        raise NotImplementedError
+
+    def status_text(self) -> str:
+        """What the status bar says while the job runs."""
+        return f"{self.label} {self.key}: {100 * self.fraction:.0f}% {self.message}"
+
+    def _launch(self, work, *args) -> None:
+        """Run `work(*args)` in the worker thread; what it returns becomes `result`, what it raises `error`
+        (JobCancelled: neither)."""
         self.started = time.perf_counter()
-        self._thread = threading.Thread(target=self._work, args=(function,), name=f"gvae-{self.label.lower()}",
+        self._thread = threading.Thread(target=self._guarded, args=(work, *args), name=f"gvae-{self.label.lower()}",
                                         daemon=True)
         self._thread.start()
-        return self
+
+    def _guarded(self, work, *args) -> None:
+        try:
+            self.result = work(*args)
+        except JobCancelled:
+            self.result = None
+        except BaseException as exc:  # reported on the main thread by finish()
+            self.error = exc
+        finally:
+            self.ended = time.perf_counter()
 
     def poll(self) -> tuple[bool, float, str]:
         return self.done, self.fraction, self.message
@@ -108,18 +115,69 @@ class CoreJob:
             self._thread.join(timeout)
         return self.done
 
-    def finish(self) -> dict:
+    def _check_finish(self) -> None:
+        """What every `finish` does first: refuse while running; raise the worker's error, or
+        JobCancelled when cancelled (or when it left no result)."""
         if not self.done:
             raise RuntimeError(f"{type(self).__name__}.finish: the job is still running")
-        if self.info is not None:
-            return self.info  # written already
         if self.error is not None:
             raise self.error
         if self.cancelled or self.result is None:
             raise JobCancelled(f"{self.label} cancelled")
+
+    def _progress(self, fraction: float, message: str = "") -> None:
+        """Called by the worker: records progress; raises JobCancelled once the job is cancelled."""
+        if self._cancel.is_set():
+            raise JobCancelled(f"{self.label} cancelled")
+        self.fraction = max(self.fraction, min(1.0, float(fraction)))
+        self.message = message
+
+
+class CoreJob(BackgroundJob):
+    """One run of a `gvae_core` function on a splat object (`BackgroundJob`): `start` reads the
+    object's Gaussians, `finish` writes the result into it, in one change, only if the work succeeded
+    and the object was not changed meanwhile (also refused when the object was deleted or its data
+    replaced).
+
+    Subclasses set `label` and define `_load()` (the core function, imported on the main thread),
+    `_run(function, cloud, progress)` (in the worker) and `_write(obj)` / `_info()` (main thread).
+    Only the worker thread runs torch: once the main thread has run torch's parallel loops, their
+    idle OpenMP threads make the worker's twice as slow (measured on two cores).
+    """
+
+    unchanged = "the object is unchanged"
+
+    def __init__(self, obj, core=None):
+        super().__init__()
+        self.obj_name = obj.name
+        self._core = core
+        self._mesh_pointer = None
+
+    @property
+    def key(self) -> str:
+        return self.obj_name
+
+    # ------------------------------------------------------------------ main thread
+    def start(self) -> CoreJob:
+        obj = bpy.data.objects.get(self.obj_name)
+        if obj is None or not convert.is_any_splat(obj):
+            raise ValueError(f"{self.obj_name!r} is not a splat object")
+        function = self._core or self._load()  # imports torch: fails here, not in the worker
+        self.cloud, self.old_steps = convert.cloud_from_object(obj)
+        if len(self.cloud) == 0:
+            raise ValueError(f"object {obj.name!r} has no Gaussians to {self.label.lower()}")
+        self._mesh_pointer = obj.data.as_pointer()
+        self._n_vertices = convert.splat_count(obj)
+        self._launch(self._work, function)
+        return self
+
+    def finish(self) -> dict:
+        if self.info is not None and self.done:
+            return self.info  # written already
+        self._check_finish()
         obj = bpy.data.objects.get(self.obj_name)
         if obj is None or obj.data is None or obj.data.as_pointer() != self._mesh_pointer \
-                or len(obj.data.vertices) != self._n_vertices:
+                or convert.splat_count(obj) != self._n_vertices:
             raise RuntimeError(f"object {self.obj_name!r} was deleted or changed while it was being "
                                f"{self.participle}; the result was not written")
         self._write(obj)
@@ -134,33 +192,26 @@ class CoreJob:
         raise NotImplementedError
 
     def _replace_mesh(self, obj, cloud, steps) -> None:
-        """Give the object a new mesh holding `cloud` (with `gvae_step` marks), materials kept."""
+        """Give the object new data of its kind holding `cloud` (with `gvae_step` marks), materials kept:
+        a splat mesh, or a Gaussian-splat point cloud (Blender 5.3+), which gets the modifier that draws
+        it for the scene camera (a refined one's changes per octave, the anti-aliasing: `nodes`)."""
         old = obj.data
-        new = convert.mesh_from_cloud(cloud, old.name, steps=steps)
+        native = convert.is_native_splat(obj)
+        new = (convert.pointcloud_from_cloud(cloud, old.name, steps=steps) if native
+               else convert.mesh_from_cloud(cloud, old.name, steps=steps))
         for mat in old.materials:
             new.materials.append(mat)
         obj.data = new
         if old.users == 0:
-            bpy.data.meshes.remove(old)
+            (bpy.data.pointclouds if native else bpy.data.meshes).remove(old)
+        if native:
+            nodes.add_native_modifier(obj)
 
     # ------------------------------------------------------------------ worker thread
-    def _progress(self, fraction: float, message: str = "") -> None:
-        if self._cancel.is_set():
-            raise JobCancelled(f"{self.label} cancelled")
-        self.fraction = max(self.fraction, min(1.0, float(fraction)))
-        self.message = message
-
-    def _work(self, function) -> None:
-        try:
-            if self._core is None:  # the real core, not a stand-in: its CPU kernels first (compiled once)
-                runtime.prepare_kernels(self._progress)
-            self.result = self._run(function, self.cloud, self._progress)
-        except JobCancelled:
-            self.result = None
-        except BaseException as exc:  # reported on the main thread by finish()
-            self.error = exc
-        finally:
-            self.ended = time.perf_counter()
+    def _work(self, function):
+        if self._core is None:  # the real core, not a stand-in: its CPU kernels first (compiled once)
+            runtime.prepare_kernels(self._progress)
+        return self._run(function, self.cloud, self._progress)
 
     def _load(self):
         raise NotImplementedError
@@ -245,8 +296,8 @@ class CompactJob(CoreJob):
                 "warnings": list(getattr(r, "warnings", ()))}
 
 
-#: Jobs running now, by object name (the panel shows their progress; one job per object).
-RUNNING: dict[str, CoreJob] = {}
+#: Jobs running now, by `key` (the object's name; the panel shows their progress; one job per key).
+RUNNING: dict[str, BackgroundJob] = {}
 
 
 def _timing_text(info: dict) -> str:
@@ -270,7 +321,7 @@ class JobOperator:
     @classmethod
     def poll(cls, context):
         obj = context.active_object
-        return convert.is_splat(obj) and obj.name not in RUNNING
+        return convert.is_any_splat(obj) and obj.name not in RUNNING
 
     def _job(self, context) -> CoreJob:
         raise NotImplementedError
@@ -286,7 +337,7 @@ class JobOperator:
         except Exception as exc:
             self.report({"ERROR"}, f"{self.bl_label} failed: {exc}")
             return {"CANCELLED"}
-        RUNNING[job.obj_name] = job
+        RUNNING[job.key] = job
         wm.progress_begin(0.0, 1.0)
         shown = None
         try:
@@ -300,7 +351,7 @@ class JobOperator:
             self.report({"ERROR"}, f"{self.bl_label} failed: {exc}")
             return {"CANCELLED"}
         finally:
-            RUNNING.pop(job.obj_name, None)
+            RUNNING.pop(job.key, None)
             wm.progress_end()
         self.report({"INFO"}, self._report_text(info))
         for warning in info.get("warnings", ()):  # (Compact's: its views missed part of the object)
@@ -317,7 +368,7 @@ class JobOperator:
         except Exception as exc:
             self.report({"ERROR"}, f"{self.bl_label} failed: {exc}")
             return {"CANCELLED"}
-        RUNNING[self._running.obj_name] = self._running
+        RUNNING[self._running.key] = self._running
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.2, window=context.window)
         wm.modal_handler_add(self)
@@ -327,8 +378,7 @@ class JobOperator:
 
     def _status(self, context) -> None:
         job = self._running
-        context.workspace.status_text_set(
-            f"GaussianVAE {job.label} {job.obj_name}: {100 * job.fraction:.0f}% {job.message}   (Esc: cancel)")
+        context.workspace.status_text_set(f"GaussianVAE {job.status_text()}   (Esc: cancel)")
         context.window_manager.progress_update(job.fraction)
         _redraw(context)
 
@@ -337,7 +387,7 @@ class JobOperator:
         wm.event_timer_remove(self._timer)
         wm.progress_end()
         context.workspace.status_text_set(None)
-        RUNNING.pop(self._running.obj_name, None)
+        RUNNING.pop(self._running.key, None)
         _redraw(context)
 
     def modal(self, context, event):
@@ -353,7 +403,7 @@ class JobOperator:
         try:
             info = job.finish()
         except JobCancelled:
-            self.report({"WARNING"}, f"{job.label} cancelled; the object is unchanged")
+            self.report({"WARNING"}, f"{job.label} cancelled; {job.unchanged}")
             return {"CANCELLED"}
         except Exception as exc:
             self.report({"ERROR"}, f"{job.label} failed: {exc}")

@@ -78,7 +78,7 @@ def camera_focal_px(scene) -> float:
 def sync_focal_length(scene) -> int:
     """Set "Focal Length (px)" of the splat objects of `scene` from its camera; returns how many
     changed (only those are written, so calling this from an update handler settles)."""
-    if not any(ng.name.startswith(nodes.GROUP_NAME) for ng in bpy.data.node_groups):
+    if not any(ng.name.startswith(nodes.GROUP_NAMES) for ng in bpy.data.node_groups):
         return 0
     focal = camera_focal_px(scene)
     changed = 0

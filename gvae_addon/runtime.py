@@ -12,6 +12,7 @@ add-on registers.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import importlib.util
 import os
@@ -24,6 +25,10 @@ import bpy
 #: torch code, several times slower). The preferences button installs all three.
 TORCH_REQUIREMENT = "torch==2.13.0"
 REFINE_REQUIREMENTS = (TORCH_REQUIREMENT, "safetensors==0.8.0", "numba==0.68.1")
+
+#: What structure from motion needs (New from Photos on a folder of photos without a model), pinned as in
+#: pyproject.toml; installed on demand by the same button, into the same directory.
+SFM_REQUIREMENTS = ("pycolmap==4.2.1",)
 
 #: Root package of the installed extension (e.g. "bl_ext.user_default.gaussian_vae"), or
 #: "gvae_addon" when the add-on is registered straight from a source checkout.
@@ -114,6 +119,53 @@ def _core(module_name: str, function: str, label: str):
     except ImportError as exc:
         raise RuntimeError(f"{label} could not be loaded: {exc}") from exc
     return getattr(module, function)
+
+
+def _stamp(folder: str):
+    """What changes when a folder's contents do (its own and its images/ and sparse/ folders' times)."""
+    stamps = []
+    for sub in ("", "images", "sparse", os.path.join("sparse", "0")):
+        try:
+            stamps.append(os.stat(os.path.join(folder, sub)).st_mtime_ns)
+        except OSError:
+            stamps.append(None)
+    return tuple(stamps)
+
+
+@functools.lru_cache(maxsize=16)
+def _pycolmap_work(folder: str, stamp) -> str | None:
+    from gvae_core.capture import read_capture  # noqa: PLC0415 - numpy only
+    from gvae_core.capture.sfm import needs_sfm  # noqa: PLC0415 - pycolmap is imported only when SfM runs
+
+    if needs_sfm(folder):
+        return "structure from motion"
+    try:
+        capture = read_capture(folder)
+    except (ValueError, OSError):
+        return None  # (not a capture: the job says what is wrong)
+    if capture.points is None and capture.kind != "nerf-synthetic" and capture.opaque():
+        return "points for the photos' poses"
+    return None
+
+
+def pycolmap_work(folder: str) -> str | None:
+    """What New from Photos needs pycolmap for in `folder`, as `gvae train` does it first
+    (`gvae_core.capture.sfm.ensure_capture`): "structure from motion" for photos without cameras,
+    "points for the photos' poses" (triangulation) for a capture of photos with poses and no points, or
+    None. Remembered per folder until its contents change (the panel asks at every redraw)."""
+    return _pycolmap_work(folder, _stamp(folder)) if folder and os.path.isdir(folder) else None
+
+
+def photos_missing(folder: str) -> list[tuple[str, tuple[str, ...]]]:
+    """What New from Photos needs that this Blender lacks, as (what, pinned requirements) pairs, said
+    before the job starts: PyTorch (training), and pycolmap where `folder` needs it (`pycolmap_work`)."""
+    missing = []
+    if not torch_available():
+        missing.append(("PyTorch (training)", REFINE_REQUIREMENTS))
+    work = pycolmap_work(folder)
+    if work is not None and not _has_module("pycolmap"):
+        missing.append((f"pycolmap ({work})", SFM_REQUIREMENTS))
+    return missing
 
 
 def prepare_kernels(progress) -> None:

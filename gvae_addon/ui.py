@@ -6,7 +6,7 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 from bpy.types import Panel, PropertyGroup
 
-from . import convert, nodes, refine_ops, runtime
+from . import convert, io_ops, nodes, photos_ops, refine_ops, runtime
 
 
 class GVAE_Settings(PropertyGroup):
@@ -37,6 +37,14 @@ class GVAE_Settings(PropertyGroup):
     compact_removal: EnumProperty(name="Removal", default="MERGE", items=refine_ops.REMOVAL_ITEMS)
     compact_distill: IntProperty(name="Fine-Tune Iterations", default=-1, min=-1,
                                  description=refine_ops.DISTILL_DESCRIPTION)
+    photos_folder: StringProperty(name="Folder", subtype="DIR_PATH", default="",
+                                  description=photos_ops.FOLDER_DESCRIPTION)
+    photos_height: IntProperty(name="Size", default=0, min=0, soft_max=1080, subtype="PIXEL",
+                               description=photos_ops.SIZE_DESCRIPTION)
+    photos_held_out: BoolProperty(name="Held-Out Photos", default=True, description=photos_ops.HELD_OUT_DESCRIPTION)
+    photos_splat_type: EnumProperty(name="Splat Type", default="MESH", items=io_ops.SPLAT_TYPES)
+    photos_cameras: BoolProperty(name="Cameras", default=True,
+                                 description="Also add the capture's cameras as Blender cameras")
 
 
 class GVAE_PT_main(Panel):
@@ -52,10 +60,11 @@ class GVAE_PT_main(Panel):
         row.operator("import_scene.gaussian_splat", text="Import", icon="IMPORT")
         row.operator("export_scene.gaussian_splat", text="Export", icon="EXPORT")
         obj = context.active_object
-        if not convert.is_splat(obj):
+        if not convert.is_any_splat(obj):
             layout.label(text="Select a splat object", icon="INFO")
             return
-        layout.label(text=f"{obj.name}: {len(obj.data.vertices):,} Gaussians", icon="POINTCLOUD_DATA")
+        kind = " (Blender's own splat)" if convert.is_native_splat(obj) else ""
+        layout.label(text=f"{obj.name}: {convert.splat_count(obj):,} Gaussians{kind}", icon="POINTCLOUD_DATA")
 
 
 class GVAE_PT_display(Panel):
@@ -67,17 +76,26 @@ class GVAE_PT_display(Panel):
 
     @classmethod
     def poll(cls, context):
-        return convert.is_splat(context.active_object)
+        return convert.is_any_splat(context.active_object)
 
     def draw(self, context):
         layout = self.layout
         layout.use_property_split = True
-        mod = nodes.splat_modifier(context.active_object)
-        if mod is None:
+        obj = context.active_object
+        native = convert.is_native_splat(obj)
+        mod = nodes.splat_modifier(obj)
+        if mod is None and native:
+            layout.operator("gvae.native_modifier", icon="MODIFIER")
+        elif mod is None:
             layout.label(text="No splat modifier (re-import to add one)", icon="ERROR")
             return
-        for name, *_ in nodes.INPUTS:
-            layout.prop(*nodes.modifier_input(mod, name), text=name)
+        else:
+            for name, *_ in (nodes.NATIVE_INPUTS if native else nodes.INPUTS):
+                layout.prop(*nodes.modifier_input(mod, name), text=name)
+        if native:
+            box = layout.box().column(align=True)
+            for line in NATIVE_NOTE:
+                box.label(text=line)
 
 
 class _JobPanel(Panel):
@@ -112,7 +130,7 @@ class _JobPanel(Panel):
             layout.label(text=f"{job.label} running in the background (Esc: cancel)", icon="TIME")
             return
         row = layout.row()
-        row.enabled = ok and convert.is_splat(obj)
+        row.enabled = ok and convert.is_any_splat(obj)
         row.scale_y = 1.4
         self._fill(row.operator(self.operator, icon=self.icon), settings)
         box = layout.box().column(align=True)
@@ -124,6 +142,18 @@ class _JobPanel(Panel):
 
     def _fill(self, op, settings) -> None:
         raise NotImplementedError
+
+
+#: What Blender's own splat (5.3+) does not show that the add-on's does (docs/blender.md), under its Display.
+NATIVE_NOTE = (
+    "Blender draws this splat itself; the modifier",
+    "adds the anti-aliasing and a refinement for",
+    "the scene camera. Not as the add-on's splat:",
+    "Cycles blends overlapping Gaussians in its own",
+    "order (chair: 38.1 dB to gvae render, the",
+    "add-on's splat 44.8); no Scale Factor, Display",
+    "Fraction, Points Only or Min Opacity.",
+)
 
 
 #: What Refine does and does not do (README, "What to expect"), under its button.
@@ -190,8 +220,8 @@ class GVAE_PT_compact(_JobPanel):
         col.prop(settings, "compact_keep")
         col.prop(settings, "compact_removal")
         col.prop(settings, "compact_distill")
-        if convert.is_splat(obj):
-            n = len(obj.data.vertices)
+        if convert.is_any_splat(obj):
+            n = convert.splat_count(obj)
             col.label(text=f"{n:,} -> {max(1, round(settings.compact_keep * n)):,} Gaussians")
 
     def _fill(self, op, settings) -> None:
@@ -200,7 +230,65 @@ class GVAE_PT_compact(_JobPanel):
         op.distill = settings.compact_distill
 
 
-classes = (GVAE_Settings, GVAE_PT_main, GVAE_PT_display, GVAE_PT_refine, GVAE_PT_compact)
+#: What New from Photos does, under its button.
+PHOTOS_NOTE = (
+    "Structure from motion when the folder has",
+    "only photos, then 3DGS training on the CPU, as",
+    "gvae train does; the run folder is kept (gvae",
+    "train RUN --more N; the same options again",
+    "resume it). The scene changes only at the end.",
+)
+
+
+class GVAE_PT_photos(Panel):
+    """New from Photos: the folder and options, what must be installed first, then the button, or the
+    running job's stage, step and held-out figure."""
+
+    bl_label = "New from Photos"
+    bl_parent_id = "GVAE_PT_main"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "GaussianVAE"
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.gvae
+        col = layout.column()
+        col.use_property_split = True
+        for prop in ("photos_folder", "photos_height", "photos_held_out", "photos_cameras"):
+            col.prop(settings, prop)
+        if convert.native_available():
+            col.prop(settings, "photos_splat_type")
+        job = refine_ops.RUNNING.get(photos_ops.JOB_KEY)
+        if job is not None:
+            layout.progress(factor=job.fraction, type="BAR", text=f"{100 * job.fraction:.0f}%")
+            box = layout.box().column(align=True)
+            box.label(text=job.message, icon="TIME")
+            if job.heldout is not None:
+                box.label(text=f"Held-out photos: {job.heldout:.2f} dB PSNR")
+            box.label(text="Running in the background (Esc: cancel)")
+            return
+        folder = bpy.path.abspath(settings.photos_folder) if settings.photos_folder else ""
+        missing = runtime.photos_missing(folder)
+        if missing:
+            box = layout.box()
+            for what, requirements in missing:
+                box.label(text=f"Needs {what}", icon="ERROR")
+                op = box.operator("gvae.install_torch", text=f"Install {' '.join(requirements)}", icon="IMPORT")
+                op.requirement = " ".join(requirements)
+        row = layout.row()
+        row.enabled = bool(folder) and not missing
+        row.scale_y = 1.4
+        op = row.operator(photos_ops.GVAE_OT_new_from_photos.bl_idname, icon="IMAGE_DATA")
+        op.folder, op.height, op.held_out = settings.photos_folder, settings.photos_height, settings.photos_held_out
+        op.cameras = settings.photos_cameras
+        op.splat_type = settings.photos_splat_type if convert.native_available() else "MESH"
+        box = layout.box().column(align=True)
+        for line in PHOTOS_NOTE:
+            box.label(text=line)
+
+
+classes = (GVAE_Settings, GVAE_PT_main, GVAE_PT_photos, GVAE_PT_display, GVAE_PT_refine, GVAE_PT_compact)
 
 
 def register():

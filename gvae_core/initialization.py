@@ -171,21 +171,27 @@ def start_points(views: Views, config, rng: np.random.Generator, sfm=None) -> tu
     """The points training starts from (module docstring) for `config.init` and what was used: (M, 6)
     xyz + RGB and a one-line description. `views`: the first stage's training views; `sfm`: the
     capture's SfM points (`capture.SfMPoints`) or None."""
-    mode = config.init
+    mode, why = config.init, " (asked for)"
     if mode == "auto":
-        mode = "sfm" if sfm is not None and len(sfm) else "hull" if has_masks(views) else "random"
+        if sfm is not None and len(sfm):
+            mode, why = "sfm", ""
+        elif has_masks(views):
+            mode, why = "hull", " (no SfM points; the images have transparent pixels)"
+        else:
+            mode, why = "random", " (no SfM points and no masks: a fallback, far behind an SfM start on photos)"
     if mode == "sfm":
         if sfm is None or not len(sfm):
             raise ValueError("--init sfm: the capture has no SfM points (a COLMAP model's points3D, or nerfstudio's "
                              "ply_file_path)")
         pts = np.concatenate([sfm.xyz, sfm.rgb], 1)
-        return _fill(pts, views, config, rng, f"{len(pts)} SfM points")
+        return _fill(pts, views, config, rng, f"{len(pts)} {getattr(sfm, 'source', 'SfM points')}")
     if mode == "hull":
         pts = hull_points(views, config.init_count, rng)
         if len(pts):
-            return pts, f"{len(pts)} random points in the visual hull of the masks"
-        mode = "random"  # an empty hull (no masks that carve): what the cameras see
-    return ray_points(views, config.init_count, rng), f"{config.init_count} random points along the training rays"
+            return pts, f"{len(pts)} random points in the visual hull of the masks{why}"
+        mode, why = "random", " (the masks' hull is empty)"
+    return ray_points(views, config.init_count, rng), f"{config.init_count} random points along the training " \
+        f"rays{why}"
 
 
 def _fill(points: np.ndarray, views: Views, config, rng: np.random.Generator, what: str) -> tuple[np.ndarray, str]:

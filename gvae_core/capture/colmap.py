@@ -37,11 +37,13 @@ UNDISTORT_HINT = ("undistort the capture first (colmap image_undistorter --image
 @dataclass
 class SfMPoints:
     """A capture's structure-from-motion points: positions (M, 3) in its world frame, colours (M, 3)
-    in [0, 1] and mean reprojection errors in pixels (M,; NaN where unknown)."""
+    in [0, 1] and mean reprojection errors in pixels (M,; NaN where unknown); `source` says where
+    they came from (the capture's SfM, or triangulated with its poses)."""
 
     xyz: np.ndarray
     rgb: np.ndarray
     error: np.ndarray
+    source: str = "SfM points"
 
     def __len__(self) -> int:
         return len(self.xyz)

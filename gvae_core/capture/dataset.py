@@ -35,7 +35,8 @@ from .colmap import ColmapModel, SfMPoints, colmap_files, read_colmap
 from .lens import Lens, undistort_image, undistorted_camera
 from .transforms import read_transforms
 
-__all__ = ["Capture", "read_capture", "find_capture", "SPLITS", "TEST_EVERY"]
+__all__ = ["Capture", "read_capture", "find_capture", "find_photos", "triangulated_folder", "SPLITS", "TEST_EVERY",
+           "PHOTO_SUFFIXES", "TRIANGULATED"]
 
 #: NeRF-Synthetic's split files, in the order their frames are listed.
 SPLITS = ("train", "test", "val")
@@ -43,6 +44,11 @@ SPLITS = ("train", "test", "val")
 TEST_EVERY = 8
 #: Folders under a capture where the COLMAP model may be (the first found is read).
 _MODEL_FOLDERS = ("sparse/0", "sparse", "colmap/sparse/0", "distorted/sparse/0")
+#: Photos a folder of photos is made of (case-insensitive): what COLMAP reads.
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
+#: The folder, beside a capture with poses and no points, that its triangulated points are kept in
+#: (`capture.sfm.triangulate`).
+TRIANGULATED = "triangulated"
 
 
 @dataclass
@@ -112,9 +118,7 @@ class Capture:
         images = alphas = None  # allocated once the first image gives the size (no list + stack copy)
         cams, names = [], []
         for k, i in enumerate(pick):
-            rgba = read_rgba(self.files[i])
-            if not self.lenses[i].is_pinhole:
-                rgba = _undistort_rgba(rgba, self.photo_cameras[i], self.lenses[i], self.cameras[i])
+            rgba = self.frame_image(i)
             cam = self.cameras[i]
             if height is not None and int(height) != cam.height:
                 cam = cam.scaled(int(height))
@@ -131,6 +135,22 @@ class Capture:
             names.append(self.names[i])
         return Views(cams, images, alphas, names)
 
+    def frame_image(self, i: int) -> np.ndarray:
+        """Frame `i`'s image as stored, straight RGBA float32, undistorted into its pinhole
+        (`cameras[i]`) where the photo was taken through a lens."""
+        if self.files[i] is None:
+            raise DatasetError(f"{self.source}: frame {self.names[i]!r} names no image")
+        rgba = read_rgba(self.files[i])
+        if not self.lenses[i].is_pinhole:
+            rgba = _undistort_rgba(rgba, self.photo_cameras[i], self.lenses[i], self.cameras[i])
+        return rgba
+
+    def opaque(self) -> bool:
+        """Whether the first image has no transparent pixel (photos; an object over a transparent
+        background has)."""
+        first = next((f for f in self.files if f is not None), None)
+        return first is not None and bool((read_rgba(first)[..., 3] >= 0.999).all())
+
     def summary(self) -> str:
         """One line: format, frames per split, size, distortion, points, skipped frames."""
         counts = ", ".join(f"{len(self.indices(s))} {s}" for s in SPLITS if len(self.indices(s)))
@@ -138,10 +158,23 @@ class Capture:
         parts = [f"{self.kind} capture {self.source}: {counts} views of {cam.width}x{cam.height}"]
         if self.distorted:
             parts.append(f"lens distortion of {self.distorted} undone on load")
-        parts.append(f"{len(self.points)} SfM points" if self.points is not None else "no SfM points")
+        parts.append(f"{len(self.points)} {self.points.source}" if self.points is not None else "no SfM points")
         if self.skipped:
             parts.append(f"{len(self.skipped)} frame(s) skipped: image missing")
         return "; ".join(parts)
+
+
+def find_photos(path) -> tuple[Path, list[str]]:
+    """(the folder the photos are in, their names sorted) for a capture folder: its `images/`
+    when that holds photos, else the folder itself; no photos: (folder, [])."""
+    folder = Path(path)
+    for d in (folder / "images", folder):
+        if d.is_dir():
+            names = sorted(p.name for p in d.iterdir()
+                           if p.suffix.lower() in PHOTO_SUFFIXES and not p.name.startswith(".") and p.is_file())
+            if names:
+                return d, names
+    return folder, []
 
 
 def find_capture(path: Path) -> tuple[str, Path | tuple[Path, Path]]:
@@ -167,8 +200,14 @@ def find_capture(path: Path) -> tuple[str, Path | tuple[Path, Path]]:
             found = sorted(folder.glob("transforms*.json"))
             if len(found) == 1:
                 return "transforms", found[0]
+            photos, names = find_photos(folder)
+            if names:
+                raise DatasetError(f"{path}: {len(names)} photos in {photos} and no cameras (no COLMAP model, no "
+                                   f"transforms*.json): make them by structure from motion with `gvae sfm {path}` "
+                                   f"(gvae train, render, refine and compact do it themselves; from Python "
+                                   f"gvae_core.capture.ensure_capture)")
             raise DatasetError(f"{path}: no cameras found (no transforms*.json and no COLMAP cameras/images "
-                               f".bin or .txt)")
+                               f".bin or .txt) and no photos")
     files = colmap_files(folder)
     if not files:
         raise DatasetError(f"{path}: not a COLMAP sparse model (needs cameras.bin and images.bin, or cameras.txt "
@@ -187,7 +226,9 @@ def read_capture(path, test_every: int | None = None, *, splits: Sequence[str] |
     if kind == "colmap":
         cameras_file, images_file = found
         model = read_colmap(cameras_file, images_file)
-        folder = _images_folder(images_file) if images else images_file.parent
+        folder = _images_folder(images_file, model.names[0]) if images else images_file.parent
+        if images:
+            _warn_unregistered(folder, model.names)
         frames = [(model, [folder / n for n in model.names], ["train"] * len(model.names))]
         source = images_file.parent
     elif kind == "transforms":
@@ -206,19 +247,68 @@ def read_capture(path, test_every: int | None = None, *, splits: Sequence[str] |
             frames.append((t, t.files, [split] * len(t.files)))
         source = found
     capture = _assemble(Path(path), source, kind, frames, images)
+    if capture.points is None and kind != "nerf-synthetic":
+        capture = dataclasses.replace(capture, points=_triangulated_points(capture))
     return capture.held_out(test_every)
 
 
-def _images_folder(images_file: Path) -> Path:
+def _images_folder(images_file: Path, first: str | None = None) -> Path:
     """The folder of a COLMAP model's images: `images` beside the model or up to three folders up
-    (`input` for the distorted model of the reference 3DGS's layout)."""
+    (`input` for the distorted model of the reference 3DGS's layout), else the folder holding
+    `sparse/` when the photos are in it (a folder of photos after `gvae sfm`)."""
     model = images_file.parent
     names = ("input", "images") if model.parts[-3:-1] == ("distorted", "sparse") else ("images",)
     for d in (model, *model.parents[:3]):
         for name in names:
             if (d / name).is_dir():
                 return d / name
+    root = model.parent.parent if model.parent.name == "sparse" else model.parent
+    if first is not None and (root / first).is_file():
+        return root
     raise DatasetError(f"{model}: no 'images' folder beside the COLMAP model")
+
+
+def triangulated_folder(capture: Capture) -> Path:
+    """Where the triangulated points of a capture with poses and no points are kept:
+    `TRIANGULATED/` in the folder of its transforms file, or in the folder holding its COLMAP
+    model's `sparse/`."""
+    source = Path(capture.source)
+    if capture.kind == "colmap":
+        return (source.parent.parent if source.parent.name == "sparse" else source.parent) / TRIANGULATED
+    return (source.parent if source.suffix == ".json" else source) / TRIANGULATED
+
+
+def _triangulated_points(capture: Capture) -> SfMPoints | None:
+    """The points `capture.sfm.triangulate` made for this capture, while its poses are the
+    capture's (the same names, cameras within 1e-6 of the scene's size); else None."""
+    folder = triangulated_folder(capture)
+    files = colmap_files(folder)
+    if files is None or not (folder / "points3D.bin").is_file():
+        return None
+    try:
+        model = read_colmap(*files)
+    except DatasetError:
+        return None
+    poses = {Path(name).stem: cam.world_to_cam for name, cam in zip(model.names, model.cameras)}
+    centers = np.stack([c.center for c in capture.cameras])
+    tol = 1e-6 * max(float(np.ptp(centers, axis=0).max()), 1.0)
+    for name, cam in zip(capture.names, capture.cameras):
+        w2c = poses.get(name)
+        if w2c is None or not np.allclose(w2c[:3, :3], cam.world_to_cam[:3, :3], atol=1e-6) \
+                or not np.allclose(w2c[:3, 3], cam.world_to_cam[:3, 3], atol=tol):
+            return None
+    return dataclasses.replace(model.points, source=f"points triangulated with its poses ({folder})")
+
+
+def _warn_unregistered(folder: Path, names: list[str]) -> None:
+    """Warn about photos beside a COLMAP model that it leaves out (SfM did not register them)."""
+    _, photos = find_photos(folder)
+    known = set(names)
+    missing = [p for p in photos if p not in known]
+    if missing:
+        shown = ", ".join(missing[:8]) + (f", ... ({len(missing) - 8} more)" if len(missing) > 8 else "")
+        warnings.warn(f"{folder}: {len(missing)} of {len(photos)} photos are not in the COLMAP model (structure from "
+                      f"motion did not register them) and are left out: {shown}", stacklevel=4)
 
 
 def _assemble(path: Path, source: Path, kind: str, parts, images: bool) -> Capture:

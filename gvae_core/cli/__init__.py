@@ -23,11 +23,12 @@ COMMAND_MODULES = (
     "scenes",
     "report",
     "compact",
+    "sfm",
 )
 #: subcommand -> the module that registers it: `gvae COMMAND ...` imports that module alone.
 COMMANDS = {"info": "info", "convert": "convert", "render": "render", "demo": "demo", "fit-vae": "vae",
             "refine": "vae", "train": "train", "make-scene": "scenes", "list-scenes": "scenes", "report": "report",
-            "compact": "compact"}
+            "compact": "compact", "sfm": "sfm"}
 
 #: --device help of the commands that train or render.
 DEVICE_HELP = "torch device: cpu (default) or cuda[:N] (needs a CUDA build of torch and a GPU)"

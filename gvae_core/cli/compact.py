@@ -9,6 +9,7 @@ from pathlib import Path
 
 from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS
 from . import progress_lines
+from .sfm import prepare_capture
 
 #: (`compaction.AUTO_DISTILL`, `AUTO_DISTILL_MAX` and `SET_ASIDE_EVERY`, without importing torch for --help.)
 AUTO_DISTILL, AUTO_DISTILL_MAX, SET_ASIDE_EVERY = 1000, 50_000, 8
@@ -115,6 +116,8 @@ def run_compact(args: argparse.Namespace) -> int:
         raise ValueError("--iterations and --image-height need --images")
     if args.test_every is not None and args.images is None and args.cameras is None:
         raise ValueError("--test-every needs --cameras or --images")
+    for capture_path in (args.cameras, args.images):  # a folder of photos: its cameras by SfM first
+        prepare_capture(capture_path)
     t0 = time.perf_counter()
     cloud = read_splat_file(args.input, sanitize=args.sanitize)
     cameras = load_cameras(args.cameras, args.test_every) if args.cameras is not None else None

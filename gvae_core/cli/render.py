@@ -19,6 +19,7 @@ from ..atomic import atomic_write
 from ..camera import Camera, orbit
 from ..capture import load_cameras, read_capture
 from . import DEVICE_HELP
+from .sfm import prepare_capture
 
 
 def register(subparsers) -> None:
@@ -99,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--height must be positive, got {args.height}")
     if args.train_resolution is not None and args.train_resolution <= 0:
         raise ValueError(f"--train-resolution must be a positive image height, got {args.train_resolution}")
+    for capture_path in (args.cameras, args.train_cameras):  # a folder of photos: its cameras by SfM first
+        prepare_capture(capture_path)
     train_cams = load_cameras(args.train_cameras) if args.train_cameras is not None else None
     device = resolve_device(args.device)
     cloud = read_ply(args.file, sanitize=args.sanitize)

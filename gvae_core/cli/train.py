@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 from . import DEVICE_HELP
+from .sfm import add_sfm_arguments, prepare_capture
 
 
 def register(subparsers) -> None:
@@ -16,12 +17,15 @@ def register(subparsers) -> None:
         description="Train 3D Gaussian Splatting over increasing resolutions from a capture: a COLMAP capture "
                     "(sparse/0 + images/, binary or text; radial and OpenCV lenses undistorted on load), a "
                     "transforms.json of instant-ngp or nerfstudio (intrinsics and distortion), or a NeRF-Synthetic "
-                    "folder. Writes stage_<s>.ply (with gvae_id / gvae_parent, the anti-aliasing size of its "
+                    "folder; or a folder of photos, whose cameras structure from motion finds first (gvae sfm). A "
+                    "capture with poses and no points gets its points by triangulation with those poses. Writes "
+                    "stage_<s>.ply (with gvae_id / gvae_parent, the anti-aliasing size of its "
                     "training cameras and the background it was trained over), lineage.npz, log.json and run.json "
                     "into --out; an interrupted run resumes after its last finished stage. With --more N, SCENE is "
                     "a finished run: its last stage is trained N more iterations (no densification).")
     p.add_argument("scene", type=Path, metavar="CAPTURE",
-                   help="the capture folder (or its COLMAP model, or a transforms*.json); with --more, a run folder")
+                   help="the capture folder (or its COLMAP model, or a transforms*.json), or a folder of photos "
+                        "(structure from motion makes its cameras first: gvae sfm); with --more, a run folder")
     p.add_argument("--out", type=Path, help="run directory to write (created if needed; required, but with --more: "
                    "no default)")
     p.add_argument("--more", type=int, metavar="N",
@@ -71,6 +75,7 @@ def register(subparsers) -> None:
     p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.add_argument("--restart", action="store_true", help="start over instead of resuming (default: resume)")
     p.add_argument("--quiet", action="store_true", help="no progress bar (default: progress shown)")
+    add_sfm_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -102,6 +107,12 @@ def _resolutions(args: argparse.Namespace, profile: tuple[int, ...]) -> tuple[in
         if not args.downscale >= 1:
             raise ValueError(f"--downscale must be 1 or more, got {args.downscale}")
         height = int(read_capture(args.scene, images=False).cameras[0].height / args.downscale)
+    return stage_heights(height, profile)
+
+
+def stage_heights(height: int, profile: tuple[int, ...]) -> tuple[int, ...]:
+    """The stage heights of `--image-height H`: the last stage at `height`, the earlier ones in the
+    profile's proportions (Blender's New from Photos asks for the same)."""
     if height <= 0:
         raise ValueError(f"the last stage's image height must be positive, got {height}")
     return tuple(max(1, round(height * r / profile[-1])) for r in profile)
@@ -114,6 +125,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--out is required (the run directory to write)")
     from ..train import TrainConfig, train_progressive
 
+    # photos -> cameras (SfM); poses without points -> points (triangulation), where the start uses them
+    prepare_capture(args.scene, args, points=args.init_points is None and args.init in (None, "auto", "sfm"))
     base = TrainConfig.profile(args.profile)
     resolutions = _resolutions(args, base.resolutions)
     overrides = dict(resolutions=resolutions, sh_degree=args.sh_degree, seed=args.seed, init=args.init,

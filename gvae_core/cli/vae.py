@@ -9,6 +9,7 @@ from pathlib import Path
 
 from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS
 from . import progress_lines
+from .sfm import prepare_capture
 
 
 def register(subparsers) -> None:
@@ -194,6 +195,8 @@ def run_refine(args: argparse.Namespace) -> int:
     output_format(args.output)  # a name no format is written under is refused before any work
     budget = parse_budget(args.budget) if args.budget is not None else None
     fidelity = _parse_fidelity(args.fidelity, "auto")
+    for capture_path in (args.cameras, args.images):  # a folder of photos: its cameras by SfM first
+        prepare_capture(capture_path)
     t0 = time.perf_counter()
     cloud = read_splat_file(args.input, sanitize=args.sanitize)
     lineage = Lineage.load(args.lineage) if args.lineage is not None else None

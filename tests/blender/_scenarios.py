@@ -88,6 +88,24 @@ def attributes(obj) -> dict:
     return out
 
 
+def native_attributes(obj, path: str) -> None:
+    """Every attribute of a Gaussian-splat point cloud object's data into the .npz `path` (":" in a name
+    written "__")."""
+    import numpy as np
+
+    pc = obj.data
+    n = len(pc.points)
+    out = {}
+    for attr in pc.attributes:
+        if attr.name.startswith("."):
+            continue
+        width = {"FLOAT_VECTOR": 3, "FLOAT4": 4, "QUATERNION": 4}.get(attr.data_type, 1)
+        buf = np.empty(n * width, np.int32 if attr.data_type == "INT" else np.float32)
+        attr.data.foreach_get("vector" if attr.data_type in ("FLOAT_VECTOR", "FLOAT4") else "value", buf)
+        out[attr.name.replace(":", "__")] = buf.reshape(n, width) if width > 1 else buf
+    np.savez(path, **out)
+
+
 def failure(bpy, call) -> dict:
     """Run `call`; report whether it raised, its message, and the datablocks before and after."""
     before = counts(bpy)
@@ -251,7 +269,7 @@ def draw_panels(bpy) -> list[str]:
     from unittest import mock
 
     labels = []
-    for name in ("GVAE_PT_main", "GVAE_PT_display", "GVAE_PT_refine", "GVAE_PT_compact"):
+    for name in ("GVAE_PT_main", "GVAE_PT_photos", "GVAE_PT_display", "GVAE_PT_refine", "GVAE_PT_compact"):
         cls = getattr(bpy.types, name)
         layout = mock.MagicMock()
         layout.label.side_effect = lambda text="", **kw: labels.append(text)
@@ -290,6 +308,9 @@ def scenario_refine_glue(bpy, args: dict) -> dict:
     for module in ("torch", "safetensors"):
         if importlib.util.find_spec(module) is None:
             sys.modules[module] = types.ModuleType(f"{module} (test placeholder)")
+            if module == "torch":  # nor can the core's CPU kernels be made ready (the job does that first)
+                warmup = sys.modules["gvae_core.warmup"] = types.ModuleType("gvae_core.warmup (test placeholder)")
+                warmup.compile_kernels = lambda progress: None
     sys.modules["gvae_core.refinement"] = _stand_in_module(fail=True)
     res["failing"] = failure(bpy, lambda: bpy.ops.gvae.refine(steps=1))
     res["failing_count"] = len(obj.data.vertices)
@@ -438,21 +459,9 @@ def scenario_formats(bpy, args: dict) -> dict:
 def scenario_native(bpy, args: dict) -> dict:
     """Blender 5.3+: File > Import as a Gaussian-splat point cloud (beside Blender's own PLY importer
     on the same file), File > Export of such an object (ours and Blender's own) to .ply and .glb."""
-    import numpy as np
-
     def dump(obj, name):
-        pc = obj.data
-        n = len(pc.points)
-        out = {}
-        for attr in pc.attributes:
-            if attr.name.startswith("."):
-                continue
-            width = {"FLOAT_VECTOR": 3, "FLOAT4": 4, "QUATERNION": 4}.get(attr.data_type, 1)
-            buf = np.empty(n * width, np.float32)
-            attr.data.foreach_get("vector" if attr.data_type in ("FLOAT_VECTOR", "FLOAT4") else "value", buf)
-            out[attr.name.replace(":", "__")] = buf.reshape(n, width) if width > 1 else buf
-        np.savez(args["out"] + f".{name}.npz", **out)
-        return {"type": obj.type, "data_type": pc.type, "points": n}
+        native_attributes(obj, args["out"] + f".{name}.npz")
+        return {"type": obj.type, "data_type": obj.data.type, "points": len(obj.data.points)}
 
     res = {}
     before = counts(bpy)
@@ -473,6 +482,198 @@ def scenario_native(bpy, args: dict) -> dict:
         res.setdefault("export", []).append(sorted(op(filepath=path)))
     bpy.ops.import_scene.gaussian_splat(filepath=args["glb"], splat_type="NATIVE")
     res["from_glb"] = dump(bpy.context.active_object, "from_glb")
+    return res
+
+
+def scenario_native_jobs(bpy, args: dict) -> dict:
+    """Blender 5.3+: a splat imported by Blender's own PLY importer, refined and compacted through the
+    add-on's jobs (TEST-ONLY stand-ins for the core functions, NOT the model: the refine returns the
+    refined cloud the test made, the compaction keeps every other row), rendered by Cycles at 200% and
+    100% with the modifier's Refinement on and off; then exported."""
+    import types
+
+    import numpy as np
+
+    from bl_ext.user_default.gaussian_vae.gvae_addon import convert, nodes, refine_ops, render_setup
+    from gvae_core.ply import read_ply
+
+    def dump(obj, name):
+        native_attributes(obj, args["out"] + f".{name}.npz")
+        mod = nodes.splat_modifier(obj)
+        return {"type": obj.type, "data_type": obj.data.type, "points": len(obj.data.points),
+                "modifier": None if mod is None else mod.node_group.name}
+
+    scene = bpy.context.scene
+    for obj in list(bpy.data.objects):
+        bpy.data.objects.remove(obj)
+    bpy.ops.wm.ply_import(filepath=args["ply"])  # Blender's own importer: no modifier, no gvae_ply
+    name = bpy.context.active_object.name
+    res = {"imported": dump(bpy.data.objects[name], "imported")}
+    res["draw_as_gvae"] = sorted(bpy.ops.gvae.native_modifier())  # (Display's button; Refine would add it too)
+    res["drawn"] = getattr(nodes.splat_modifier(bpy.data.objects[name]), "node_group", None) is not None
+    received = {}
+    refined_cloud = read_ply(args["refined"])
+
+    def refine(cloud, *, progress=None, **kw):
+        received.update(n=len(cloud), extra=sorted(cloud.extra))
+        progress(1.0, "stand-in done")
+        n = len(cloud)
+        return types.SimpleNamespace(cloud=refined_cloud, added=np.arange(n, len(refined_cloud)),
+                                     step=np.ones(len(refined_cloud) - n, np.int64), timings={"total": 0.0})
+
+    def compact(cloud, *, progress=None, **kw):
+        rows = np.arange(0, len(cloud), 2)
+        progress(1.0, "stand-in done")
+        return types.SimpleNamespace(cloud=cloud.select(rows), rows=rows, psnr=99.0, timings={}, warnings=[])
+
+    job = refine_ops.RefineJob(bpy.data.objects[name], refine=refine).start()
+    job.wait(60)
+    res["refine_info"] = {k: job.finish()[k] for k in ("before", "after", "added")}
+    res["received"] = received
+    res["refined"] = dump(bpy.data.objects[name], "refined")
+    obj = bpy.data.objects[name]
+    bpy.context.view_layer.objects.active = obj
+    res["panels"] = draw_panels(bpy)
+    render_setup.add_camera(scene, args["c2w"], args["fov_x"], args["width"], args["height"])
+    _converged_cycles(scene)
+    scene.cycles.samples = args["samples"]
+    scene.cycles.min_transparent_bounces = scene.cycles.transparent_max_bounces = 256
+    render_setup.setup_scene(scene)
+    mod = nodes.splat_modifier(obj)
+    for percentage in (200, 100):
+        for on in (True, False):
+            nodes.set_modifier_input(mod, "Refinement", on)
+            obj.update_tag()
+            scene.render.resolution_percentage = percentage
+            scene.render.filepath = os.path.join(os.path.dirname(args["out"]), f"native_{percentage}_{int(on)}.png")
+            bpy.ops.render.render(write_still=True)
+    res["focal"] = nodes.get_modifier_input(mod, "Focal Length (px)")
+    bpy.ops.export_scene.gaussian_splat(filepath=args["export"])
+    job = refine_ops.CompactJob(bpy.data.objects[name], compact=compact).start()
+    job.wait(60)
+    res["compact_info"] = {k: job.finish()[k] for k in ("before", "after")}
+    res["compacted"] = dump(bpy.data.objects[name], "compacted")
+    res["native_poll"] = [bpy.ops.gvae.refine.poll(), bpy.ops.gvae.compact.poll()]
+    res["is_native"] = convert.is_native_splat(bpy.data.objects[name])
+    return res
+
+
+def scenario_photos(bpy, args: dict) -> dict:
+    """New from Photos on a small posed capture, in Blender's default scene: said what it needs before
+    it starts (torch blocked); cancelled before it trains and between stages (the scene as it was, the
+    run folder kept); then the operator as a batch run calls it, and again with the same options (the
+    run resumes: nothing more to train)."""
+    import time
+
+    from bl_ext.user_default.gaussian_vae.gvae_addon import photos_ops, runtime
+
+    scene = bpy.context.scene
+
+    def state():
+        return {**counts(bpy), "cameras": sorted(c.name for c in bpy.data.cameras),
+                "collections": sorted(c.name for c in bpy.data.collections),
+                "view": scene.view_settings.view_transform, "camera": getattr(scene.camera, "name", None),
+                "active": getattr(bpy.context.active_object, "name", None)}
+
+    res = {}
+    before = state()
+    stash = sys.modules.get("torch")
+    sys.modules["torch"] = None  # as in a Blender without torch
+    try:
+        res["missing"] = [what for what, _ in runtime.photos_missing(args["folder"])]
+        res["refused"] = failure(bpy, lambda: bpy.ops.gvae.new_from_photos(folder=args["folder"]))
+    finally:
+        if stash is None:
+            sys.modules.pop("torch")
+        else:
+            sys.modules["torch"] = stash
+    res["refused_same"] = state() == before
+
+    # The Blender side with a TEST-ONLY stand-in for the core's training (NOT a training: it returns the
+    # cloud the test wrote, the capture's cameras read by the core): a Blender splat where Blender has
+    # them, else the add-on's; cancel while it "trains".
+    import threading
+
+    from bl_ext.user_default.gaussian_vae.gvae_addon import convert
+    from gvae_core.capture import read_capture
+    from gvae_core.ply import read_ply
+
+    def stand_in(folder, run_dir, *, report, cancelled, **kw):
+        report(0.5, "stand-in training", 20.0)
+        while args_release.is_set() is False and not cancelled():
+            time.sleep(0.01)
+        report(1.0, "stand-in done", 21.5)
+        capture = read_capture(folder, 8, images=False)
+        return {"cloud": read_ply(args["cloud"]), "log": [{"test_psnr": 21.5, "resolution": 16}], "sfm": None,
+                "cameras": capture.cameras, "names": capture.names, "splits": capture.splits, "kind": capture.kind}
+
+    native = convert.native_available()
+    args_release = threading.Event()
+    job = photos_ops.PhotosJob(args["folder"], run_dir=args["run_cancel"], train=stand_in).start()
+    time.sleep(0.1)
+    res["stand_in_heldout"] = job.heldout
+    job.cancel()
+    job.wait(30)
+    res["stand_in_cancel"] = failure(bpy, job.finish)
+    res["stand_in_cancel_same"] = state() == before
+    args_release.set()
+    job = photos_ops.PhotosJob(args["folder"], run_dir=args["run_cancel"], train=stand_in,
+                               splat_type="NATIVE" if native else "MESH").start()
+    job.wait(30)
+    info = job.finish()
+    obj = bpy.data.objects[info["object"]]
+    res["stand_in"] = {"type": obj.type, "native": convert.is_native_splat(obj), "count": convert.splat_count(obj),
+                       "modifier": [m.node_group.name for m in obj.modifiers], "cameras": info["cameras"],
+                       "heldout": info["heldout"], "rotation": list(obj.rotation_euler)}
+    cams = bpy.data.collections[f"{obj.name} cameras"]
+    bpy.data.objects.remove(obj)  # (back to the scene as it was, for the real job below)
+    for cam in list(cams.objects):
+        data = cam.data
+        bpy.data.objects.remove(cam)
+        bpy.data.cameras.remove(data)
+    bpy.data.collections.remove(cams)
+    for name in ("meshes", "pointclouds"):
+        for data in list(getattr(bpy.data, name)):
+            if data.users == 0:
+                getattr(bpy.data, name).remove(data)
+    res["available"] = runtime.torch_available()
+    before = state()  # (the scene now: the stand-in's node group and material stay in the file)
+    if not res["available"]:
+        return res
+    options = {"height": args["height"], "profile": "TINY", "iterations": args["iterations"]}
+    t_start = time.perf_counter()
+    job = photos_ops.PhotosJob(args["folder"], run_dir=args["run_cancel"], **options).start()
+    job.cancel()
+    job.wait(120)
+    res["cancel"] = failure(bpy, job.finish)
+    res["cancel_same"] = state() == before
+    job = photos_ops.PhotosJob(args["folder"], run_dir=args["run_cancel"], **options).start()
+    t0, messages = time.perf_counter(), []
+    while not job.wait(0.02):
+        messages.append(job.message)
+        if job.message.startswith("stage 2"):
+            job.cancel()
+        assert time.perf_counter() - t0 < 300, "the job did not end"
+    res["cancel_later"] = failure(bpy, job.finish)
+    res["cancel_later_messages"] = sorted(set(messages))
+    res["cancel_later_same"] = state() == before
+    res["kept"] = sorted(os.listdir(args["run_cancel"]))
+    res["seconds"] = {"cancels": time.perf_counter() - t_start}
+
+    res["batch"] = sorted(bpy.ops.gvae.new_from_photos(folder=args["folder"], run_dir=args["run"], **options))
+    obj = bpy.context.active_object
+    res["object"] = {"name": obj.name, "type": obj.type, "count": len(obj.data.vertices),
+                     "modifiers": [m.type for m in obj.modifiers], "rotation": list(obj.rotation_euler)}
+    cams = bpy.data.collections.get(f"{obj.name} cameras")
+    res["cameras"] = sorted(o.name for o in cams.objects) if cams is not None else None
+    res["camera_parent"] = sorted({o.parent.name for o in cams.objects}) if cams is not None else None
+    res["after"] = state()
+    res["run"] = sorted(os.listdir(args["run"]))
+    res["seconds"]["batch"] = time.perf_counter() - t_start - res["seconds"]["cancels"]
+    res["again"] = sorted(bpy.ops.gvae.new_from_photos(folder=args["folder"], run_dir=args["run"], cameras=False,
+                                                       **options))
+    res["seconds"]["all"] = time.perf_counter() - t_start
+    res["again_count"] = len(bpy.context.active_object.data.vertices)
     return res
 
 
