@@ -11,8 +11,9 @@ from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS
 from . import progress_lines
 from .sfm import prepare_capture
 
-#: (`compaction.AUTO_DISTILL`, `AUTO_DISTILL_MAX` and `SET_ASIDE_EVERY`, without importing torch for --help.)
-AUTO_DISTILL, AUTO_DISTILL_MAX, SET_ASIDE_EVERY = 1000, 50_000, 8
+#: (`compaction.AUTO_DISTILL`, `AUTO_DISTILL_MAX`, `AUTO_DISTILL_SECONDS` and `SET_ASIDE_EVERY`, without
+#: importing torch for --help.)
+AUTO_DISTILL, AUTO_DISTILL_MAX, AUTO_DISTILL_SECONDS, SET_ASIDE_EVERY = 1000, 50_000, 180.0, 8
 
 
 def register(subparsers) -> None:
@@ -59,8 +60,8 @@ def register(subparsers) -> None:
                    help="without images: fine-tune at most this many iterations a round against the input's own "
                    "renders (32 views of --cameras, else placed around the cloud, at the training resolution; 8 more "
                    "set aside judge when to stop); 0: score, drop and merge only (default: auto, at most "
-                   f"{AUTO_DISTILL} iterations for a cloud of up to {AUTO_DISTILL_MAX:,} Gaussians, none for a larger "
-                   "one)")
+                   f"{AUTO_DISTILL} iterations for a cloud of up to {AUTO_DISTILL_MAX:,} Gaussians, stopped at the "
+                   f"first check after {AUTO_DISTILL_SECONDS:.0f} s, none for a larger one)")
     c.add_argument("--rounds", type=int, default=None,
                    help="removal and fine-tuning rounds with --images or --distill (default: 1)")
     c.add_argument("--iterations", type=int, default=None,

@@ -71,9 +71,9 @@ from .views import CompactionViews, compaction_views, compare, sight
 __all__ = ["SCORES", "REMOVALS", "CompactResult", "CompactionViews", "compact", "compaction_scores",
            "compaction_views", "distill_iterations", "fine_tune_height", "merge_groups", "merge_groups_reference",
            "own_renders", "owner_root", "pixel_hits", "pixel_hits_reference", "removal_groups", "set_aside",
-           "target_count", "AUTO_DISTILL", "AUTO_DISTILL_MAX", "CHECK_EVERY", "COLOUR_WEIGHT", "DEFAULT_ITERATIONS",
-           "DISTILL_ASIDE", "DISTILL_VIEWS", "NEIGHBOURS", "PRUNE_FRACTION", "PSNR_CAP", "SET_ASIDE_EVERY", "UNSEEN",
-           "UNSEEN_WARNING"]
+           "target_count", "AUTO_DISTILL", "AUTO_DISTILL_MAX", "AUTO_DISTILL_SECONDS", "CHECK_EVERY", "COLOUR_WEIGHT",
+           "DEFAULT_ITERATIONS", "DISTILL_ASIDE", "DISTILL_VIEWS", "NEIGHBOURS", "PRUNE_FRACTION", "PSNR_CAP",
+           "SET_ASIDE_EVERY", "UNSEEN", "UNSEEN_WARNING"]
 
 
 # ------------------------------------------------------------------------------ checks
