@@ -12,7 +12,7 @@ import gvae_core.compaction as compaction
 import gvae_core.compaction.finetune as finetune
 from gvae_core import Camera
 from gvae_core.antialias import DILATION_KEY
-from gvae_core.compaction import compact, set_aside
+from gvae_core.compaction import PHOTOS_PRUNE_FROM, compact, default_method, set_aside
 from gvae_core.compaction.finetune import Tuning, tune, tuning_config
 from gvae_core.compaction.plateau import Plateau
 from gvae_core.datasets import Views
@@ -126,3 +126,28 @@ def test_distillation_targets_are_drawn_as_the_fine_tuning_draws(monkeypatch):
     monkeypatch.setattr(finetune, "DISTILL_TARGET", "auto")
     compact(cloud, keep=0.5, resolution=24, distill=4)
     assert modes[-1] == "auto"
+
+
+def test_with_images_the_default_is_what_the_set_aside_images_chose(monkeypatch):
+    """With images and neither a score nor a removal asked for: LightGaussian's prune from
+    PHOTOS_PRUNE_FROM kept, the Hessian's merge below it and without images; what is asked for
+    is kept (one alone goes with the other's usual partner)."""
+    photos = object()
+    assert default_method(photos, 0.5, None, 100, None, None) == ("lightgaussian", "prune")
+    assert default_method(photos, None, 30, 100, None, None) == ("lightgaussian", "prune")
+    assert default_method(photos, 0.1, None, 100, None, None) == ("hessian", "merge")
+    assert default_method(None, 0.5, None, 100, None, None) == ("hessian", "merge")
+    assert default_method(photos, 0.5, None, 100, "hessian", None) == ("hessian", "merge")
+    assert default_method(photos, 0.5, None, 100, None, "merge") == ("hessian", "merge")
+    assert default_method(photos, "half", None, 100, None, None) == ("hessian", "merge")  # (refused later)
+    cloud = example_cloud(120, seed=5).with_sh_degree(0)
+    images = _views(cloud, 10, size=16)
+    used = []
+    real = finetune.compaction_scores
+    monkeypatch.setattr(finetune, "compaction_scores",
+                        lambda c, name, *a, **k: used.append(name) or real(c, name, *a, **k))
+    for keep, name in ((PHOTOS_PRUNE_FROM, "lightgaussian"), (0.1, "hessian")):
+        r = compact(cloud, keep=keep, images=images, iterations=2, views=2, resolution=16)
+        kept = r.groups[r.groups >= 0]
+        merged = len(kept) > len(np.unique(kept))  # some output row stands for two or more input rows
+        assert used[-1] == name and merged == (name == "hessian") and len(r.cloud) == round(120 * keep)

@@ -342,17 +342,22 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
 
 def capture_table(rows: list[dict]) -> list[str]:
     """Markdown: per method and fraction, held-out PSNR and its change against the input, SSIM,
-    fine-tuning iterations, seconds (CPU), peak memory."""
-    lines = ["| method | kept | Gaussians | held-out PSNR | vs input | SSIM | iterations | seconds (CPU) | peak RSS "
-             "| load |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    fine-tuning iterations (and where the best state was), the set-aside views' PSNR before the
+    fine-tuning and at its best (what chose), seconds (CPU), peak memory."""
+    lines = ["| method | kept | Gaussians | held-out PSNR | vs input | SSIM | iterations (best at) | set-aside PSNR "
+             "| seconds (CPU) | peak RSS | load |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "psnr" not in r:
             continue
         cpu = f" ({r['cpu_seconds']:.0f})" if np.isfinite(r.get("cpu_seconds", float("nan"))) else ""
         peak = f"{r['peak_gib']:.2f} GiB" if np.isfinite(r.get("peak_gib", float("nan"))) else "-"
+        its, aside = r.get("iterations", "-"), "-"
+        if r.get("rounds"):
+            its = " + ".join(f"{x['iterations']} ({x['best_at']})" for x in r["rounds"])
+            aside = f"{r['rounds'][0]['psnr_before']:.2f} -> {r['aside_psnr']:.2f}"
         lines.append(f"| {r['method']} | {r['fraction']:.0%} | {r['count']:,} | {r['psnr']:.2f} | "
-                     f"{-r.get('drop', 0.0):+.2f} | {r['ssim']:.4f} | {r.get('iterations', '-')} | "
+                     f"{-r.get('drop', 0.0):+.2f} | {r['ssim']:.4f} | {its} | {aside} | "
                      f"{r.get('seconds', 0.0):.0f}{cpu} | {peak} | {r.get('load', '-')} |")
     return lines
 

@@ -11,9 +11,9 @@ from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS
 from . import progress_lines
 from .sfm import prepare_capture
 
-#: (`compaction.AUTO_DISTILL`, `AUTO_DISTILL_MAX`, `AUTO_DISTILL_SECONDS` and `SET_ASIDE_EVERY`, without
-#: importing torch for --help.)
-AUTO_DISTILL, AUTO_DISTILL_MAX, AUTO_DISTILL_SECONDS, SET_ASIDE_EVERY = 1000, 50_000, 180.0, 8
+#: (`compaction.AUTO_DISTILL`, `AUTO_DISTILL_MAX`, `AUTO_DISTILL_SECONDS`, `SET_ASIDE_EVERY` and
+#: `PHOTOS_PRUNE_FROM`, without importing torch for --help.)
+AUTO_DISTILL, AUTO_DISTILL_MAX, AUTO_DISTILL_SECONDS, SET_ASIDE_EVERY, PHOTOS_PRUNE_FROM = 1000, 50_000, 180.0, 8, 0.3
 
 
 def register(subparsers) -> None:
@@ -44,11 +44,13 @@ def register(subparsers) -> None:
                    help="scoring views (of the capture's cameras, spread out; 0: all of them) (default: %(default)s)")
     c.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION,
                    help="scoring view height in pixels (default: %(default)s)")
-    c.add_argument("--score", default="hessian", choices=("hessian", "lightgaussian", "opacity", "random"),
-                   help="what ranks the Gaussians (default: hessian; the others are the baselines it is compared with)")
-    c.add_argument("--removal", default="merge", choices=("merge", "prune"),
-                   help="merge Gaussians pairwise, after dropping the lowest-scoring tenth (default), or drop the "
-                   "lowest scores only")
+    c.add_argument("--score", default=None, choices=("hessian", "lightgaussian", "opacity", "random"),
+                   help=f"what ranks the Gaussians (default: hessian; with --images keeping {PHOTOS_PRUNE_FROM:.0%}% "
+                   "or more, lightgaussian with --removal prune, what the images set aside chose on the project's "
+                   "capture; the others are baselines)")
+    c.add_argument("--removal", default=None, choices=("merge", "prune"),
+                   help="merge Gaussians pairwise, after dropping the lowest-scoring tenth, or drop the lowest "
+                   f"scores only (default: merge; with --images keeping {PHOTOS_PRUNE_FROM:.0%}% or more, prune)")
     c.add_argument("--images", type=Path, default=None, metavar="DATASET",
                    help="the capture's training images (a COLMAP capture, a transforms.json with its images or a "
                    "NeRF-Synthetic folder: what gvae train reads): compact in rounds, fine-tuning after each "
