@@ -213,7 +213,10 @@ CAPTURE_METHODS = (("ours, photos", "hessian", "merge", True, False, "auto"),
                    ("ours, no photos, placed views", "hessian", "merge", False, False, "auto"),
                    ("ours, no photos, capture cameras", "hessian", "merge", False, True, "auto"),
                    ("ours, no photos, placed views, --distill 1000", "hessian", "merge", False, False, 1000),
-                   ("ours, no photos, placed views, --distill 0", "hessian", "merge", False, False, 0))
+                   ("ours, no photos, placed views, --distill 0", "hessian", "merge", False, False, 0),
+                   ("LightGaussian prune, no photos, placed views", "lightgaussian", "prune", False, False, "auto"),
+                   ("LightGaussian prune, no photos, placed views, --distill 0", "lightgaussian", "prune", False, False,
+                    0))
 INPUT_TUNED = "input + fine-tune as long"
 
 
@@ -260,6 +263,7 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
     height = fine_tune_height(base, cameras)
     photos = load_capture_images(capture, height, test_every)
     test = read_capture(capture).held_out(test_every).load("test", height)
+    judge = set_aside(photos)[1]  # (what the fine-tuning with photos is judged on: every row scored on them too)
     background = tuple(base.background) if base.background is not None else (1.0, 1.0, 1.0)
     tag = {"capture": str(capture), "base": str(base_path), "n_input": len(base), "height": height,
            "test_views": len(test), "train_views": len(photos)}
@@ -272,23 +276,26 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
         tc = cloud.to_torch()
         classic = evaluate_views(tc, test, background, cloud.sh_degree, None, RenderSettings(antialias="classic"))
         auto = evaluate_views(tc, test, background, cloud.sh_degree, None, RenderSettings(), with_ssim=False)[0]
-        return (*classic, auto)
+        val = evaluate_views(tc, judge, background, cloud.sh_degree, None, RenderSettings(antialias="classic"),
+                             with_ssim=False)[0]
+        return (*classic, auto, val)
 
-    base_psnr, base_ssim, base_auto = score(base)
+    base_psnr, base_ssim, base_auto, base_val = score(base)
     rows = [{**tag, "method": "input", "fraction": 1.0, "count": len(base), "psnr": base_psnr, "ssim": base_ssim,
-             "psnr_auto": base_auto}]
+             "psnr_auto": base_auto, "val_psnr": base_val}]
     say(f"{capture}: {len(base):,} Gaussians, {len(photos)} training photos and {len(test)} held out at {height} px; "
-        f"held-out PSNR {base_psnr:.2f} dB (auto render {base_auto:.2f}), SSIM {base_ssim:.4f}; load {_loadavg()}")
+        f"held-out PSNR {base_psnr:.2f} dB (auto render {base_auto:.2f}), SSIM {base_ssim:.4f}; set-aside photos "
+        f"{base_val:.2f} dB; load {_loadavg()}")
 
     def add(method: str, fraction: float, cloud, seconds: float, cpu: float, peak: float, **info) -> dict:
-        value, ssim_value, auto = score(cloud)
+        value, ssim_value, auto, val = score(cloud)
         row = {**tag, "method": method, "fraction": fraction, "count": len(cloud), "psnr": value, "ssim": ssim_value,
-               "psnr_auto": auto, "drop": base_psnr - value, "drop_auto": base_auto - auto, "seconds": seconds,
-               "cpu_seconds": cpu, "peak_gib": peak,
-               "load": _loadavg(), **info}
+               "psnr_auto": auto, "val_psnr": val, "drop": base_psnr - value, "drop_auto": base_auto - auto,
+               "seconds": seconds, "cpu_seconds": cpu, "peak_gib": peak, "load": _loadavg(), **info}
         rows.append(row)
         say(f"  {method:40s} {fraction:4.0%} n={len(cloud):7,d} held-out PSNR {value:6.2f} ({value - base_psnr:+.2f}; "
-            f"auto {auto - base_auto:+.2f}) SSIM {ssim_value:.4f} {seconds:6.1f} s (CPU {cpu:6.1f} s) {peak:.2f} GiB"
+            f"auto {auto - base_auto:+.2f}; set-aside photos {val:.2f}) SSIM {ssim_value:.4f} {seconds:6.1f} s "
+            f"(CPU {cpu:6.1f} s) {peak:.2f} GiB"
             + (f"; {info['note']}" if info.get("note") else ""))
         return row
 
@@ -342,10 +349,11 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
 
 def capture_table(rows: list[dict]) -> list[str]:
     """Markdown: per method and fraction, held-out PSNR and its change against the input, SSIM,
-    fine-tuning iterations (and where the best state was), the set-aside views' PSNR before the
-    fine-tuning and at its best (what chose), seconds (CPU), peak memory."""
-    lines = ["| method | kept | Gaussians | held-out PSNR | vs input | SSIM | iterations (best at) | set-aside PSNR "
-             "| seconds (CPU) | peak RSS | load |",
+    fine-tuning iterations (and where the best state was), the PSNR of the training photos set
+    aside (what chooses; rows made before it was measured for every row: the fine-tuning's own
+    figure, photos rows only), seconds (CPU), peak memory."""
+    lines = ["| method | kept | Gaussians | held-out PSNR | vs input | SSIM | iterations (best at) | set-aside photos "
+             "PSNR | seconds (CPU) | peak RSS | load |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "psnr" not in r:
@@ -355,7 +363,10 @@ def capture_table(rows: list[dict]) -> list[str]:
         its, aside = r.get("iterations", "-"), "-"
         if r.get("rounds"):
             its = " + ".join(f"{x['iterations']} ({x['best_at']})" for x in r["rounds"])
-            aside = f"{r['rounds'][0]['psnr_before']:.2f} -> {r['aside_psnr']:.2f}"
+            if "training images" in r["rounds"][0].get("judged_on", ""):
+                aside = f"{r['aside_psnr']:.2f}"
+        if np.isfinite(r.get("val_psnr", float("nan"))):
+            aside = f"{r['val_psnr']:.2f}"
         lines.append(f"| {r['method']} | {r['fraction']:.0%} | {r['count']:,} | {r['psnr']:.2f} | "
                      f"{-r.get('drop', 0.0):+.2f} | {r['ssim']:.4f} | {its} | {aside} | "
                      f"{r.get('seconds', 0.0):.0f}{cpu} | {peak} | {r.get('load', '-')} |")
@@ -571,7 +582,7 @@ def main(argv=None) -> int:
     parser.add_argument("--base", type=Path, default=None, metavar="PLY", help="the capture's trained cloud")
     parser.add_argument("--test-every", type=int, default=8, help="the capture's held-out photos (default: 8)")
     parser.add_argument("--capture-methods", nargs="*", type=int, default=None, metavar="K",
-                        help="rows of the capture's table, by number (0-6: " +
+                        help="rows of the capture's table, by number (0-8: " +
                         "; ".join(m[0] for m in CAPTURE_METHODS) + "; default: all)")
     parser.add_argument("--capture-row", nargs=3, action="append", default=[], metavar=("SCORE", "REMOVAL", "PRUNE"),
                         help="with --capture: also a row with photos of this score, removal and fraction dropped "
