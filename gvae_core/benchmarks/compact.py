@@ -50,7 +50,7 @@ from ..examples import example_cloud
 from ..experiment import PROTOCOLS, SMOKE, Evaluator, prepare_scene
 from ..metrics.image import image_scores
 from ..ply import read_ply, write_ply
-from ..resources import estimate_compact_memory
+from ..resources import estimate_compact_memory, peak_rss_mb, reset_peak_rss
 from ..scenes import SPLITS
 from .splat_transform import PACKAGE
 from .splat_transform import command as splat_transform_command
@@ -220,27 +220,6 @@ CAPTURE_METHODS = (("ours, photos", "hessian", "merge", True, False, "auto"),
 INPUT_TUNED = "input + fine-tune as long"
 
 
-def _clear_peak() -> bool:
-    """Reset this process's peak-RSS counter (Linux); False where it cannot be."""
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return True
-    except OSError:
-        return False
-
-
-def _peak_gib() -> float:
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 2 ** 20
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
-
-
 def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0.1), *, methods=CAPTURE_METHODS,
                  splat: bool = True, input_tuned: bool = True, iterations: int | None = None, rounds: int | None = None,
                  plateau: bool = True, seed: int = 0, say=print) -> list[dict]:
@@ -300,10 +279,10 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
         return row
 
     def timed(fn, *args, **kwargs):
-        _clear_peak()
+        reset_peak_rss()
         t0, c0 = time.perf_counter(), time.process_time()
         out = fn(*args, **kwargs)
-        return out, time.perf_counter() - t0, time.process_time() - c0, _peak_gib()
+        return out, time.perf_counter() - t0, time.process_time() - c0, peak_rss_mb() / 1024
 
     def checks(fraction: float, message: str) -> None:  # the estimate and every check of the set-aside photos
         if "s an iteration" in message or "set-aside PSNR" in message:
