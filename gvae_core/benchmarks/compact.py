@@ -201,12 +201,12 @@ def distilled_rows(base, iterations: int, seed: int, add) -> None:
 
 
 #: The rows of a capture's table (`capture_rows`): label, score, removal, with the capture's photos,
-#: with its cameras. Ours with photos merges then fine-tunes; "PUP 3D-GS" prunes by the same
+#: with its cameras, distill. Ours with photos merges then fine-tunes; "PUP 3D-GS" prunes by the same
 #: Hessian score then fine-tunes (as PUP 3D-GS); "LightGaussian" prunes by its global significance
-#: then fine-tunes; every fine-tuning the same (`compact(images=, plateau=)`). The rows without
-#: photos are `gvae compact` without --images: placed views (the default) and the capture's cameras,
-#: and placed views fine-tuned against the input's own renders (`--distill`: a capture is above
-#: AUTO_DISTILL_MAX, so not by default).
+#: then fine-tunes; every fine-tuning the same (`compact(images=, plateau=)`; `compact`'s default with
+#: photos is the LightGaussian row from PHOTOS_PRUNE_FROM kept, ours below). The rows without photos
+#: are `gvae compact` without --images: placed views (the default) or the capture's cameras, fine-tuned
+#: against the input's own renders by default up to AUTO_DISTILL_MAX Gaussians, or as `--distill` says.
 CAPTURE_METHODS = (("ours, photos", "hessian", "merge", True, False, "auto"),
                    ("PUP 3D-GS: Hessian prune + fine-tune", "hessian", "prune", True, False, "auto"),
                    ("LightGaussian prune + fine-tune", "lightgaussian", "prune", True, False, "auto"),
@@ -247,9 +247,10 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
     tag = {"capture": str(capture), "base": str(base_path), "n_input": len(base), "height": height,
            "test_views": len(test), "train_views": len(photos)}
 
-    def score(cloud) -> tuple[float, float, float]:
+    def score(cloud) -> tuple[float, float, float, float]:
         """Held-out PSNR and SSIM drawn as the cloud was trained (classic: what the trainer's log and
-        other 3DGS viewers show), and the PSNR of the default render (auto: matched, its size)."""
+        other 3DGS viewers show), the PSNR of the default render (auto: matched, its size), and the
+        classic PSNR on the set-aside training photos (what chooses)."""
         if DILATION_KEY not in cloud.extra:
             cloud = with_training_cameras(cloud, cameras)
         tc = cloud.to_torch()
@@ -300,7 +301,7 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
             info = {}
             if r.rounds:
                 its = sum(x["iterations"] for x in r.rounds)
-                info = {"iterations": its, "rounds": [{k: v for k, v in x.items()} for x in r.rounds],
+                info = {"iterations": its, "rounds": [dict(x) for x in r.rounds],
                         "aside_psnr": r.rounds[-1]["psnr_after"],
                         "note": "iterations " + " + ".join(f"{x['iterations']} (best {x['best_at']})"
                                                            for x in r.rounds)
