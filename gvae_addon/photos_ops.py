@@ -13,7 +13,6 @@ splats, as Import does; so cancel and failure leave the scene as it was.
 
 from __future__ import annotations
 
-import inspect
 import json
 import math
 import os
@@ -113,22 +112,20 @@ def train_capture(folder: str, run_dir: str, *, height: int, profile: str, itera
             report(1.0, "cancelling", None)
         return data.views(split, h)
 
-    kwargs = {}
-    if "on_progress" in inspect.signature(core_train.train_progressive).parameters:  # (issue 50's hook)
-        def on_progress(event: dict) -> None:
-            # {stage (0-based), stages, step, steps, message, ...; test_psnr at a stage's end}
-            s = min(int(event.get("stage", 0)), stages - 1)
-            if event.get("test_psnr") is not None:
-                last["heldout"] = float(event["test_psnr"])
-            steps = max(int(event.get("steps") or config.iterations[s]), 1)
-            step = min(int(event.get("step", 0)), steps)
-            at(s, round(step * config.iterations[s] / steps),
-               f"stage {s + 1}/{stages} at {config.resolutions[s]} px, step {step}/{steps}")
+    def on_progress(event: dict) -> None:
+        # {stage (0-based), stages, step, steps, message, ...; test_psnr at a stage's end}. The bar follows
+        # the planned iterations; the last stage may train on past them until its validation photos stop
+        # improving, which the message says.
+        s = min(int(event.get("stage", 0)), stages - 1)
+        if event.get("test_psnr") is not None:
+            last["heldout"] = float(event["test_psnr"])
+        planned, step = config.iterations[s], int(event.get("step", 0))
+        where = f"step {step}/{planned}" if step <= planned else f"step {step}, until it stops improving"
+        at(s, min(step, planned), f"stage {s + 1}/{stages} at {config.resolutions[s]} px, {where}")
 
-        kwargs["on_progress"] = on_progress
     result = core_train.train_progressive(
         core_train.TrainingData(views, data.points, data.description, data.source), config, out_dir=run_dir,
-        progress=False, threads=threads, **kwargs)
+        progress=False, threads=threads, on_progress=on_progress)
     capture = core_capture.read_capture(folder, test_every, images=False)
     return {"cloud": result.cloud, "log": result.log, "sfm": None if sfm is None else sfm.summary(),
             "cameras": capture.cameras, "names": capture.names, "splits": capture.splits, "kind": capture.kind,

@@ -132,9 +132,12 @@ class Protocol:
     fault_seeds: tuple[int, ...] = (0,)
 
     def train_config(self, seed: int = 0) -> TrainConfig:
+        """The protocol's training: the `legacy` profile's fixed counts per stage (the higher stages
+        are the lineage's ground truth, trained as long as the protocol says, not until they
+        converge), so that its runs and cached results stay those the reports were made from."""
         higher = self.higher if self.train_higher else ()
         iterations = self.higher_iterations if self.train_higher else ()
-        return TrainConfig.profile("default", resolutions=self.resolutions + higher,
+        return TrainConfig.profile("legacy", resolutions=self.resolutions + higher,
                                    iterations=self.iterations + iterations, seed=seed, **self.train_overrides)
 
     def data(self, scene_seed: int = 0) -> Protocol:

@@ -1,12 +1,11 @@
-"""Compaction's fine-tuning judged on views it does not train on (`compaction.finetune`,
-`compaction.plateau`): the plateau rule, the images set aside, the trainer's `should_stop` hook,
-the best state kept, and the time estimate said before the fine-tuning starts."""
+"""Compaction's fine-tuning judged on views it does not train on (`compaction.finetune`, with the
+project's `plateau.Plateau` and the trainer's `should_stop` hook, tested in test_plateau and
+test_train): the images set aside, the best state kept, the time bound, the time estimate said
+before the fine-tuning starts, and the default with photos."""
 
 import math
 
 import numpy as np
-import pytest
-import torch
 
 import gvae_core.compaction as compaction
 import gvae_core.compaction.finetune as finetune
@@ -14,26 +13,9 @@ from gvae_core import Camera
 from gvae_core.antialias import DILATION_KEY
 from gvae_core.compaction import PHOTOS_PRUNE_FROM, compact, default_method, set_aside
 from gvae_core.compaction.finetune import Tuning, tune, tuning_config
-from gvae_core.compaction.plateau import Plateau
 from gvae_core.datasets import Views
 from gvae_core.examples import example_cloud
 from gvae_core.rendering import RenderSettings, render
-from gvae_core.train import TrainConfig, fine_tune
-
-
-def test_plateau_stops_after_patience_checks_without_gain_and_keeps_the_best():
-    p = Plateau(patience=2, min_gain=0.1)
-    assert not p.update(0, 20.0) and not p.update(100, 20.5)  # paying
-    assert not p.update(200, 20.55)  # a rise under min_gain: the best moves, the wait starts
-    assert (p.best, p.best_at, p.waited) == (20.55, 200, 1)
-    assert p.update(300, 20.3)  # a second check without gain: stop
-    assert p.best_at == 200 and [it for it, _ in p.history] == [0, 100, 200, 300]
-    q = Plateau(patience=2, min_gain=0.1)
-    for it, value in ((0, 1.0), (1, 1.05), (2, 1.2), (3, 1.25)):
-        stop = q.update(it, value)
-    assert not stop and q.best_at == 3  # the gain at 2 reset the wait
-    with pytest.raises(ValueError, match="patience"):
-        Plateau(patience=0)
 
 
 def _views(cloud, n, size=24):
@@ -54,20 +36,6 @@ def test_set_aside_takes_every_nth_by_name_and_leaves_the_rest():
             i = views.names.index(name)
             assert cam is views.cameras[i] and np.array_equal(img, views.images[i])
     assert set_aside(_views(example_cloud(50), 4, size=8), 8)[1] is None  # too few to set any aside
-
-
-def test_fine_tune_stops_when_should_stop_says_so():
-    cloud = example_cloud(80, seed=1).with_sh_degree(0)
-    views = _views(cloud, 3, size=16)
-    calls = []
-
-    def should_stop(it, current):
-        assert len(current) == 80 and isinstance(current.means, torch.Tensor)
-        calls.append(it)
-        return it >= 4
-
-    out = fine_tune(cloud, views, 50, config=TrainConfig(), should_stop=should_stop, check_every=2)
-    assert calls == [2, 4] and len(out) == 80 and DILATION_KEY in out.extra
 
 
 def test_tune_keeps_the_best_state_the_set_aside_views_saw(monkeypatch):

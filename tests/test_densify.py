@@ -166,3 +166,34 @@ def test_reset_opacity_and_stats_in_ndc_units():
     m.add_stats(grad, visible, torch.tensor([3, 0, 7], dtype=torch.int32), 100, 50)
     assert m.grad_accum.tolist() == pytest.approx([math.hypot(100, 100), 0.0, 0.0])
     assert m.grad_count.tolist() == [1.0, 0.0, 1.0] and m.max_radii.tolist() == [3.0, 0.0, 7.0]
+
+
+def test_adam_state_carries_to_a_model_of_the_same_rows():
+    """What the next stage starts from: the moments and step counts of every parameter, refused
+    (nothing changed) by a model whose rows do not match; the fused and the plain Adam update alike."""
+    rng = np.random.default_rng(3)
+    cloud = cloud_of(7, rng, degree=2)
+    m = model_with_state(cloud)
+    state = m.optimizer_state()
+    assert set(state) >= {f"{n}.{k}" for n in ("means", "sh_rest") for k in ("exp_avg", "exp_avg_sq", "step")}
+    fresh = GaussianModel(cloud, np.arange(7), np.full(7, -1), TrainConfig().learning_rates(1.0), 1.0, 7)
+    assert fresh.load_optimizer_state(state)
+    for name, p in fresh.params.items():
+        assert torch.equal(fresh.optimizer.state[p]["exp_avg"], m.optimizer.state[m.params[name]]["exp_avg"])
+    other = GaussianModel(cloud_of(6, rng, degree=2), np.arange(6), np.full(6, -1),
+                          TrainConfig().learning_rates(1.0), 1.0, 6)
+    assert not other.load_optimizer_state(state) and not other.optimizer.state
+    assert not other.load_optimizer_state({})
+    # the same steps, fused or not
+    a = GaussianModel(cloud, np.arange(7), np.full(7, -1), TrainConfig().learning_rates(1.0), 1.0, 7)
+    copies = [p.detach().clone().requires_grad_(True) for p in a.params.values()]
+    plain = torch.optim.Adam([{"params": [q], "lr": g["lr"]} for q, g in zip(copies, a.optimizer.param_groups)],
+                             eps=1e-15)
+    for k in range(3):
+        for p, q in zip(a.params.values(), copies):
+            p.grad = torch.full_like(p, 0.5 - k)
+            q.grad = torch.full_like(q, 0.5 - k)
+        a.optimizer.step()
+        plain.step()
+    for p, q in zip(a.params.values(), copies):
+        torch.testing.assert_close(p.detach(), q.detach())

@@ -22,7 +22,9 @@ from gvae_core.ply import read_ply
 from gvae_core.quaternions import from_rotmat
 from gvae_core.rendering import RenderSettings, render
 from gvae_core.initialization import hull_points, initial_bounds, initial_cloud
-from gvae_core.train import TrainConfig, evaluate_psnr, position_lr, scene_extent, train_progressive
+from gvae_core.cli.train import _DEFAULT_ITERATIONS, _DEFAULT_PER_PIXEL
+from gvae_core.train import (ADDED_FIELDS, PROGRESS_KEYS, TrainConfig, _gaussian_limit, evaluate_psnr, fine_tune,
+                             position_lr, scene_extent, split_validation, train_progressive)
 
 
 def test_schedules_scale_with_the_budget():
@@ -102,7 +104,7 @@ def synthetic_views(split, height):
 
 TINY = dict(resolutions=(12, 18, 24), iterations=(150, 100, 100), init_count=300, sh_degree=1, max_gaussians=500,
             min_densify_every=20, min_opacity_reset_every=60, train_eval_views=4,
-            background=(0.0, 0.0, 0.0), init="auto")
+            background=(0.0, 0.0, 0.0), init="auto", validation_views=0, converge=False)
 
 
 @pytest.fixture(scope="module")
@@ -251,6 +253,110 @@ def test_added_config_fields_keep_existing_run_keys():
         TrainConfig(antialias="auto")
 
 
+def test_added_fields_read_back_as_the_training_before_them():
+    """A configuration that trains as before issue 50 (`legacy`) keeps the key it had (none of the
+    new fields written); the default writes the ones it changes; a run.json without them reads back
+    as the training it was."""
+    legacy, default = TrainConfig.profile("legacy"), TrainConfig.profile("default")
+    assert not set(ADDED_FIELDS) & set(legacy.to_dict())
+    assert default.to_dict()["converge"] is True and default.to_dict()["validation_views"] == 8
+    assert TrainConfig.from_dict(legacy.to_dict()) == legacy
+    assert TrainConfig.from_dict(default.to_dict()) == default
+    assert not TrainConfig.from_dict({"resolutions": [10], "iterations": [5]}).converge
+
+
+def test_the_budget_follows_the_photos_pixels():
+    """`gaussians_per_pixel` caps a stage at that many Gaussians per pixel of one training photo,
+    the smaller of it and `max_gaussians` wins and says so; the CLI's --help states the defaults."""
+    cam = orbit(1, 2.5, 0.5, width=40, height=30, fov_x=1.0)[0]
+    assert _gaussian_limit(TrainConfig(gaussians_per_pixel=0.5, max_gaussians=None), 8, cam) == (
+        600, "0.5 per pixel of a photo")
+    assert _gaussian_limit(TrainConfig(gaussians_per_pixel=0.5, max_gaussians=100), 8, cam) == (100, "max_gaussians")
+    assert _gaussian_limit(TrainConfig(gaussians_per_pixel=None, max_gaussians=None), 8, cam)[1] == "what memory allows"
+    assert TrainConfig().gaussians_per_pixel == _DEFAULT_PER_PIXEL and TrainConfig().iterations == _DEFAULT_ITERATIONS
+    with pytest.raises(ValueError, match="gaussians_per_pixel"):
+        TrainConfig(gaussians_per_pixel=0)
+
+
+def test_validation_photos_are_set_aside_evenly():
+    views = synthetic_views("train", 12)
+    train, val = split_validation(views, 8)
+    assert len(val) == 1 and len(train) == 9  # at most one in eight of ten
+    assert not {tuple(c.center) for c in val.cameras} & {tuple(c.center) for c in train.cameras}
+    assert [tuple(c.center) for c in split_validation(synthetic_views("train", 18), 8)[1].cameras] == [
+        tuple(c.center) for c in val.cameras]  # the same photo at every height
+    thrice = Views(views.cameras * 3, np.concatenate([views.images] * 3), np.concatenate([views.alphas] * 3))
+    train, val = split_validation(thrice, 8)
+    assert len(val) == 3 and len(train) == 27
+    assert split_validation(views, 0) == (views, None)
+    small = Views(views.cameras[:7], views.images[:7], views.alphas[:7])
+    assert split_validation(small, 8)[1] is None
+
+
+def _converging(**changes):
+    return TrainConfig(**{**TINY, "resolutions": (12, 18), "iterations": (60, 60), "validation_views": 8,
+                          "converge": True, "validation_every": 20, "patience": 40, "max_iterations": 400,
+                          **changes})
+
+
+def test_the_last_stage_trains_until_the_validation_photo_stops_improving():
+    """With no gain large enough to count, the plateau rule stops the last stage `patience`
+    iterations after its planned count; a spent time budget stops it at the planned count; the
+    progress hook sees every stage, the validation measurements and the end."""
+    pytest.importorskip("gvae_core.rendering")
+    reports = []
+    result = train_progressive(synthetic_views, _converging(min_gain=100.0), progress=False, threads=1,
+                               on_progress=reports.append)
+    first, last = result.log
+    assert first["iterations"] == 60 and "stopped" not in first  # the coarse stage: fixed
+    assert last["iterations"] == 100 and last["stopped"].startswith("converged: no gain of 100")
+    assert last["validation_views"] == 1 and [s for s, _ in last["validation_curve"]] == [20, 40, 60, 80, 100]
+    assert last["best_step"] in (60, 80, 100) and last["validation_psnr"] > 15
+    assert all(set(PROGRESS_KEYS) <= set(r) for r in reports)
+    assert {r["stage"] for r in reports} == {0, 1} and all(r["stages"] == 2 for r in reports)
+    assert any("validation_psnr" in r for r in reports) and "test_psnr" in reports[-1]
+    assert reports[-1]["n_gaussians"] == len(result.cloud)
+    budget = train_progressive(synthetic_views, _converging(min_gain=0.0, max_minutes=1e-9), progress=False,
+                               threads=1)
+    assert budget.log[-1]["iterations"] == 60 and "time budget" in budget.log[-1]["stopped"]
+
+
+def test_a_progress_hook_that_raises_stops_the_run_and_it_resumes(tmp_path):
+    pytest.importorskip("gvae_core.rendering")
+    cfg = _converging(converge=False)
+
+    def cancel(report):
+        if report["stage"] == 1 and report["step"] >= 20:
+            raise KeyboardInterrupt("cancelled")
+
+    with pytest.raises(KeyboardInterrupt):
+        train_progressive(synthetic_views, cfg, out_dir=tmp_path, progress=False, threads=1, on_progress=cancel)
+    assert json.loads((tmp_path / "run.json").read_text())["stages_done"] == 1
+    resumed = train_progressive(synthetic_views, cfg, out_dir=tmp_path, progress=False, threads=1)
+    whole = train_progressive(synthetic_views, cfg, progress=False, threads=1)
+    np.testing.assert_array_equal(resumed.cloud.means, whole.cloud.means)
+
+
+def test_fine_tune_stops_when_asked():
+    pytest.importorskip("gvae_core.rendering")
+    views = synthetic_views("train", 12)
+    cloud = ground_truth_cloud()
+    calls = []
+
+    def stop(it, current):
+        calls.append((it, len(current), current.means.requires_grad))
+        return it >= 20
+
+    cfg = TrainConfig(**TINY)
+    early = fine_tune(cloud, views, 60, config=cfg, should_stop=stop, check_every=10)
+    assert calls == [(10, len(cloud), False), (20, len(cloud), False)]
+    short = fine_tune(cloud, views, 20, config=cfg)
+    assert not np.array_equal(early.means, cloud.means)
+    assert np.abs(early.means - short.means).max() < np.abs(early.means - cloud.means).max()
+    with pytest.raises(ValueError, match="check_every"):
+        fine_tune(cloud, views, 10, config=cfg, should_stop=stop, check_every=0)
+
+
 def test_training_with_the_filters():
     """Mip-Splatting training: the filter follows the Gaussians while they densify, the run learns
     the scene, and renders in the mip mode (its stored filter) better than in the classic one."""
@@ -320,6 +426,8 @@ def test_cli_trains_a_scene_dir(tmp_path):
     assert code == 0
     log = json.loads((out / "log.json").read_text())
     assert [e["resolution"] for e in log] == [12, 24] and all(e["test_psnr"] > 10 for e in log)
+    config = TrainConfig.from_dict(json.loads((out / "run.json").read_text())["config"])
+    assert not config.converge and config.iterations == (40, 40)  # --iterations fixes the count
     assert (out / "stage_1.ply").is_file() and (out / "lineage.npz").is_file()
     assert main(["train", str(tmp_path / "nowhere"), "--out", str(out)]) == 2
     shutil.rmtree(out)

@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
 
         args.run = prepare_scene(args.scene, PROTOCOLS["quick"].fits(), seed=args.seed, threads=args.threads).run_dir
     run = json.loads((args.run / "run.json").read_text())
-    config = TrainConfig(**run["config"])
+    config = TrainConfig.from_dict(run["config"])
     stage = int(run["stages_done"]) - 1
     height = config.resolutions[stage]
     capture = read_capture(run["data"], config.test_every)

@@ -86,10 +86,10 @@ def train_config(profile: str, antialias: str = "classic") -> TrainConfig:
     only (only that cloud is used)."""
     p = PROTOCOLS[profile]
     if antialias == "classic":
-        return TrainConfig.profile("default", resolutions=tuple(p.resolutions) + tuple(p.higher),
+        return TrainConfig.profile("legacy", resolutions=tuple(p.resolutions) + tuple(p.higher),
                                    iterations=tuple(p.iterations) + tuple(p.higher_iterations), seed=0,
                                    **p.train_overrides)
-    return TrainConfig.profile("default", resolutions=p.resolutions, iterations=p.iterations, seed=0,
+    return TrainConfig.profile("legacy", resolutions=p.resolutions, iterations=p.iterations, seed=0,
                                **{**p.train_overrides, "antialias": antialias})
 
 

@@ -4,11 +4,16 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from pathlib import Path
 
 from . import DEVICE_HELP
 from .sfm import add_sfm_arguments, prepare_capture
+
+#: The default profile's iterations per stage and budget (said in --help without importing the trainer).
+_DEFAULT_ITERATIONS = (300, 300, 1000)
+_DEFAULT_PER_PIXEL = 1.0
 
 
 def register(subparsers) -> None:
@@ -31,8 +36,10 @@ def register(subparsers) -> None:
     p.add_argument("--more", type=int, metavar="N",
                    help="train the finished run CAPTURE's last stage N more iterations; writes "
                         "stage_<s>_more_<N>.ply and more.json there (default: off)")
-    p.add_argument("--profile", choices=("tiny", "default", "full"), default="default",
-                   help="preset of resolutions, iterations and sizes (default: %(default)s)")
+    p.add_argument("--profile", choices=("tiny", "default", "full", "legacy"), default="default",
+                   help="preset of resolutions, iterations and sizes; legacy: the schedule before the last stage "
+                        "trained until convergence (600 400 400 iterations, no validation photos, no budget) "
+                        "(default: %(default)s)")
     size = p.add_mutually_exclusive_group()
     size.add_argument("--resolutions", type=int, nargs="+", metavar="H",
                       help="training image heights, coarse to fine (default: the profile's: 100 150 200; tiny: "
@@ -44,8 +51,15 @@ def register(subparsers) -> None:
                       help="the last stage at the stored images' size divided by F (floor), e.g. 4 for 1/4; earlier "
                            "stages in the profile's proportions (default: the profile's heights)")
     p.add_argument("--iterations", type=int, nargs="+", metavar="N",
-                   help="iterations per stage: one number for all stages or one per stage (default: the profile's: "
-                        "600 400 400; tiny: 200 150 150; full: 7000 7000 7000 30000)")
+                   help="iterations per stage, fixed: one number for all stages or one per stage (default: the "
+                        "profile's, the last stage then training on until the validation photos stop improving: "
+                        f"{' '.join(map(str, _DEFAULT_ITERATIONS))}; tiny: 200 150 150; full: 7000 7000 7000 30000)")
+    p.add_argument("--minutes", type=float, metavar="M",
+                   help="time budget of the whole run: the last stage stops when it is spent (once its densification "
+                        "is done), and the log says so (default: none; the validation photos decide)")
+    p.add_argument("--validation-views", type=int, metavar="N",
+                   help="training photos set aside (never trained on, at most one in eight) to judge when training "
+                        "stops helping (default: the profile's: 8; 0: none, the iterations are then fixed)")
     p.add_argument("--test-every", type=int, metavar="N",
                    help="hold out every N-th image (sorted by name) as a test view, the LLFF / Mip-NeRF 360 "
                         "convention being 8 (default: none; a NeRF-Synthetic folder's own test split)")
@@ -66,6 +80,12 @@ def register(subparsers) -> None:
     p.add_argument("--max-gaussians", type=int, metavar="N",
                    help="cap on the number of Gaussians (default: the profile's: none but what memory allows; tiny: "
                         "10000)")
+    p.add_argument("--gaussians-per-pixel", type=float, metavar="F",
+                   help="a budget of F Gaussians per pixel of one training photo in each stage, 0 for none "
+                        f"(default: the profile's: {_DEFAULT_PER_PIXEL:g})")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="any other field of gvae_core.train.TrainConfig, VALUE in JSON (repeatable), e.g. --set "
+                        "patience=1000 (default: the profile's)")
     p.add_argument("--seed", type=int, help="random seed (default 0)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; 1 is "
                    "often fastest on a busy machine)")
@@ -77,6 +97,30 @@ def register(subparsers) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar (default: progress shown)")
     add_sfm_arguments(p)
     p.set_defaults(func=run)
+
+
+def _fields(items: list[str]) -> dict:
+    """--set FIELD=VALUE items as TrainConfig overrides (VALUE in JSON)."""
+    import json
+
+    from ..train import TrainConfig
+
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    out = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        if name not in names or not value:
+            raise ValueError(f"--set {item}: expected FIELD=VALUE, FIELD one of TrainConfig's: "
+                             f"{', '.join(sorted(names))}")
+        try:
+            out[name] = json.loads(value)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--set {item}: the value is not JSON ({exc})") from None
+    return out
+
+
+def _num(x) -> float:
+    return math.nan if x is None else x
 
 
 def _load_points(path: Path):
@@ -131,31 +175,38 @@ def run(args: argparse.Namespace) -> int:
     resolutions = _resolutions(args, base.resolutions)
     overrides = dict(resolutions=resolutions, sh_degree=args.sh_degree, seed=args.seed, init=args.init,
                      init_count=args.init_count, antialias=args.antialias, test_every=args.test_every,
-                     background=tuple(args.background) if args.background else None)
+                     background=tuple(args.background) if args.background else None, max_minutes=args.minutes,
+                     validation_views=args.validation_views, gaussians_per_pixel=args.gaussians_per_pixel or None)
     if args.max_gaussians is not None:
         overrides["max_gaussians"] = args.max_gaussians
+    overrides.update(_fields(args.set))
     if args.iterations:
         n_stages = len(resolutions or base.resolutions)
         its = args.iterations * n_stages if len(args.iterations) == 1 else args.iterations
         if len(its) != n_stages:
             raise ValueError(f"--iterations needs 1 or {n_stages} numbers, got {len(its)}")
         overrides["iterations"] = tuple(its)
+        overrides["converge"] = False  # the count the user asked for
     elif resolutions:
         its = base.iterations
         overrides["iterations"] = (its[-1],) * len(resolutions) if len(its) != len(resolutions) else its
     config = TrainConfig.profile(args.profile, **overrides)
+    if args.gaussians_per_pixel == 0:
+        config = dataclasses.replace(config, gaussians_per_pixel=None)
     points = _load_points(args.init_points) if args.init_points else None
     result = train_progressive(args.scene, config, out_dir=args.out, init_points=points,
                                resume=not args.restart, progress=not args.quiet,
                                threads=args.threads, device=args.device)
-    print(f"{'stage':>5} {'res':>5} {'iters':>6} {'s/it':>7} {'gaussians':>9} {'train dB':>8} "
+    print(f"{'stage':>5} {'res':>5} {'iters':>6} {'s/it':>7} {'gaussians':>9} {'train dB':>8} {'val dB':>7} "
           f"{'test dB':>8} {'test SSIM':>9} {'peak MB':>8}")
     for e in result.log:
-        test, ssim = e["test_psnr"], e.get("test_ssim")
+        test, ssim, val = e["test_psnr"], e.get("test_ssim"), e.get("validation_psnr")
         print(f"{e['stage']:>5} {e['resolution']:>5} {e['iterations']:>6} {e['seconds_per_iteration']:>7.3f} "
-              f"{e['n_gaussians']:>9} {e['train_psnr']:>8.2f} "
-              f"{(test if test is not None else math.nan):>8.2f} {(ssim if ssim is not None else math.nan):>9.4f} "
+              f"{e['n_gaussians']:>9} {e['train_psnr']:>8.2f} {_num(val):>7.2f} {_num(test):>8.2f} {_num(ssim):>9.4f} "
               f"{e['peak_rss_mb']:>8.0f}")
+    last = result.log[-1] if result.log else {}
+    if "stopped" in last:
+        print(f"last stage: {last['stopped']} (kept the state of step {last['best_step']})")
     print(f"wrote {result.out_dir}")
     return 0
 

@@ -5,8 +5,8 @@ own renders (`own_renders`).
 
 Judged on views it does not train on: a share of the training images (or of the own renders) is
 set aside (`set_aside`); the fine-tuning checks their PSNR every CHECK_EVERY iterations and stops
-when it has stopped rising (`plateau.Plateau`), keeping the best state it saw. The capture's
-held-out (test) images are never used here.
+when it has stopped rising (`gvae_core.plateau.Plateau`, the trainer's rule too), keeping the best
+state it saw. The capture's held-out (test) images are never used here.
 """
 
 from __future__ import annotations
@@ -25,10 +25,10 @@ from ..capture import DEFAULT_RESOLUTION, placed_views, scoring_views
 from ..cloud import GaussianCloud
 from ..fidelity import training_rate_views
 from ..octaves import training_height
+from ..plateau import Plateau
 from ..rendering import RenderSettings, render
 from .merge import merge_groups, ordered, representatives
 from .moments import moments
-from .plateau import PATIENCE, Plateau
 from .removal import removal_groups
 from .report import CompactResult, input_images
 from .scoring import compaction_scores
@@ -49,6 +49,10 @@ PHOTOS_SCORE, PHOTOS_REMOVAL, PHOTOS_PRUNE_FROM = "lightgaussian", "prune", 0.3
 SET_ASIDE_EVERY = 8
 #: Iterations between two checks of the set-aside images.
 CHECK_EVERY = 100
+#: A fine-tuning stops after PATIENCE checks without a gain of MIN_GAIN dB over the best (the
+#: project's `plateau.Plateau`, with a patience of PATIENCE x the check interval in iterations).
+PATIENCE = 4
+MIN_GAIN = 0.02
 #: Views of the input's own renders that `distill` fine-tunes against, and those set aside to judge it.
 DISTILL_VIEWS = 32
 DISTILL_ASIDE = 8
@@ -196,7 +200,8 @@ def tune(cloud: GaussianCloud, tuning: Tuning, config, seed: int,
     before = aside_psnr(src, judge_views, config, fit_cams)
     # the plateau is of the fine-tuning's own progress (its first steps may dip below `before`: it
     # is not the input's score it has to beat to go on); the best state may still be the input's
-    plateau = Plateau(patience=tuning.patience) if tuning.aside is not None else None
+    plateau = (Plateau(patience=tuning.patience * tuning.check_every, min_gain=MIN_GAIN)
+               if tuning.aside is not None else None)
     best: list = [before, 0, src]  # value, iteration, parameters (None: the last state)
     last_check = [0]
     stopped = [False]
@@ -219,7 +224,7 @@ def tune(cloud: GaussianCloud, tuning: Tuning, config, seed: int,
         after = aside_psnr(tuned, judge_views, config, fit_cams)
     else:
         ran = last_check[0] if stopped[0] else tuning.iterations
-        if not stopped[0]:  # every iteration ran: the last state is judged too
+        if not stopped[0] and last_check[0] != ran:  # every iteration ran: the last state is judged too
             last = aside_psnr(tuned, judge_views, config, fit_cams)
             plateau.update(ran, last)
             if last > best[0]:
