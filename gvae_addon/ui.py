@@ -172,7 +172,7 @@ COMPACT_NOTE = (
     "the rest pairwise; scored from views placed",
     "all around the object (inside a scene), then",
     "fine-tunes against the object's own renders",
-    "(-1: 100 iterations up to 50,000 Gaussians).",
+    "(-1: up to 1000 iterations, 50,000 Gaussians).",
     "Warns when the views miss part of it",
     "(README: Compaction).",
 )

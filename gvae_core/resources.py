@@ -88,6 +88,41 @@ class NotEnoughMemoryError(ValueError):
     says how much)."""
 
 
+def reset_peak_rss() -> bool:
+    """Reset the kernel's peak-RSS counter of this process (Linux), so that `peak_rss_mb` says the
+    peak from here on; False where impossible."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def current_rss_mb() -> float:
+    """This process's resident memory now (MiB; Linux), NaN where unknown."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+    except (OSError, ValueError, IndexError):
+        return float("nan")
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory (MiB): Linux's high-water mark (since `reset_peak_rss`),
+    else the lifetime maximum getrusage gives."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    import resource  # noqa: PLC0415 - (Unix only)
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def available_memory() -> int | None:
     """Bytes of memory available to a new allocation without swapping (Linux MemAvailable, the
     free physical memory elsewhere), or None when it cannot be told."""

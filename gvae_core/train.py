@@ -24,7 +24,6 @@ import functools
 import json
 import math
 import os
-import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -49,7 +48,7 @@ from .losses import photometric_loss, psnr, ssim
 from .plateau import Plateau
 from .ply import read_ply, write_ply
 from .rendering import RenderSettings, render, resolve_device
-from .resources import estimate_train_memory, train_cap
+from .resources import current_rss_mb, estimate_train_memory, peak_rss_mb, reset_peak_rss, train_cap
 
 #: Profiles: overrides of the `TrainConfig` defaults. `default` is the benchmark profile.
 PROFILES: dict[str, dict[str, Any]] = {
@@ -339,37 +338,6 @@ def position_lr(config: TrainConfig, extent: float, step: int, total: int) -> fl
     return extent * math.exp((1 - t) * math.log(lr0) + t * math.log(lr1))
 
 
-# ------------------------------------------------------------------ memory
-
-def _reset_peak_rss() -> bool:
-    """Reset the kernel's peak-RSS counter of this process (Linux); False where impossible."""
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return True
-    except OSError:
-        return False
-
-
-def _current_rss_mb() -> float:
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
-    except (OSError, ValueError, IndexError):
-        return float("nan")
-
-
-def _peak_rss_mb() -> float:
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
 # ------------------------------------------------------------------ training
 
 def training_targets(views, background) -> torch.Tensor:
@@ -572,9 +540,9 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         watch = None if val_views is None else _Watch(config, val_views, cams, bg, settings, started, planned,
                                                       converging, say, test_views)
         report = _reporter(on_progress, s, n_stages, n_max, model)
-        reset_ok = _reset_peak_rss()
-        rss_before = _peak_rss_mb()
-        rss_start = _current_rss_mb()
+        reset_ok = reset_peak_rss()
+        rss_before = peak_rss_mb()
+        rss_start = current_rss_mb()
         bar = _progress_bar(n_max if not converging else planned, f"stage {s + 1}/{n_stages} {height}px", progress)
         report(0, f"stage {s + 1}/{n_stages} at {height} px: {len(train_views)} photos, {len(cloud)} Gaussians")
         t0, c0 = time.perf_counter(), time.process_time()
@@ -594,7 +562,7 @@ def _train(data, config: TrainConfig, out_dir, test, init_points, resume: bool, 
         if watch is not None and watch.best_params is not None and converging:
             model.load_params(watch.best_params)  # the state the validation photos liked best
         carried = model.optimizer_state() if config.carry_optimizer and s < n_stages - 1 else None
-        peak = _peak_rss_mb() if reset_ok else max(_peak_rss_mb(), rss_before)
+        peak = peak_rss_mb() if reset_ok else max(peak_rss_mb(), rss_before)
 
         snap_cloud = model.snapshot().replace(background=bg)
         ids_np, parents_np = snap_cloud.extra["gvae_id"], snap_cloud.extra["gvae_parent"]

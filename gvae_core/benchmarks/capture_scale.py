@@ -13,6 +13,7 @@ Torch uses all cores (2 on the CI machine); the load average is printed beside e
 from __future__ import annotations
 
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -58,19 +59,26 @@ _CHILD = ("import resource, runpy, sys\n"
 def command_row(args: list[str], repeats: int = 3) -> dict:
     """Seconds (median of `repeats` fresh processes) of `python -m gvae_core ARGS` (what `gvae` runs),
     the last line it printed, the load before and after and its largest peak RSS."""
-    seconds, peaks, load0, said = [], [], _load(), ""
+    seconds, cpu, peaks, load0, said = [], [], [], _load(), ""
     for _ in range(repeats):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), _children_cpu()
         done = subprocess.run([sys.executable, "-c", _CHILD, *args], capture_output=True, text=True)
         seconds.append(time.perf_counter() - t)
+        cpu.append(_children_cpu() - c)
         errors = done.stderr.strip().splitlines()
         if done.returncode != 0:
             return {"failed": (errors[-2:-1] or [str(done.returncode)])[-1]}
         peaks.append(int(errors[-1].split()[-1]))
         lines = [line for line in done.stdout.strip().splitlines() if line.strip()]
         said = lines[-1] if lines else ""
-    return {"seconds": statistics.median(seconds), "all": seconds, "said": said, "load": f"{load0} -> {_load()}",
-            "peak": max(peaks)}
+    return {"seconds": statistics.median(seconds), "all": seconds, "cpu": statistics.median(cpu), "said": said,
+            "load": f"{load0} -> {_load()}", "peak": max(peaks)}
+
+
+def _children_cpu() -> float:
+    """CPU seconds (user + system) of the finished child processes so far."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def pair_costs(n: int = 100_000, height: int = 800, repeats: int = 7) -> dict:
@@ -105,7 +113,14 @@ def run(args) -> None:
     print(f"torch threads {threads}; load average (1, 5, 15 min) at start: {_load()}")
     print("\n| row | goal | this run | verdict | error of the same run | load |")
     print("|---|---|---|---|---|---|")
+    commands = getattr(args, "commands", None)
+    if not commands:
+        _core_rows(n, threads, quick)
+    _command_rows(n, quick, commands or ("refine", "compact"))
 
+
+def _core_rows(n: int, threads: int, quick: bool) -> None:
+    """The renderer's, the compositing's and the Hessian's rows."""
     rows, cref = kernel_rows.renderer_rows(((100_000, 800),), threads_list=(threads,), repeats=3 if quick else 7,
                                            torch_repeats=1)
     r = rows[0]
@@ -130,11 +145,16 @@ def run(args) -> None:
           f"CPU {h['cpu']:.1f} s) | {_verdict(h['total'], GOALS['hessian'])} | score rel. diff {h.get('diff', 0):.1g} "
           f"vs torch | {h['load']} |", flush=True)
 
+
+def _command_rows(n: int, quick: bool, names) -> None:
+    """`gvae refine` and `gvae compact --keep 0.5` of an n-Gaussian PLY (those of `names`) as whole commands."""
     with tempfile.TemporaryDirectory(prefix="gvae-capture-scale-") as tmp:
         src = Path(tmp) / f"cloud_{n}.ply"
         write_ply(example_cloud(n, seed=1), src)
         for name, cmd in (("refine", ["refine", str(src), str(Path(tmp) / "refined.ply")]),
                           ("compact", ["compact", str(src), str(Path(tmp) / "compact.ply"), "--keep", "0.5"])):
+            if name not in names:
+                continue
             c = command_row(cmd, repeats=1 if quick else 3)
             c["said"] = c.get("said", "").replace(f"{tmp}/", "")  # no machine paths in the table
             label = f"`gvae {' '.join(cmd[:1] + cmd[3:])}` {n:,}, whole command"
@@ -142,7 +162,7 @@ def run(args) -> None:
                 print(f"| {label} | <= {GOALS[name]:.0f} s | failed: {c['failed']} | - | - | {_load()} |", flush=True)
                 continue
             runs = ", ".join(f"{s:.1f}" for s in c["all"])
-            print(f"| {label} | <= {GOALS[name]:.0f} s | **{c['seconds']:.1f} s** ({runs}; peak "
+            print(f"| {label} | <= {GOALS[name]:.0f} s | **{c['seconds']:.1f} s** ({runs}; CPU {c['cpu']:.1f} s; peak "
                   f"{c['peak'] / 2 ** 30:.2f} GiB) | {_verdict(c['seconds'], GOALS[name])} | it said: {c['said']} | "
                   f"{c['load']} |", flush=True)
 
@@ -152,4 +172,6 @@ if __name__ == "__main__":
 
     parser = argparse.ArgumentParser(prog="python -m gvae_core.benchmarks.capture_scale")
     parser.add_argument("--quick", action="store_true", help="100k Gaussians for every row")
+    parser.add_argument("--commands", nargs="+", choices=("refine", "compact"), default=None,
+                        help="only these whole-command rows (default: every row)")
     run(parser.parse_args())

@@ -50,7 +50,7 @@ from ..examples import example_cloud
 from ..experiment import PROTOCOLS, SMOKE, Evaluator, prepare_scene
 from ..metrics.image import image_scores
 from ..ply import read_ply, write_ply
-from ..resources import estimate_compact_memory
+from ..resources import estimate_compact_memory, peak_rss_mb, reset_peak_rss
 from ..scenes import SPLITS
 from .splat_transform import PACKAGE
 from .splat_transform import command as splat_transform_command
@@ -126,7 +126,7 @@ def _decimate(command: list[str], cloud, mode: str, count: int, work: Path):
 
 def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, methods=METHODS, images: bool = True,
                    image_methods=IMAGE_METHODS, distill: bool = True, splat: bool = True, say=print,
-                   protocol=None) -> list[dict]:
+                   protocol=None, plateau: bool = True) -> list[dict]:
     """Every method (`methods`) at every fraction on one (scene, seed) of the quick protocol (or
     `protocol`); one row each. `images`: also the rows with fine-tuning (`image_methods`, and the
     input fine-tuned as long); `distill`: also ours fine-tuned against the input's own renders (no
@@ -160,9 +160,10 @@ def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, methods=METHODS
         for m in methods:
             t0 = time.perf_counter()
             r = compact(base, keep=fraction, cameras=train.cameras if m.cameras else None, views=VIEWS, score=m.score,
-                        removal=m.removal, seed=seed, prune=m.prune, distill=m.distill, rounds=m.rounds)
+                        removal=m.removal, seed=seed, prune=m.prune, distill=m.distill, rounds=m.rounds,
+                        plateau=plateau)
             add(m.label, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr, unseen=r.unseen,
-                rounds=len(r.rounds))
+                rounds=[{k: v for k, v in x.items() if k != "checks"} for x in r.rounds])
     if distill:
         distilled_rows(base, p.iterations[k], seed, add)
     command, note = splat_transform() if splat else (None, None)
@@ -197,6 +198,163 @@ def distilled_rows(base, iterations: int, seed: int, add) -> None:
         t0 = time.perf_counter()
         r = compact(base, keep=fraction, distill=iterations, rounds=2, seed=seed)
         add(DISTILLED, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr, iterations=iterations)
+
+
+#: The rows of a capture's table (`capture_rows`): label, score, removal, with the capture's photos,
+#: with its cameras, distill. Ours with photos merges then fine-tunes; "PUP 3D-GS" prunes by the same
+#: Hessian score then fine-tunes (as PUP 3D-GS); "LightGaussian" prunes by its global significance
+#: then fine-tunes; every fine-tuning the same (`compact(images=, plateau=)`; `compact`'s default with
+#: photos is the LightGaussian row from PHOTOS_PRUNE_FROM kept, ours below). The rows without photos
+#: are `gvae compact` without --images: placed views (the default) or the capture's cameras, fine-tuned
+#: against the input's own renders by default up to AUTO_DISTILL_MAX Gaussians, or as `--distill` says.
+CAPTURE_METHODS = (("ours, photos", "hessian", "merge", True, False, "auto"),
+                   ("PUP 3D-GS: Hessian prune + fine-tune", "hessian", "prune", True, False, "auto"),
+                   ("LightGaussian prune + fine-tune", "lightgaussian", "prune", True, False, "auto"),
+                   ("ours, no photos, placed views", "hessian", "merge", False, False, "auto"),
+                   ("ours, no photos, capture cameras", "hessian", "merge", False, True, "auto"),
+                   ("ours, no photos, placed views, --distill 1000", "hessian", "merge", False, False, 1000),
+                   ("ours, no photos, placed views, --distill 0", "hessian", "merge", False, False, 0),
+                   ("LightGaussian prune, no photos, placed views", "lightgaussian", "prune", False, False, "auto"),
+                   ("LightGaussian prune, no photos, placed views, --distill 0", "lightgaussian", "prune", False, False,
+                    0))
+INPUT_TUNED = "input + fine-tune as long"
+
+
+def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0.1), *, methods=CAPTURE_METHODS,
+                 splat: bool = True, input_tuned: bool = True, iterations: int | None = None, rounds: int | None = None,
+                 plateau: bool = True, seed: int = 0, say=print) -> list[dict]:
+    """A trained capture's cloud (`base_path`, the PLY `gvae train` wrote) compacted to each fraction
+    by every row of `methods` and splat-transform's decimation; each scored on the capture's
+    held-out photos (every `test_every`-th by name, at the height the cloud was trained at:
+    `compaction.fine_tune_height`), PSNR and SSIM, with seconds (wall and process CPU) and peak
+    RSS. The rows with photos fine-tune on the capture's training photos (`compact(images=...)`:
+    every SET_ASIDE_EVERY-th set aside to judge, `plateau`); `input_tuned`: the uncompacted cloud
+    fine-tuned on the same photos for as many iterations as ours with photos ran at each fraction
+    (the same cost: what the compaction is measured against beside the input itself)."""
+    from ..capture import load_cameras, load_capture_images, read_capture  # noqa: PLC0415
+    from ..compaction import DEFAULT_ITERATIONS, fine_tune_height, set_aside  # noqa: PLC0415
+    from ..compaction.finetune import tuning_config  # noqa: PLC0415
+    from ..rendering import RenderSettings  # noqa: PLC0415
+    from ..train import evaluate_views, fine_tune  # noqa: PLC0415
+
+    base = read_ply(base_path)
+    cameras = load_cameras(capture, test_every)
+    height = fine_tune_height(base, cameras)
+    photos = load_capture_images(capture, height, test_every)
+    test = read_capture(capture).held_out(test_every).load("test", height)
+    judge = set_aside(photos)[1]  # (what the fine-tuning with photos is judged on: every row scored on them too)
+    background = tuple(base.background) if base.background is not None else (1.0, 1.0, 1.0)
+    tag = {"capture": str(capture), "base": str(base_path), "n_input": len(base), "height": height,
+           "test_views": len(test), "train_views": len(photos)}
+
+    def score(cloud) -> tuple[float, float, float, float]:
+        """Held-out PSNR and SSIM drawn as the cloud was trained (classic: what the trainer's log and
+        other 3DGS viewers show), the PSNR of the default render (auto: matched, its size), and the
+        classic PSNR on the set-aside training photos (what chooses)."""
+        if DILATION_KEY not in cloud.extra:
+            cloud = with_training_cameras(cloud, cameras)
+        tc = cloud.to_torch()
+        classic = evaluate_views(tc, test, background, cloud.sh_degree, None, RenderSettings(antialias="classic"))
+        auto = evaluate_views(tc, test, background, cloud.sh_degree, None, RenderSettings(), with_ssim=False)[0]
+        val = evaluate_views(tc, judge, background, cloud.sh_degree, None, RenderSettings(antialias="classic"),
+                             with_ssim=False)[0]
+        return (*classic, auto, val)
+
+    base_psnr, base_ssim, base_auto, base_val = score(base)
+    rows = [{**tag, "method": "input", "fraction": 1.0, "count": len(base), "psnr": base_psnr, "ssim": base_ssim,
+             "psnr_auto": base_auto, "val_psnr": base_val}]
+    say(f"{capture}: {len(base):,} Gaussians, {len(photos)} training photos and {len(test)} held out at {height} px; "
+        f"held-out PSNR {base_psnr:.2f} dB (auto render {base_auto:.2f}), SSIM {base_ssim:.4f}; set-aside photos "
+        f"{base_val:.2f} dB; load {_loadavg()}")
+
+    def add(method: str, fraction: float, cloud, seconds: float, cpu: float, peak: float, **info) -> dict:
+        value, ssim_value, auto, val = score(cloud)
+        row = {**tag, "method": method, "fraction": fraction, "count": len(cloud), "psnr": value, "ssim": ssim_value,
+               "psnr_auto": auto, "val_psnr": val, "drop": base_psnr - value, "drop_auto": base_auto - auto,
+               "seconds": seconds, "cpu_seconds": cpu, "peak_gib": peak, "load": _loadavg(), **info}
+        rows.append(row)
+        say(f"  {method:40s} {fraction:4.0%} n={len(cloud):7,d} held-out PSNR {value:6.2f} ({value - base_psnr:+.2f}; "
+            f"auto {auto - base_auto:+.2f}; set-aside photos {val:.2f}) SSIM {ssim_value:.4f} {seconds:6.1f} s "
+            f"(CPU {cpu:6.1f} s) {peak:.2f} GiB"
+            + (f"; {info['note']}" if info.get("note") else ""))
+        return row
+
+    def timed(fn, *args, **kwargs):
+        reset_peak_rss()
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = fn(*args, **kwargs)
+        return out, time.perf_counter() - t0, time.process_time() - c0, peak_rss_mb() / 1024
+
+    def checks(fraction: float, message: str) -> None:  # the estimate and every check of the set-aside photos
+        if "s an iteration" in message or "set-aside PSNR" in message:
+            say(f"    {message} [{_loadavg()}]")
+
+    most = DEFAULT_ITERATIONS if iterations is None else iterations
+    for fraction in fractions:
+        tuned_iterations = None
+        for label, score_name, removal, with_photos, with_cameras, distill, *drop in methods:
+            r, seconds, cpu, peak = timed(
+                compact, base, keep=fraction, images=photos if with_photos else None, score=score_name,
+                removal=removal, cameras=cameras if with_cameras else None, iterations=most, distill=distill,
+                rounds=rounds if with_photos else None, plateau=plateau, seed=seed, progress=checks,
+                prune=drop[0] if drop else PRUNE_FRACTION)
+            info = {}
+            if r.rounds:
+                its = sum(x["iterations"] for x in r.rounds)
+                info = {"iterations": its, "rounds": [dict(x) for x in r.rounds],
+                        "aside_psnr": r.rounds[-1]["psnr_after"],
+                        "note": "iterations " + " + ".join(f"{x['iterations']} (best {x['best_at']})"
+                                                           for x in r.rounds)
+                        + f", set-aside PSNR {r.rounds[0]['psnr_before']:.2f} -> {r.rounds[-1]['psnr_after']:.2f}"}
+                if tuned_iterations is None:
+                    tuned_iterations = its
+            add(label, fraction, r.cloud, seconds, cpu, peak, **info)
+        if input_tuned and tuned_iterations:
+            fit, aside = set_aside(photos) if plateau else (photos, None)
+            config = tuning_config(base, RenderSettings(), seed)
+            out, seconds, cpu, peak = timed(fine_tune, base, fit, tuned_iterations, config=config, seed=seed)
+            add(INPUT_TUNED, fraction, out, seconds, cpu, peak, iterations=tuned_iterations,
+                note=f"{tuned_iterations} iterations, as ours with photos at {fraction:.0%}")
+    command, note = splat_transform() if splat else (None, None)
+    if command is not None:
+        with tempfile.TemporaryDirectory() as tmp:
+            for fraction in fractions:
+                cloud, seconds = _decimate(command, base, "decimate", max(1, round(fraction * len(base))), Path(tmp))
+                add("splat-transform --decimate", fraction, cloud, seconds, float("nan"), float("nan"),
+                    note="its own process: CPU and memory not measured here")
+    elif splat:
+        say(f"  splat-transform skipped: {note}")
+    return rows
+
+
+def capture_table(rows: list[dict]) -> list[str]:
+    """Markdown: per method and fraction, held-out PSNR and its change against the input, SSIM,
+    fine-tuning iterations (and where the best state was), the PSNR of the training photos set
+    aside (what chooses; rows made before it was measured for every row: the fine-tuning's own
+    figure, photos rows only), seconds (CPU), peak memory."""
+    lines = ["| method | kept | Gaussians | held-out PSNR | vs input | SSIM | iterations (best at) | set-aside photos "
+             "PSNR | seconds (CPU) | peak RSS | load |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if "psnr" not in r:
+            continue
+        cpu = f" ({r['cpu_seconds']:.0f})" if np.isfinite(r.get("cpu_seconds", float("nan"))) else ""
+        peak = f"{r['peak_gib']:.2f} GiB" if np.isfinite(r.get("peak_gib", float("nan"))) else "-"
+        its, aside = r.get("iterations", "-"), "-"
+        if r.get("rounds"):
+            its = " + ".join(f"{x['iterations']} ({x['best_at']})" for x in r["rounds"])
+            if "training images" in r["rounds"][0].get("judged_on", ""):
+                aside = f"{r['aside_psnr']:.2f}"
+        if np.isfinite(r.get("val_psnr", float("nan"))):
+            aside = f"{r['val_psnr']:.2f}"
+        lines.append(f"| {r['method']} | {r['fraction']:.0%} | {r['count']:,} | {r['psnr']:.2f} | "
+                     f"{-r.get('drop', 0.0):+.2f} | {r['ssim']:.4f} | {its} | {aside} | "
+                     f"{r.get('seconds', 0.0):.0f}{cpu} | {peak} | {r.get('load', '-')} |")
+    return lines
+
+
+def _loadavg() -> str:
+    return " ".join(f"{x:.1f}" for x in os.getloadavg())
 
 
 def _mean_ci(values) -> str:
@@ -379,6 +537,8 @@ def main(argv=None) -> int:
     parser.add_argument("--methods", type=int, default=len(METHODS),
                         help=f"the first K of the compact rows ({', '.join(m.label for m in METHODS)}) "
                         "(default: all)")
+    parser.add_argument("--only", nargs="+", type=int, default=None, metavar="K",
+                        help="instead of --methods: these compact rows, by number from 0 (default: none)")
     parser.add_argument("--distill", default=None, metavar="ITERATIONS",
                         help="fine-tuning of the fine-tuned rows (ours, placed views): 'auto' or iterations a round "
                         "(default: auto)")
@@ -396,19 +556,66 @@ def main(argv=None) -> int:
     parser.add_argument("--speed-fractions", nargs="+", type=float, default=[0.5, 0.1],
                         help="kept fractions of the speed rows (default: 0.5 0.1)")
     parser.add_argument("--repeats", type=int, default=3, help="speed repeats (default: %(default)s)")
+    parser.add_argument("--capture", type=Path, default=None, metavar="CAPTURE",
+                        help="instead of the scenes: a real capture (with --base, the cloud gvae train made of it), "
+                        "scored on its held-out photos (capture_rows)")
+    parser.add_argument("--base", type=Path, default=None, metavar="PLY", help="the capture's trained cloud")
+    parser.add_argument("--test-every", type=int, default=8, help="the capture's held-out photos (default: 8)")
+    parser.add_argument("--capture-methods", nargs="*", type=int, default=None, metavar="K",
+                        help="rows of the capture's table, by number (0-8: " +
+                        "; ".join(m[0] for m in CAPTURE_METHODS) + "; default: all)")
+    parser.add_argument("--capture-row", nargs=3, action="append", default=[], metavar=("SCORE", "REMOVAL", "PRUNE"),
+                        help="with --capture: also a row with photos of this score, removal and fraction dropped "
+                        "before merging (repeatable)")
+    parser.add_argument("--iterations", type=int, default=None, help="with --capture: the most fine-tuning iterations "
+                        "a round (default: compact's)")
+    parser.add_argument("--tuning", nargs="+", default=[], metavar="FIELD=VALUE",
+                        help="changes to the trainer's configuration for compaction's fine-tuning "
+                        "(compaction.finetune.TUNING), e.g. position_lr_init=1.6e-5")
+    parser.add_argument("--distill-target", choices=("tuned", "auto"), default=None,
+                        help="how the input's own renders are drawn (compaction.finetune.DISTILL_TARGET)")
+    parser.add_argument("--no-plateau", dest="plateau", action="store_false",
+                        help="with --capture: no images set aside, every iteration run")
+    parser.add_argument("--no-input-tuned", dest="input_tuned", action="store_false",
+                        help=f"with --capture: without the row {INPUT_TUNED!r}")
     parser.add_argument("--out", type=Path, default=None, help="folder for results_SPLIT.json (default: none)")
     parser.add_argument("--smoke", action="store_true",
                         help="the smallest size (experiment.SMOKE: 64 px scenes), to show that it runs")
     args = parser.parse_args(argv)
     if args.colour_weight is not None:
         moments.COLOUR_WEIGHT = args.colour_weight
-    methods = list(METHODS[:args.methods])
+    methods = list(METHODS[:args.methods]) if args.only is None else [METHODS[k] for k in args.only]
     if args.prune is not None:
         methods = [dataclasses.replace(m, prune=args.prune) if m.removal == "merge" and m.prune else m for m in methods]
     if args.distill is not None or args.rounds is not None:
         distill = args.distill if args.distill in (None, "auto") else int(args.distill)
         methods = [dataclasses.replace(m, distill=m.distill if distill is None else distill, rounds=args.rounds)
                    if m.label in (OURS, PLACED) else m for m in methods]
+    if args.distill_target:
+        from ..compaction import finetune  # noqa: PLC0415
+
+        finetune.DISTILL_TARGET = args.distill_target
+    if args.tuning:
+        from ..compaction import finetune  # noqa: PLC0415
+
+        finetune.TUNING = {k: float(v) for k, v in (item.split("=", 1) for item in args.tuning)}
+    if args.capture is not None:
+        if args.base is None:
+            parser.error("--capture needs --base")
+        methods = [CAPTURE_METHODS[k] for k in (range(len(CAPTURE_METHODS)) if args.capture_methods is None
+                                                 else args.capture_methods)]
+        methods += [(f"{score} {removal}, {float(q):g} dropped first + fine-tune", score, removal, True, False, "auto",
+                     float(q)) for score, removal, q in args.capture_row]
+        print(f"compaction of {args.base} (capture {args.capture}); load {_loadavg()}", flush=True)
+        rows = capture_rows(args.base, args.capture, args.test_every, tuple(args.fractions), methods=methods,
+                            splat=not args.no_splat_transform, input_tuned=args.input_tuned,
+                            iterations=args.iterations, rounds=args.rounds, plateau=args.plateau,
+                            say=lambda msg: print(msg, flush=True))
+        print("\n".join(["", *capture_table(rows)]))
+        if args.out is not None:
+            args.out.mkdir(parents=True, exist_ok=True)
+            (args.out / f"results_{args.capture.name}.json").write_text(json.dumps(rows, indent=1))
+        return 0
     protocol = SMOKE if args.smoke else PROTOCOLS["quick"]
     scenes = SPLITS[args.split] if args.scenes is None else args.scenes
     print(f"compaction, {protocol.name} protocol, scenes {', '.join(scenes)}, seeds {args.seeds}; load "
@@ -418,6 +625,7 @@ def main(argv=None) -> int:
         for seed in args.seeds:
             rows += evaluate_scene(name, seed, tuple(args.fractions), methods=tuple(methods), images=args.images,
                                    distill=args.distilled, splat=not args.no_splat_transform, protocol=protocol,
+                                   plateau=args.plateau,
                                    say=lambda msg: print(msg, flush=True))
     if rows:
         print("\n".join(["", *tables(rows)]))

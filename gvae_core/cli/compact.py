@@ -11,8 +11,9 @@ from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS
 from . import progress_lines
 from .sfm import prepare_capture
 
-#: (`compaction.AUTO_DISTILL` and `AUTO_DISTILL_MAX`, without importing torch for --help.)
-AUTO_DISTILL, AUTO_DISTILL_MAX = 100, 50_000
+#: (`compaction.AUTO_DISTILL`, `AUTO_DISTILL_MAX`, `AUTO_DISTILL_SECONDS`, `SET_ASIDE_EVERY` and
+#: `PHOTOS_PRUNE_FROM`, without importing torch for --help.)
+AUTO_DISTILL, AUTO_DISTILL_MAX, AUTO_DISTILL_SECONDS, SET_ASIDE_EVERY, PHOTOS_PRUNE_FROM = 1000, 50_000, 180.0, 8, 0.3
 
 
 def register(subparsers) -> None:
@@ -43,11 +44,13 @@ def register(subparsers) -> None:
                    help="scoring views (of the capture's cameras, spread out; 0: all of them) (default: %(default)s)")
     c.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION,
                    help="scoring view height in pixels (default: %(default)s)")
-    c.add_argument("--score", default="hessian", choices=("hessian", "lightgaussian", "opacity", "random"),
-                   help="what ranks the Gaussians (default: hessian; the others are the baselines it is compared with)")
-    c.add_argument("--removal", default="merge", choices=("merge", "prune"),
-                   help="merge Gaussians pairwise, after dropping the lowest-scoring tenth (default), or drop the "
-                   "lowest scores only")
+    c.add_argument("--score", default=None, choices=("hessian", "lightgaussian", "opacity", "random"),
+                   help=f"what ranks the Gaussians (default: hessian; with --images keeping {PHOTOS_PRUNE_FROM:.0%}% "
+                   "or more, lightgaussian with --removal prune, what the images set aside chose on the project's "
+                   "capture; the others are baselines)")
+    c.add_argument("--removal", default=None, choices=("merge", "prune"),
+                   help="merge Gaussians pairwise, after dropping the lowest-scoring tenth, or drop the lowest "
+                   f"scores only (default: merge; with --images keeping {PHOTOS_PRUNE_FROM:.0%}% or more, prune)")
     c.add_argument("--images", type=Path, default=None, metavar="DATASET",
                    help="the capture's training images (a COLMAP capture, a transforms.json with its images or a "
                    "NeRF-Synthetic folder: what gvae train reads): compact in rounds, fine-tuning after each "
@@ -56,14 +59,20 @@ def register(subparsers) -> None:
                    help="with --cameras/--images: every N-th image of the capture (by name) was held out from "
                    "training (gvae train --test-every N): not used here either (default: none)")
     c.add_argument("--distill", type=_distill, default="auto", metavar="ITERATIONS",
-                   help="without images: fine-tune this many iterations a round against the input's own renders "
-                   "(32 views of --cameras, else placed around the cloud, at the training resolution); 0: score, drop "
-                   f"and merge only (default: auto, {AUTO_DISTILL} iterations for a cloud of up to "
-                   f"{AUTO_DISTILL_MAX:,} Gaussians, none for a larger one)")
+                   help="without images: fine-tune at most this many iterations a round against the input's own "
+                   "renders (32 views of --cameras, else placed around the cloud, at the training resolution; 8 more "
+                   "set aside judge when to stop); 0: score, drop and merge only (default: auto, at most "
+                   f"{AUTO_DISTILL} iterations for a cloud of up to {AUTO_DISTILL_MAX:,} Gaussians, stopped at the "
+                   f"first check after {AUTO_DISTILL_SECONDS:.0f} s, none for a larger one)")
     c.add_argument("--rounds", type=int, default=None,
-                   help="removal and fine-tuning rounds with --images (default: 2) or --distill (default: 1)")
+                   help="removal and fine-tuning rounds with --images or --distill (default: 1)")
     c.add_argument("--iterations", type=int, default=None,
-                   help="fine-tuning iterations per round with --images (default: 5000, as PUP 3D-GS)")
+                   help="the most fine-tuning iterations a round with --images (default: 3000; PUP 3D-GS runs "
+                   "5000); each round stops sooner when the images set aside stop improving")
+    c.add_argument("--no-plateau", dest="plateau", action="store_false",
+                   help="with --images or --distill: set no images aside and run every iteration (default: every "
+                   f"{SET_ASIDE_EVERY}th training image is set aside, never trained on, and each round stops when "
+                   "their PSNR stops rising)")
     c.add_argument("--image-height", type=int, default=None, metavar="H",
                    help="height the images are fine-tuned at (default: the training resolution the cloud's "
                    "anti-aliasing size says, else the images as they are)")
@@ -97,26 +106,9 @@ def parse_keep(text: str) -> float:
     return value
 
 
-def _image_height(cloud, images_path: Path, test_every: int | None = None) -> int | None:
-    """The height at which the capture's cameras sample the cloud as its training did (the median
-    over the cameras of `fidelity.training_rate_views`), or None when the cloud does not say."""
-    import numpy as np  # noqa: PLC0415
-
-    from ..antialias import DILATION_KEY, FILTER_KEY  # noqa: PLC0415
-    from ..capture import load_cameras  # noqa: PLC0415
-    from ..fidelity import training_rate_views  # noqa: PLC0415
-
-    if not {FILTER_KEY, DILATION_KEY} & set(cloud.extra):
-        return None
-    cams = load_cameras(images_path, test_every)
-    pick = np.linspace(0, len(cams) - 1, min(len(cams), 8)).round().astype(int)
-    heights = [c.height for c in training_rate_views(cloud, [cams[i] for i in pick])]
-    return int(np.median(heights))
-
-
 def run_compact(args: argparse.Namespace) -> int:
     from ..capture import load_cameras, load_capture_images  # noqa: PLC0415 - torch-free, but only here
-    from ..compaction import DEFAULT_ITERATIONS, compact, distill_iterations  # noqa: PLC0415 - imports torch
+    from ..compaction import DEFAULT_ITERATIONS, compact, distill_iterations, fine_tune_height  # noqa: PLC0415
     from ..formats import output_format, read_splat_file, write_splat_file  # noqa: PLC0415
 
     output_format(args.output)  # a name it cannot write is refused before any work
@@ -134,14 +126,14 @@ def run_compact(args: argparse.Namespace) -> int:
     cameras = load_cameras(args.cameras, args.test_every) if args.cameras is not None else None
     images = None
     if args.images is not None:
-        height = args.image_height or _image_height(cloud, args.images, args.test_every)
+        height = args.image_height or fine_tune_height(cloud, load_cameras(args.images, args.test_every))
         images = load_capture_images(args.images, height, args.test_every)
     t_read = time.perf_counter() - t0
     progress = progress_lines()
     result = compact(cloud, keep=keep, count=args.count, tolerance=args.tolerance, cameras=cameras, views=args.views,
                      resolution=args.resolution, score=args.score, removal=args.removal, images=images,
                      rounds=args.rounds, iterations=DEFAULT_ITERATIONS if args.iterations is None else args.iterations,
-                     distill=args.distill, seed=args.seed,
+                     distill=args.distill, plateau=args.plateau, seed=args.seed,
                      progress=progress if images is not None or distill_iterations(args.distill, len(cloud), images,
                                                                                    args.tolerance) else None)
     t0 = time.perf_counter()
@@ -153,10 +145,10 @@ def run_compact(args: argparse.Namespace) -> int:
           + (f"; {len(images)} images at {images.cameras[0].height} px from {args.images}" if images is not None
              else ""))
     print(result.summary())
-    target = "the training images" if images is not None else "the input's own renders"
     for k, r in enumerate(result.rounds, 1):
-        print(f"  round {k}: {r['count']:,} Gaussians, fine-tuned {r['seconds']:.1f} s, PSNR on {target} "
-              f"{r['psnr_before']:.2f} -> {r['psnr_after']:.2f} dB")
+        print(f"  round {k}: {r['count']:,} Gaussians, fine-tuned {r['seconds']:.1f} s ({r['iterations']:,} "
+              f"iterations, the best state at {r['best_at']:,}), PSNR on {r['judged_on']} {r['psnr_before']:.2f} -> "
+              f"{r['psnr_after']:.2f} dB")
     print(f"Gaussians {len(result.groups):,} -> {len(result.cloud):,}; file {_size(size_in)} -> {_size(size_out)} "
           f"({size_out / max(size_in, 1):.1%}); PSNR against the input's render {result.psnr:.2f} dB; "
           f"wrote {args.output} in {t_write:.2f} s")

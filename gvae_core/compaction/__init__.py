@@ -45,6 +45,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -54,8 +55,11 @@ from ..cloud import GaussianCloud
 from ..hessian import scoring_settings
 from ..rendering import RenderSettings
 from ..resources import check_compact_memory, reuse_freed_memory
-from .finetune import (AUTO_DISTILL, AUTO_DISTILL_MAX, DEFAULT_ITERATIONS, DISTILL_VIEWS, compact_with_images,
-                       own_renders)
+from . import finetune
+from .finetune import (AUTO_DISTILL, AUTO_DISTILL_MAX, AUTO_DISTILL_SECONDS, CHECK_EVERY, DEFAULT_ITERATIONS,
+                       DISTILL_ASIDE, DISTILL_CHECK_EVERY, DISTILL_VIEWS, PHOTOS_PRUNE_FROM, PHOTOS_REMOVAL,
+                       PHOTOS_SCORE, SET_ASIDE_EVERY, Tuning, compact_with_images, fine_tune_height, own_renders,
+                       set_aside)
 from .graph import NEIGHBOURS, owner_root
 from .merge import merge_groups, merge_groups_reference, ordered
 from .moments import COLOUR_WEIGHT
@@ -66,10 +70,12 @@ from .tolerance import tolerance_count
 from .views import CompactionViews, compaction_views, compare, sight
 
 __all__ = ["SCORES", "REMOVALS", "CompactResult", "CompactionViews", "compact", "compaction_scores",
-           "compaction_views", "distill_iterations", "merge_groups", "merge_groups_reference", "own_renders",
-           "owner_root", "pixel_hits", "pixel_hits_reference", "removal_groups", "target_count", "AUTO_DISTILL",
-           "AUTO_DISTILL_MAX", "COLOUR_WEIGHT", "DEFAULT_ITERATIONS", "DISTILL_VIEWS", "NEIGHBOURS", "PRUNE_FRACTION",
-           "PSNR_CAP", "UNSEEN", "UNSEEN_WARNING"]
+           "compaction_views", "default_method", "distill_iterations", "fine_tune_height", "merge_groups",
+           "merge_groups_reference", "own_renders", "owner_root", "pixel_hits", "pixel_hits_reference",
+           "removal_groups", "set_aside", "target_count", "AUTO_DISTILL", "AUTO_DISTILL_MAX", "AUTO_DISTILL_SECONDS",
+           "CHECK_EVERY", "COLOUR_WEIGHT", "DEFAULT_ITERATIONS", "DISTILL_ASIDE", "DISTILL_VIEWS", "NEIGHBOURS",
+           "PHOTOS_PRUNE_FROM", "PHOTOS_REMOVAL", "PHOTOS_SCORE", "PRUNE_FRACTION", "PSNR_CAP", "SET_ASIDE_EVERY",
+           "UNSEEN", "UNSEEN_WARNING"]
 
 
 # ------------------------------------------------------------------------------ checks
@@ -88,6 +94,22 @@ def _check_input(src: GaussianCloud, score: str, removal: str, prune: float) -> 
         rows = ", ".join(str(int(r)) for r in bad[:5])
         raise ValueError(f"compact: the cloud has non-finite values in {len(bad)} row(s) "
                          f"[{rows}{', ...' if len(bad) > 5 else ''}]; sanitize it first")
+
+
+def default_method(images, keep, count, n: int, score: str | None, removal: str | None) -> tuple[str, str]:
+    """(score, removal): those asked for, or where neither is, the default of the path: with
+    `images` keeping PHOTOS_PRUNE_FROM or more of the `n` Gaussians, PHOTOS_SCORE pruned
+    (PHOTOS_REMOVAL); else the Hessian's merge. One given alone goes with the other's "hessian" or
+    "merge"."""
+    if score is None and removal is None and images is not None:
+        fraction = count / n if _number(count) and n else keep
+        if _number(fraction) and fraction >= PHOTOS_PRUNE_FROM:
+            return PHOTOS_SCORE, PHOTOS_REMOVAL
+    return score or "hessian", removal or "merge"
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
 def _whole(value, name: str, low: int) -> int:
@@ -138,9 +160,9 @@ def _check_arguments(n: int, keep, count, tolerance, images, distill: int, round
 
 def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | None = None,
             tolerance: float | None = None, cameras: Sequence[Camera] | None = None, views: int = DEFAULT_VIEWS,
-            resolution: int = DEFAULT_RESOLUTION, score: str = "hessian", removal: str = "merge",
+            resolution: int = DEFAULT_RESOLUTION, score: str | None = None, removal: str | None = None,
             images=None, rounds: int | None = None, iterations: int = DEFAULT_ITERATIONS, distill: int | str = "auto",
-            seed: int = 0,
+            plateau: bool = True, seed: int = 0,
             neighbours: int = NEIGHBOURS, prune: float = PRUNE_FRACTION,
             render_settings: RenderSettings | None = None,
             progress: Callable[[float, str], None] | None = None, check_memory: bool = True) -> CompactResult:
@@ -148,20 +170,24 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     render from the scoring views, at the training sampling rate, stays at or above `tolerance`
     dB of PSNR against the input's (give exactly one). See the module docstring for how.
 
-    `cameras`: the capture's cameras (`capture.load_cameras`): `views` of them, spread out, scaled
-    to `resolution` px high, score; every one says what it sees. Else views placed all around the
-    cloud (`capture.placed_views`; `views` of them score). `score`: one of SCORES; `removal`:
-    "merge" (default) or "prune"; `prune`: the fraction of the input that merging drops first,
-    the lowest scores (`removal_groups`; 0: merge all that is seen); `neighbours`: of each Gaussian
-    in the merge graph. `images`: the capture's training images (`datasets.Views`, in the cloud's
-    frame, at the resolution to fine-tune at): `rounds` rounds (default 2) of removal and
-    `iterations` of fine-tuning each (`train.fine_tune`), the scores then come from `images`'
-    cameras. `distill`: without images, fine-tune as with them, `distill` iterations a round
-    (`rounds`, default 1), against the input's own renders (`own_renders`: DISTILL_VIEWS views, of
-    `cameras` or placed around the cloud, at the training sampling rate); "auto" (the default):
-    AUTO_DISTILL iterations for a cloud of up to AUTO_DISTILL_MAX Gaussians, none for a larger one
-    (`distill_iterations`); 0: score, drop and merge only. `seed`: the random score and the
-    fine-tuning.
+    `cameras`: the capture's cameras (`capture.load_cameras`): `views` of them, spread out, scaled to
+    `resolution` px high, score; every one says what it sees. Else views placed all around the cloud
+    (`capture.placed_views`; `views` of them score). `score`: one of SCORES; `removal`: "merge" or
+    "prune"; by default the Hessian's merge, with `images` keeping PHOTOS_PRUNE_FROM or more
+    LightGaussian's prune (`default_method`: what the images set aside chose); `prune`: the fraction of
+    the input that merging drops first, the lowest scores (`removal_groups`; 0: merge all that is seen);
+    `neighbours`: of each Gaussian in the merge graph. `images`: the capture's training images
+    (`datasets.Views`, in the cloud's frame, at the resolution to fine-tune at): `rounds` rounds
+    (default 1) of removal and at most `iterations` of fine-tuning each (`train.fine_tune`), the scores
+    then come from `images`' cameras; with `plateau` (the default) every SET_ASIDE_EVERY-th image is set
+    aside, never trained on, and each round's fine-tuning stops when their PSNR stops rising
+    (`finetune.tune`), without it every iteration runs. `distill`: without images, fine-tune as with
+    them, at most `distill` iterations a round (`rounds`, default 1), against the input's own renders
+    (`own_renders`: DISTILL_VIEWS views, of `cameras` or placed around the cloud, at the training
+    sampling rate; with `plateau`, DISTILL_ASIDE more set aside to judge); "auto" (the default): at most
+    AUTO_DISTILL iterations, stopped after AUTO_DISTILL_SECONDS, for a cloud of up to AUTO_DISTILL_MAX
+    Gaussians, none for a larger one (`distill_iterations`); 0: score, drop and merge only. `seed`: the
+    random score and the fine-tuning.
     `progress(fraction, message)` as the work goes on (an exception it raises stops the work:
     how the Blender job cancels). `check_memory`: refuse a cloud whose estimated peak memory
     exceeds what is free (`resources.NotEnoughMemoryError`). Every check on the arguments and the
@@ -169,8 +195,10 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     t_start = time.perf_counter()
     say = progress or (lambda fraction, message: None)
     src = cloud.numpy()
+    score, removal = default_method(images, keep, count, len(src), score, removal)
     _check_input(src, score, removal, prune)
     n = len(src)
+    auto = isinstance(distill, str)
     distill = distill_iterations(distill, n, images, tolerance)
     target = _check_arguments(n, keep, count, tolerance, images, distill, rounds, iterations)
     if check_memory:
@@ -184,15 +212,23 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
         t0 = time.perf_counter()
         looks = None if images is not None else compaction_views(src, cameras, views, resolution)
         timings["views"] = time.perf_counter() - t0
+        tuning = None
         if distill:
             say(0.0, "rendering the input for the fine-tuning")
-            images, iterations = own_renders(src, cameras, resolution, settings), distill
-            rounds = 1 if rounds is None else rounds
-        if images is not None:  # (distilled: every capture camera, or a placed scene's extra views, also looks)
+            aside = DISTILL_ASIDE if plateau else 0
+            drawn = settings if finetune.DISTILL_TARGET == "auto" else \
+                replace(settings, antialias=finetune.tuning_config(src, settings, seed).antialias)
+            renders = own_renders(src, cameras, resolution, drawn, DISTILL_VIEWS + aside)
+            fit, judge = set_aside(renders, (DISTILL_VIEWS + aside) // aside) if aside else (renders, None)
+            tuning = Tuning(fit, judge, distill, 1 if rounds is None else rounds, "the input's own renders",
+                            DISTILL_CHECK_EVERY, seconds=AUTO_DISTILL_SECONDS if auto else None)
+        elif images is not None:
+            fit, judge = set_aside(images) if plateau else (images, None)
+            tuning = Tuning(fit, judge, iterations, 1 if rounds is None else rounds)
+        if tuning is not None:  # (distilled: every capture camera, or a placed scene's extra views, also looks)
             extra = [] if looks is None else looks.others if looks.placed else looks.scoring + looks.others
-            result = compact_with_images(src, target, images, how, 2 if rounds is None else rounds, iterations,
-                                         seed, views, resolution, settings, say, timings, extra,
-                                         None if looks is None else looks.inside)
+            result = compact_with_images(src, target, tuning, how, seed, views, resolution, settings, say, timings,
+                                         extra, None if looks is None else looks.inside)
         else:
             result = _compact(src, target, tolerance, cameras, looks, how, seed, settings, say, timings,
                               listened=progress is not None)
