@@ -53,7 +53,8 @@ def register(subparsers) -> None:
     p.add_argument("--iterations", type=int, nargs="+", metavar="N",
                    help="iterations per stage, fixed: one number for all stages or one per stage (default: the "
                         "profile's, the last stage then training on until the validation photos stop improving: "
-                        f"{' '.join(map(str, _DEFAULT_ITERATIONS))}; tiny: 200 150 150; full: 7000 7000 7000 30000)")
+                        f"{' '.join(map(str, _DEFAULT_ITERATIONS))}; tiny: 200 150 150, fixed; full: 7000 7000 7000 "
+                        "30000)")
     p.add_argument("--minutes", type=float, metavar="M",
                    help="time budget of the whole run: the last stage stops when it is spent (once its densification "
                         "is done), and the log says so (default: none; the validation photos decide)")
