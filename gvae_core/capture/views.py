@@ -22,7 +22,7 @@ from ..camera import Camera
 from ..cloud import GaussianCloud
 from ..conventions import LOG_SCALE_RANGE
 
-__all__ = ["scoring_views", "default_views", "placed_views", "PlacedViews", "outside_views", "inside_views",
+__all__ = ["scoring_views", "in_view", "default_views", "placed_views", "PlacedViews", "outside_views", "inside_views",
            "surround", "surround_radius", "Surround", "DEFAULT_VIEWS", "DEFAULT_RESOLUTION"]
 
 #: Views the Hessian is computed from by default, and their height in pixels (`scoring_views`,
@@ -285,6 +285,21 @@ def default_views(cloud: GaussianCloud, views: int = DEFAULT_VIEWS, resolution: 
     return placed_views(cloud, views, resolution, fov_x, normalization).scoring
 
 
+def in_view(cameras: Sequence[Camera], cloud: GaussianCloud, sample: int = 20_000) -> np.ndarray:
+    """(len(cameras), K) bool: which of K of the cloud's finite centres (all, or a fixed random
+    `sample` of them) each camera has in its image, in front of it."""
+    p = np.asarray(cloud.numpy().means, np.float64)
+    p = p[np.isfinite(p).all(1)]
+    if len(p) > sample:
+        p = p[np.random.default_rng(0).choice(len(p), sample, replace=False)]
+    out = np.zeros((len(cameras), len(p)), bool)
+    for i, cam in enumerate(cameras):
+        uv, z = cam.project(p)
+        with np.errstate(invalid="ignore"):
+            out[i] = (z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height)
+    return out
+
+
 def scoring_views(cameras: Sequence[Camera], views: int = DEFAULT_VIEWS, resolution: int = DEFAULT_RESOLUTION,
                   cloud: GaussianCloud | None = None) -> list[Camera]:
     """`views` of the capture's `cameras` to compute the Hessian from: those that see the cloud
@@ -298,16 +313,8 @@ def scoring_views(cameras: Sequence[Camera], views: int = DEFAULT_VIEWS, resolut
         raise ValueError("scoring views: no cameras")
     seen = np.ones(len(cams))
     if cloud is not None and len(cloud):
-        p = np.asarray(cloud.numpy().means, np.float64)
-        p = p[np.isfinite(p).all(1)]
-        if len(p) > 20_000:
-            p = p[np.random.default_rng(0).choice(len(p), 20_000, replace=False)]
-        for i, cam in enumerate(cams):
-            uv, z = cam.project(p)
-            with np.errstate(invalid="ignore"):
-                inside = (z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) \
-                    & (uv[:, 1] <= cam.height)
-            seen[i] = inside.mean() if len(p) else 0.0
+        sees = in_view(cams, cloud)
+        seen = sees.mean(1) if sees.shape[1] else np.zeros(len(cams))
         keep = np.flatnonzero(seen >= 0.01)
         if len(keep) == 0:
             raise ValueError(f"none of the {len(cams)} cameras sees the cloud (are they in the cloud's frame? a "

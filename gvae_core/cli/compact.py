@@ -37,9 +37,13 @@ def register(subparsers) -> None:
                         help="keep as few as hold the picture at the training resolution, seen from the scoring views, "
                         "at or above DB of PSNR against the input's own render (for example 40)")
     c.add_argument("--cameras", type=Path, default=None, metavar="PATH",
-                   help="the capture's cameras: a transforms*.json file or a COLMAP sparse model (--views of them "
-                   "score; none of what any of them sees is dropped as unseen); default: views placed around the "
+                   help="the capture's cameras: a transforms*.json file, a COLMAP sparse model or the reference "
+                   "3DGS's cameras.json (--views of them score; none of what any of them sees is dropped as "
+                   "unseen); default: the training cameras found beside IN (the reference 3DGS's MODEL/cameras.json "
+                   "two folders up, a gvae train run's capture) when they see it, else views placed around the "
                    "cloud, all around an object, inside a scene that surrounds its centre")
+    c.add_argument("--placed-views", action="store_true",
+                   help="score from views placed around the cloud even where training cameras are found beside IN")
     c.add_argument("--views", type=int, default=DEFAULT_VIEWS,
                    help="scoring views (of the capture's cameras, spread out; 0: all of them) (default: %(default)s)")
     c.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION,
@@ -107,7 +111,7 @@ def parse_keep(text: str) -> float:
 
 
 def run_compact(args: argparse.Namespace) -> int:
-    from ..capture import load_cameras, load_capture_images  # noqa: PLC0415 - torch-free, but only here
+    from ..capture import load_cameras, load_capture_images, training_cameras  # noqa: PLC0415 - torch-free
     from ..compaction import DEFAULT_ITERATIONS, compact, distill_iterations, fine_tune_height  # noqa: PLC0415
     from ..formats import output_format, read_splat_file, write_splat_file  # noqa: PLC0415
 
@@ -124,6 +128,11 @@ def run_compact(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     cloud = read_splat_file(args.input, sanitize=args.sanitize)
     cameras = load_cameras(args.cameras, args.test_every) if args.cameras is not None else None
+    if cameras is None and args.images is None and not args.placed_views:
+        cameras, lines = training_cameras(args.input, cloud)
+        for line in lines:
+            tail = " (--placed-views to place views instead)" if line.startswith("scoring from") else ""
+            print(f"gvae compact: {line}{tail}", flush=True)
     images = None
     if args.images is not None:
         height = args.image_height or fine_tune_height(cloud, load_cameras(args.images, args.test_every))
