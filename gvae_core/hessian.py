@@ -528,10 +528,13 @@ def _packed_to_blocks(packed: torch.Tensor) -> torch.Tensor:
 def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, views: int, resolution: int,
                     render_settings: RenderSettings | None, normalization,
                     progress: Callable[[float, str], None] | None, timings: dict | None = None,
-                    frames: list | None = None) -> torch.Tensor:
+                    frames: list | None = None, in_order: bool = True) -> tuple[torch.Tensor, np.ndarray | None]:
+    """(packed blocks (21, N), None) in the cloud's order; with `in_order` False, where the compiled
+    kernels ran, (packed blocks in the Morton order they were summed in, that order): a caller that
+    reduces each block to a number puts the numbers back instead of the blocks."""
     n = len(cloud)
     if n == 0:
-        return torch.zeros((len(_TRIU[0]), n), dtype=torch.float64)
+        return torch.zeros((len(_TRIU[0]), n), dtype=torch.float64), None
     normalization = normalization or cloud.normalization()
     cams = (scoring_views(cameras, views, resolution, cloud) if cameras is not None
             else default_views(cloud, views or DEFAULT_VIEWS, resolution, normalization=normalization))
@@ -562,6 +565,8 @@ def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, view
             work = _accumulate_view(f, cam, cloud.sh_degree, settings, float(normalization[1]), out, aa, timings,
                                     work, frames=frames, rows=order)
     del work, f
+    if fast and not in_order:
+        return torch.from_numpy(rows_out).T, order.numpy()
     if fast:  # rows back in the cloud's order; the packed form is their transpose (no copy)
         result = np.empty_like(rows_out)
         rows = order.numpy()
@@ -570,10 +575,10 @@ def _hessian_packed(cloud: GaussianCloud, cameras: Sequence[Camera] | None, view
             result[rows[a:b]] = rows_out[a:b]
 
         in_threads(n, put)
-        return torch.from_numpy(result).T
+        return torch.from_numpy(result).T, None
     result = torch.empty_like(out)
     result[:, order] = out
-    return result
+    return result, None
 
 
 def _morton_order(means: np.ndarray, bits: int = 21) -> np.ndarray:
@@ -649,7 +654,7 @@ def hessian_blocks(cloud: GaussianCloud, cameras: Sequence[Camera] | None = None
     TILE_SIZE), dtype (float64 for checks); `normalization`: the cloud's (centre, scale) when known
     (`GaussianCloud.normalization`); `progress(fraction, message)` before each view."""
     return _packed_to_blocks(_hessian_packed(cloud, cameras, views, resolution, render_settings, normalization,
-                                             progress))
+                                             progress)[0])
 
 
 def _prepare(cloud: GaussianCloud, dtype=torch.float32):
@@ -756,9 +761,11 @@ def hessian_scores(cloud: GaussianCloud, cameras: Sequence[Camera] | None = None
     the compositing; keeping it costs about 70 bytes a Gaussian a view)."""
     if score not in ("logdet", "trace"):
         raise ValueError(f"hessian: score must be 'logdet' or 'trace', got {score!r}")
-    packed = _hessian_packed(cloud, cameras, views, resolution, render_settings, normalization, progress, timings,
-                             frames)
+    packed, order = _hessian_packed(cloud, cameras, views, resolution, render_settings, normalization, progress,
+                                    timings, frames, in_order=False)
     clock = _Clock(timings)
     scores = scores_from_packed(packed, score, ridge)
+    if order is not None:  # (a score is its block's, with one ridge for all: the scores, not the blocks, go back)
+        scores = torch.empty_like(scores).index_copy_(0, torch.from_numpy(order), scores)
     clock("score")
     return scores

@@ -18,7 +18,7 @@ from gvae_core.examples import example_cloud
 from gvae_core.rendering import RenderSettings
 from gvae_core.rendering.frames import make_frame
 
-from .test_compact import _cloud, _groups
+from .test_compact import _cloud, _covariances, _groups
 
 pytestmark = pytest.mark.skipif(not compiled.available(), reason="Numba is not installed or does not load")
 
@@ -138,6 +138,17 @@ def test_grid_neighbours_are_the_kd_trees(shape, monkeypatch):
     np.testing.assert_array_equal(b, b_ref)
 
 
+def test_the_sweep_for_doubtful_points_is_the_kd_trees():
+    """Floaters the grid cannot tell about: swept over every point (the default, a few of them) or
+    asked of the k-d tree (sweep_limit 0), the same neighbours as the k-d tree's over all points."""
+    rng = np.random.default_rng(9)
+    points = np.concatenate([rng.random((5000, 3)), rng.normal(0, 300, (40, 3))])
+    swept, asked = compiled.nearest(points, 4), compiled.nearest(points, 4, sweep_limit=0)
+    _, ref = cKDTree(points).query(points, 5)
+    np.testing.assert_array_equal(swept, ref[:, 1:])
+    np.testing.assert_array_equal(asked, ref[:, 1:])
+
+
 def test_grid_neighbours_of_coincident_points():
     """Many copies of a few points: no grid (a cell would hold too many), the k-d tree answers; a
     few twins: each point's nearest others, never itself."""
@@ -154,6 +165,35 @@ def test_grid_neighbours_of_coincident_points():
     np.testing.assert_allclose(d, np.sort(np.linalg.norm(points[ref] - points[:, None], axis=2), 1)[:, 1:])
 
 
+def test_eigh3_is_numpys_eigh():
+    """The merged shapes' eigen-decompositions: numpy's eigenvalues, axes that rebuild the matrix
+    and are numpy's up to sign where the eigenvalues are apart; diagonal, round, flat and zero too."""
+    rng = np.random.default_rng(10)
+    q = np.linalg.qr(rng.normal(size=(200, 3, 3)))[0]
+    vals = np.exp(rng.uniform(-12, 2, (200, 3)))
+    vals[:20, 1] = vals[:20, 0]  # two equal axes
+    vals[20:30] = vals[20:30, :1]  # round
+    vals[30:40, 0] = 0.0  # flat
+    full = np.einsum("nij,nj,nkj->nik", q, vals, q)
+    full[40:50] = np.diag([3.0, 1.0, 2.0])
+    full[50] = 0.0
+    sigma = np.ascontiguousarray(full[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]])
+    got_vals, got_vecs = np.empty((200, 3)), np.empty((200, 3, 3))
+    compiled.kernels().eigh3(sigma, 0, 200, got_vals, got_vecs)
+    full = sigma[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
+    ref_vals, ref_vecs = np.linalg.eigh(full)
+    size = np.abs(ref_vals).max(1, keepdims=True) + 1e-300
+    np.testing.assert_allclose(got_vals / size, ref_vals / size, atol=1e-13)
+    np.testing.assert_allclose(np.einsum("nji,njk->nik", got_vecs, got_vecs), np.broadcast_to(np.eye(3), (200, 3, 3)),
+                               atol=1e-13)
+    rebuilt = np.einsum("nij,nj,nkj->nik", got_vecs, got_vals, got_vecs)
+    np.testing.assert_allclose(rebuilt / size[:, :, None], full / size[:, :, None], atol=1e-13)
+    apart = np.ones((200, 3), bool)
+    apart[:30] = False
+    dots = np.abs((got_vecs * ref_vecs).sum(1))
+    np.testing.assert_allclose(dots[apart], 1.0, atol=1e-9)
+
+
 def test_merged_groups_are_the_numpy_ones():
     rng = np.random.default_rng(4)
     cloud = _cloud(300)
@@ -161,8 +201,11 @@ def test_merged_groups_are_the_numpy_ones():
     fast, rows = merge.merge_groups(cloud, groups)
     slow, rows_slow = merge.merge_groups_numpy(cloud, groups)
     np.testing.assert_array_equal(rows, rows_slow)
-    for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
+    for name in ("means", "scales", "opacities", "sh_dc", "sh_rest"):
         np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=1e-5, atol=1e-6, err_msg=name)
+    np.testing.assert_allclose(_covariances(fast), _covariances(slow), atol=1e-5)  # (the axes: each up to its sign)
+    singles = np.bincount(groups[groups >= 0]) == 1
+    np.testing.assert_array_equal(fast.quats[singles], slow.quats[singles])
     for key, value in slow.extra.items():
         np.testing.assert_allclose(fast.extra[key], value, rtol=1e-6, err_msg=key)
     twins = cloud.select(np.repeat(np.arange(50), 3))  # equal masses: the lowest row represents its group

@@ -131,17 +131,19 @@ def unique_edges(nb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def shapes(sigma: np.ndarray, floor: float, mass: np.ndarray, together: np.ndarray):
     """(log-scales (G,3), quaternions (G,4), opacity logits (G,)) of merged Gaussians of packed
-    covariances `sigma` (`merge.write_shapes`): numpy's eigh (LAPACK: the same axes as the
-    reference), then `kernels.shapes`, chunk by chunk in threads."""
+    covariances `sigma` (`merge.write_shapes`): `kernels.eigh3` (numpy's eigh's eigenvalues and
+    axes, each axis up to its sign: the same Gaussians as the reference's), then `kernels.shapes`,
+    chunk by chunk in threads."""
     k = kernels()
     g = len(sigma)
     log_scale, quats, logits = np.empty((g, 3)), np.empty((g, 4)), np.empty(g)
     mass, together = np.ascontiguousarray(mass, np.float64), np.ascontiguousarray(together, np.float64)
+    sigma = np.ascontiguousarray(sigma, np.float64)
 
     def part(lo: int, hi: int) -> None:
-        full = sigma[lo:hi][:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
-        vals, vecs = np.linalg.eigh(full)
-        k.shapes(vals, np.ascontiguousarray(vecs), float(floor), mass[lo:hi], together[lo:hi],
+        vals, vecs = np.empty((hi - lo, 3)), np.empty((hi - lo, 3, 3))
+        k.eigh3(sigma[lo:hi], 0, hi - lo, vals, vecs)
+        k.shapes(vals, vecs, float(floor), mass[lo:hi], together[lo:hi],
                  float(LOG_SCALE_RANGE[0]), float(LOG_SCALE_RANGE[1]), 0, hi - lo, log_scale[lo:hi], quats[lo:hi],
                  logits[lo:hi])
 
@@ -152,17 +154,20 @@ def shapes(sigma: np.ndarray, floor: float, mass: np.ndarray, together: np.ndarr
 #: Points per occupied cell that `nearest` aims at, and the most one cell may hold before the
 #: grid is given up for the k-d tree (clouds of many coincident or far scattered Gaussians).
 CELL_POINTS, CELL_LIMIT = 6.0, 256
+#: The most points whose cells cannot tell that `nearest` sweeps every point for
+#: (`kernels.brute_neighbours`); more go to scipy's k-d tree (building one over 1M points takes
+#: about 0.5 s, a sweep of 1M points about 2 ms a point).
+SWEEP_LIMIT = 128
 
 
-def nearest(points: np.ndarray, k: int) -> np.ndarray | None:
+def nearest(points: np.ndarray, k: int, sweep_limit: int = SWEEP_LIMIT) -> np.ndarray | None:
     """(M, k) int64: each point's k nearest others (exact, squared distances in float64; nearest
     first), by a grid of cells: the points of each cell compared with those of the 3 x 3 x 3
     cells around it (`kernels.cell_neighbours`, cells in threads); a point whose k-th nearest
-    could lie beyond those cells is asked of scipy's k-d tree instead. The same neighbours as the
-    k-d tree's but among points at exactly equal distances. None where the points do not suit a
-    grid (a cell would hold more than CELL_LIMIT): the caller asks the k-d tree."""
-    from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy is slow to import; only merging needs it
-
+    could lie beyond those cells is found by a sweep over every point (`kernels.brute_neighbours`)
+    where there are at most `sweep_limit` such points, else asked of scipy's k-d tree. The same
+    neighbours as the k-d tree's but among points at exactly equal distances. None where the points
+    do not suit a grid (a cell would hold more than CELL_LIMIT): the caller asks the k-d tree."""
     kern = kernels()
     points = np.ascontiguousarray(points, np.float64)
     m = len(points)
@@ -196,7 +201,12 @@ def nearest(points: np.ndarray, k: int) -> np.ndarray | None:
                                                a, b, nb, certain)
          for a, b in split(np.diff(starts).astype(np.float64) ** 2 + 1.0, 1 if m < SMALL else 8 * count())])
     doubt = np.flatnonzero(~certain)
-    if len(doubt):
+    if 0 < len(doubt) <= sweep_limit:
+        run([lambda a=a, b=b: kern.brute_neighbours(points, doubt, k, a, b, nb)
+             for a, b in chunks(len(doubt), len(doubt) * m, SMALL)])
+    elif len(doubt):
+        from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy is slow to import; only merging needs it
+
         _, near = cKDTree(points).query(points[doubt], k + 1, workers=-1)
         near = np.take_along_axis(near, np.argsort(near == doubt[:, None], axis=1, kind="stable"), 1)
         nb[doubt] = near[:, :k]

@@ -57,25 +57,28 @@ def knn_edges(mu: np.ndarray, nodes: np.ndarray, k: int) -> tuple[np.ndarray, np
     centre). Where the kernels run: the neighbours from a grid of cells (`compiled.nearest`; the
     k-d tree's but among points at exactly equal distances), the edges made unique by
     `compiled.unique_edges`; else (the reference) scipy's k-d tree and np.unique."""
-    from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy is slow to import; only merging needs it
-
     k = min(k, len(nodes) - 1)
     if k < 1:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     if compiled.available():
         near = compiled.nearest(mu[nodes], k)
-        if near is None:
-            _, nb = cKDTree(mu[nodes]).query(mu[nodes], k + 1, workers=-1)
-        else:
-            nb = np.concatenate([np.arange(len(nodes))[:, None], near], 1)
+        nb = _kd_tree(mu[nodes], k) if near is None else np.concatenate([np.arange(len(nodes))[:, None], near], 1)
         a, b = compiled.unique_edges(nb)
         return nodes[a], nodes[b]
-    _, nb = cKDTree(mu[nodes]).query(mu[nodes], k + 1, workers=-1)
+    nb = _kd_tree(mu[nodes], k)
     a = np.repeat(np.arange(len(nodes)), k)
     b = nb[:, 1:].reshape(-1)
     ok = (b < len(nodes)) & (a != b)
     key = np.unique(np.minimum(a[ok], b[ok]) * len(nodes) + np.maximum(a[ok], b[ok]))
     return nodes[key // len(nodes)], nodes[key % len(nodes)]
+
+
+def _kd_tree(points: np.ndarray, k: int) -> np.ndarray:
+    """(M, k+1): each point and its k nearest others by scipy's k-d tree (imported here: scipy is slow
+    to import, and the grid of `compiled.nearest` answers without it)."""
+    from scipy.spatial import cKDTree  # noqa: PLC0415
+
+    return cKDTree(points).query(points, k + 1, workers=-1)[1]
 
 
 def merge_owner(m: Moments, target: int, neighbours: int, progress=None) -> np.ndarray:

@@ -4,7 +4,8 @@ cached on disk), driven in threads by `compaction.compiled`.
 Each is the loop form of the numpy or torch code beside it, which stays the reference the tests
 hold it to: `tile_hits` of `scoring`'s torch sweep (`pixel_hits`, `frame_hits`), `gaussian_moments`
 of `moments.moments`, `pair_costs` and `merge_pairs` of `moments.pair_cost` and `merge_pairs`,
-`greedy_matching` of `graph.matching`, `group_sums` of the reductions of `merge.merge_groups`. The
+`greedy_matching` of `graph.matching`, `group_sums` of the reductions of `merge.merge_groups`,
+`eigh3` of numpy's eigh (up to each axis's sign), `brute_neighbours` of scipy's k-d tree. The
 formulas and the order of every sum are the reference's; they differ from it by float rounding
 only (fused multiply-adds, the C library's exp and log). Imported on first use (it imports Numba).
 """
@@ -402,6 +403,70 @@ def shapes(vals, vecs, floor, mass, together, ls_lo, ls_hi, lo, hi, log_scale, q
         quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3] = q0 / norm, q1 / norm, q2 / norm, q3 / norm
 
 
+@kernel
+def eigh3(sigma, lo, hi, vals, vecs):
+    """For j in lo..hi-1, the eigen-decomposition of the symmetric 3x3 matrix packed in sigma[j]
+    (xx, xy, xz, yy, yz, zz): vals[j] ascending and vecs[j] their unit eigenvectors as columns,
+    as numpy's eigh gives them (up to each column's sign, and the axes of equal eigenvalues), by
+    cyclic Jacobi rotations (Numerical Recipes' `jacobi`: to the float64 precision of the
+    matrix, in a few sweeps) -- LAPACK called once per 3x3 matrix costs 30 times as long."""
+    a = np.empty((3, 3))
+    v = np.empty((3, 3))
+    for j in range(lo, hi):
+        a[0, 0], a[0, 1], a[0, 2] = sigma[j, 0], sigma[j, 1], sigma[j, 2]
+        a[1, 1], a[1, 2], a[2, 2] = sigma[j, 3], sigma[j, 4], sigma[j, 5]
+        for r in range(3):
+            for s in range(3):
+                v[r, s] = 1.0 if r == s else 0.0
+        for sweep in range(50):
+            off = abs(a[0, 1]) + abs(a[0, 2]) + abs(a[1, 2])
+            if off == 0.0:
+                break
+            tresh = 0.2 * off / 9.0 if sweep < 3 else 0.0
+            for p in range(2):
+                for q in range(p + 1, 3):
+                    apq = a[p, q]
+                    g = 100.0 * abs(apq)
+                    if sweep > 3 and abs(a[p, p]) + g == abs(a[p, p]) and abs(a[q, q]) + g == abs(a[q, q]):
+                        a[p, q] = 0.0
+                    elif abs(apq) > tresh:
+                        h = a[q, q] - a[p, p]
+                        if abs(h) + g == abs(h):
+                            t = apq / h
+                        else:
+                            theta = 0.5 * h / apq
+                            t = 1.0 / (abs(theta) + math.sqrt(1.0 + theta * theta))
+                            if theta < 0.0:
+                                t = -t
+                        cs = 1.0 / math.sqrt(1.0 + t * t)
+                        sn = t * cs
+                        tau = sn / (1.0 + cs)
+                        h = t * apq
+                        a[p, p] -= h
+                        a[q, q] += h
+                        a[p, q] = 0.0
+                        r = 3 - p - q  # the third axis: (p, r) and (r, q) or (r, p) as stored (upper)
+                        arp = a[min(r, p), max(r, p)]
+                        arq = a[min(r, q), max(r, q)]
+                        a[min(r, p), max(r, p)] = arp - sn * (arq + arp * tau)
+                        a[min(r, q), max(r, q)] = arq + sn * (arp - arq * tau)
+                        for r in range(3):
+                            vrp, vrq = v[r, p], v[r, q]
+                            v[r, p] = vrp - sn * (vrq + vrp * tau)
+                            v[r, q] = vrq + sn * (vrp - vrq * tau)
+        # ascending, the columns with them
+        o0, o1, o2 = 0, 1, 2
+        if a[o1, o1] < a[o0, o0]:
+            o0, o1 = o1, o0
+        if a[o2, o2] < a[o1, o1]:
+            o1, o2 = o2, o1
+            if a[o1, o1] < a[o0, o0]:
+                o0, o1 = o1, o0
+        vals[j, 0], vals[j, 1], vals[j, 2] = a[o0, o0], a[o1, o1], a[o2, o2]
+        for r in range(3):
+            vecs[j, r, 0], vecs[j, r, 1], vecs[j, r, 2] = v[r, o0], v[r, o1], v[r, o2]
+
+
 _HASH = np.int64(-7046029254386353131)  # 0x9E3779B97F4A7C15 (Fibonacci hashing) as an int64
 
 
@@ -438,6 +503,19 @@ def _find(keys, slots, key, shift):
             return slots[h]
         h = (h + 1) & mask
     return -1
+
+
+@inline
+def _take(best_d, best_t, d, u):
+    """Put candidate u at squared distance d (nearer than the last of best_d) into the sorted lists
+    best_d, best_t of the nearest so far, after those at equal distances."""
+    v = best_d.shape[0] - 1
+    while v > 0 and best_d[v - 1] > d:
+        best_d[v] = best_d[v - 1]
+        best_t[v] = best_t[v - 1]
+        v -= 1
+    best_d[v] = d
+    best_t[v] = u
 
 
 #: The 27 cells around a cell (offsets dx, dy, dz), nearest first: its own, faces, edges, corners.
@@ -502,13 +580,7 @@ def cell_neighbours(sorted_points, perm, cell_ix, keys, starts, slots, origin, h
                     ex, ey, ez = sorted_points[u, 0] - px, sorted_points[u, 1] - py, sorted_points[u, 2] - pz
                     d = ex * ex + ey * ey + ez * ez
                     if d < best_d[k - 1] and u != s:
-                        v = k - 1
-                        while v > 0 and best_d[v - 1] > d:
-                            best_d[v] = best_d[v - 1]
-                            best_t[v] = best_t[v - 1]
-                            v -= 1
-                        best_d[v] = d
-                        best_t[v] = u
+                        _take(best_d, best_t, d, u)
             bound = np.inf
             for a in range(3):
                 bound = min(bound, sorted_points[s, a] - bound_lo[a], bound_hi[a] - sorted_points[s, a])
@@ -516,3 +588,25 @@ def cell_neighbours(sorted_points, perm, cell_ix, keys, starts, slots, origin, h
             certain[i] = best_t[k - 1] >= 0 and best_d[k - 1] < bound * bound
             for j in range(k):
                 nb[i, j] = perm[best_t[j]] if best_t[j] >= 0 else -1
+
+
+@kernel
+def brute_neighbours(points, rows, k, lo, hi, nb):
+    """nb[i] (k, indices into points) for i = rows[lo..hi-1]: the k nearest other points of point i
+    by an exact sweep over every point (squared distances in float64; nearest first, ties: the
+    lower index) -- for the few points whose grid cells cannot tell (`compiled.nearest`)."""
+    best_d = np.empty(k)
+    best_t = np.empty(k, np.int64)
+    for r in range(lo, hi):
+        i = rows[r]
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        for j in range(k):
+            best_d[j] = np.inf
+            best_t[j] = -1
+        for u in range(points.shape[0]):
+            ex, ey, ez = points[u, 0] - px, points[u, 1] - py, points[u, 2] - pz
+            d = ex * ex + ey * ey + ez * ez
+            if d < best_d[k - 1] and u != i:
+                _take(best_d, best_t, d, u)
+        for j in range(k):
+            nb[i, j] = best_t[j]

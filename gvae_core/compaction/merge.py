@@ -1,8 +1,9 @@
 """Assembling the compacted cloud: each group of input Gaussians becomes one (`merge_groups`), its
 members' moments matched with mass weights; `merge_groups_reference` is the slow, obviously correct
 definition (a loop over the groups) the tests hold it to. Where Numba is, the members' moments, the
-groups' sums and their shapes are compiled kernels (`compiled`; the eigen-decompositions numpy's,
-in threads); `merge_groups_numpy` (all numpy) is their reference.
+groups' sums and their shapes are compiled kernels (`compiled`, in threads; the 3x3
+eigen-decompositions `kernels.eigh3`, numpy's eigh up to each axis's sign); `merge_groups_numpy`
+(all numpy) is their reference.
 """
 
 from __future__ import annotations
