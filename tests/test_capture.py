@@ -454,7 +454,7 @@ def test_the_cameras_a_splats_training_left_beside_it_are_found(tmp_path):
     run.mkdir()
     (run / "run.json").write_text(json.dumps({"data": str(capture), "config": {"test_every": 2}}))
     found, passed = cameras_beside(run / "stage_2.ply")
-    assert passed == [] and "every 2th held out" in found.how
+    assert passed == [] and "1 in 2 held out" in found.how
     _same_cameras(found.cameras, [cams[1], cams[3]])
     (run / "run.json").write_text(json.dumps({"data": str(tmp_path / "gone"), "config": {}}))
     found, passed = cameras_beside(run / "stage_2.ply")

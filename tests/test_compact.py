@@ -306,9 +306,10 @@ def test_small_clouds_are_fine_tuned_against_their_own_renders_by_default(monkey
     from gvae_core.cli import compact as cli  # noqa: PLC0415 - (its copy, for --help without torch)
 
     assert (cli.AUTO_DISTILL, cli.AUTO_DISTILL_MAX, cli.AUTO_DISTILL_SECONDS, cli.SET_ASIDE_EVERY,
-            cli.PHOTOS_PRUNE_FROM) == (compaction.AUTO_DISTILL, compaction.AUTO_DISTILL_MAX,
-                                       compaction.AUTO_DISTILL_SECONDS, compaction.SET_ASIDE_EVERY,
-                                       compaction.PHOTOS_PRUNE_FROM)
+            cli.PHOTOS_PRUNE_FROM, cli.PRUNE_FROM_ITERATIONS, cli.DEFAULT_ITERATIONS) == (
+        compaction.AUTO_DISTILL, compaction.AUTO_DISTILL_MAX, compaction.AUTO_DISTILL_SECONDS,
+        compaction.SET_ASIDE_EVERY, compaction.PHOTOS_PRUNE_FROM, compaction.PRUNE_FROM_ITERATIONS,
+        compaction.DEFAULT_ITERATIONS)
     monkeypatch.setattr(compaction, "AUTO_DISTILL", 3)
     cloud = _cloud(80, extras=False)
     r = compact(cloud, keep=0.5, resolution=24)

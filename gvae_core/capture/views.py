@@ -22,8 +22,9 @@ from ..camera import Camera
 from ..cloud import GaussianCloud
 from ..conventions import LOG_SCALE_RANGE
 
-__all__ = ["scoring_views", "in_view", "default_views", "placed_views", "PlacedViews", "outside_views", "inside_views",
-           "surround", "surround_radius", "Surround", "DEFAULT_VIEWS", "DEFAULT_RESOLUTION"]
+__all__ = ["scoring_views", "in_view", "fibonacci_lattice", "default_views", "placed_views", "PlacedViews",
+           "outside_views", "inside_views", "surround", "surround_radius", "Surround", "DEFAULT_VIEWS",
+           "DEFAULT_RESOLUTION"]
 
 #: Views the Hessian is computed from by default, and their height in pixels (`scoring_views`,
 #: `default_views`).
@@ -74,7 +75,7 @@ class Surround:
     positions: np.ndarray
 
 
-def _lattice(cells: int) -> np.ndarray:
+def fibonacci_lattice(cells: int) -> np.ndarray:
     """(cells, 3) unit vectors, a Fibonacci lattice: about evenly spread over the sphere."""
     k = np.arange(cells) + 0.5
     z = 1.0 - 2.0 * k / cells
@@ -128,7 +129,7 @@ def surround(cloud: GaussianCloud, normalization=None, *, sample: int = 200_000)
     content = size < math.sqrt(fine * coarse)
     if content.mean() < SURROUND_CONTENT:
         return None
-    lattice = _lattice(SURROUND_CELLS)
+    lattice = fibonacci_lattice(SURROUND_CELLS)
     around = p[~content] - np.median(p[content], axis=0)
     enclosed = len(np.unique(np.argmax(around @ lattice.T, axis=1))) / SURROUND_CELLS
     if enclosed < SURROUND_ENCLOSED:
@@ -208,7 +209,7 @@ def outside_views(cloud: GaussianCloud, views: int = DEFAULT_VIEWS, resolution: 
     center, half = normalization or cloud.normalization()
     radius = 1.4 * half / math.sin(0.5 * fov_x)
     return [Camera.look_at(center + radius * d, center, (0.0, 0.0, 1.0), width=resolution, height=resolution,
-                           fov_x=fov_x) for d in _lattice(max(int(views), 1))]
+                           fov_x=fov_x) for d in fibonacci_lattice(max(int(views), 1))]
 
 
 @dataclass
@@ -257,7 +258,7 @@ def inside_views(cloud: GaussianCloud, views: int = DEFAULT_VIEWS, resolution: i
     ok, _, rel, r = _around(src, center, sample)
     if len(ok) < 64:
         return []
-    lattice = _lattice(SURROUND_CELLS)
+    lattice = fibonacci_lattice(SURROUND_CELLS)
     cell = np.argmax(rel @ lattice.T, axis=1)
     reach = np.zeros(SURROUND_CELLS)  # per direction, the far side of the cloud
     for k in np.unique(cell):
