@@ -29,6 +29,9 @@ from gvae_core.conventions import LOG_SCALE_RANGE, OPACITY_LOGIT_RANGE, SH_REST_
 
 LAYOUT_KEY = "gvae_ply"
 STEP_ATTR = "gvae_step"
+#: The object's custom property naming the file its Gaussians were imported from (New from Photos: its
+#: run's last stage): where Compact looks for the cameras its training left (`capture.training_cameras`).
+SOURCE_PROP = "gvae_source"
 #: Names the add-on keeps for itself: never stored as a PLY extra property.
 _RESERVED = {"position", STEP_ATTR}
 

@@ -276,14 +276,15 @@ class IMPORT_SCENE_OT_gaussian_splat(Operator, ImportHelper):
                 try:
                     if self.splat_type == "NATIVE":
                         made.append(build_native_splat(context, cloud, name, axes=self.axis_conversion))
-                        continue
-                    made.append(build_splat(
-                        context, cloud, name, axes=self.axis_conversion,
-                        scale_factor=self.scale_factor, fraction=self.display_fraction,
-                        points_only=self.points_only, min_opacity=self.min_opacity,
-                        view_dependent=self.view_dependent))
+                    else:
+                        made.append(build_splat(
+                            context, cloud, name, axes=self.axis_conversion,
+                            scale_factor=self.scale_factor, fraction=self.display_fraction,
+                            points_only=self.points_only, min_opacity=self.min_opacity,
+                            view_dependent=self.view_dependent))
                 except ValueError as exc:
                     raise ValueError(f"{path}: {exc}") from exc
+                made[-1][convert.SOURCE_PROP] = os.path.abspath(path)  # (where Compact finds its cameras)
         except Exception as exc:
             for obj in made:
                 remove_splat(obj)

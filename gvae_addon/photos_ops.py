@@ -129,7 +129,8 @@ def train_capture(folder: str, run_dir: str, *, height: int, profile: str, itera
     capture = core_capture.read_capture(folder, test_every, images=False)
     return {"cloud": result.cloud, "log": result.log, "sfm": None if sfm is None else sfm.summary(),
             "cameras": capture.cameras, "names": capture.names, "splits": capture.splits, "kind": capture.kind,
-            "size": (config.resolutions[-1], result.log[-1]["resolution"] if result.log else None)}
+            "size": (config.resolutions[-1], result.log[-1]["resolution"] if result.log else None),
+            "source": str(Path(run_dir).resolve() / f"stage_{stages - 1}.ply")}
 
 
 class PhotosJob(refine_ops.BackgroundJob):
@@ -200,6 +201,8 @@ class PhotosJob(refine_ops.BackgroundJob):
             obj = (io_ops.build_native_splat(context, r["cloud"], name, axes=axes) if self.splat_type == "NATIVE"
                    else io_ops.build_splat(context, r["cloud"], name, axes=axes))
             made.append(obj)
+            if r.get("source"):  # (the run: where Compact finds its cameras)
+                obj[convert.SOURCE_PROP] = r["source"]
             cams = _add_cameras(context, name, r, obj) if self.cameras else None
             if cams is not None:
                 made.append(cams)

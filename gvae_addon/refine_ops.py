@@ -267,23 +267,37 @@ class RefineJob(CoreJob):
 
 
 class CompactJob(CoreJob):
-    """`gvae_core.compaction.compact` on a splat object (`keep` a fraction or `count` Gaussians,
-    scored from views placed around it); each remaining Gaussian keeps the `gvae_step` of the input
-    row it stands for. `compact`: a stand-in for the core function (tests)."""
+    """`gvae_core.compaction.compact` on a splat object (`keep` a fraction or `count` Gaussians),
+    scored from the capture's cameras: those at `cameras` (a capture, a transforms.json, the
+    reference 3DGS's cameras.json) when given, else with `found_cameras` those its training left
+    beside the file it was imported from (`capture.training_cameras`), else views placed around
+    it; each remaining Gaussian keeps the `gvae_step` of the input row it stands for. `compact`: a
+    stand-in for the core function (tests)."""
 
     label, participle = "Compact", "compacted"
 
     def __init__(self, obj, *, keep: float | None = 0.5, count: int | None = None, removal: str = "merge",
-                 distill: int | str = "auto", seed: int = 0, compact=None):
+                 distill: int | str = "auto", seed: int = 0, cameras: str = "", found_cameras: bool = True,
+                 compact=None):
         super().__init__(obj, compact)
         self.keep, self.count, self.removal, self.distill, self.seed = keep, count, removal, distill, seed
+        self.cameras_path, self.source = cameras.strip(), obj.get(convert.SOURCE_PROP) if found_cameras else None
+        self.notes: list[str] = []
 
     def _load(self):
         return runtime.core_compact()
 
     def _run(self, compact, cloud, progress):
+        from gvae_core.capture import load_cameras, training_cameras  # noqa: PLC0415 - in the worker
+
+        cameras = None
+        if self.cameras_path:
+            cameras = load_cameras(bpy.path.abspath(self.cameras_path))
+            self.notes.append(f"scoring from {len(cameras)} cameras of {self.cameras_path}")
+        elif self.source:
+            cameras, self.notes = training_cameras(self.source, cloud)
         return compact(cloud, keep=self.keep, count=self.count, removal=self.removal, distill=self.distill,
-                       seed=self.seed, progress=progress)
+                       seed=self.seed, cameras=cameras, progress=progress)
 
     def _write(self, obj) -> None:
         r = self.result
@@ -293,7 +307,7 @@ class CompactJob(CoreJob):
     def _info(self) -> dict:
         r = self.result
         return {"after": len(r.cloud), "psnr": float(r.psnr), "timings": dict(r.timings),
-                "warnings": list(getattr(r, "warnings", ()))}
+                "warnings": list(getattr(r, "warnings", ())), "views": list(self.notes)}
 
 
 #: Jobs running now, by `key` (the object's name; the panel shows their progress; one job per key).
@@ -491,6 +505,12 @@ class GVAE_OT_refine(JobOperator, Operator):
 #: Compact's removal choices and what its fine-tuning does (the operator and the panel's settings).
 REMOVAL_ITEMS = (("MERGE", "Merge", "Merge Gaussians into their neighbours (moments kept)"),
                  ("PRUNE", "Prune", "Drop the Gaussians with the lowest scores"))
+CAMERAS_DESCRIPTION = ("The capture's cameras to score from (a COLMAP capture folder, a transforms.json, the reference "
+                       "3DGS's cameras.json); empty: the training cameras found beside the imported file, else views "
+                       "placed around the object")
+FOUND_CAMERAS_DESCRIPTION = ("Without Cameras: score from the cameras the splat's training left beside the file it "
+                             "was imported from (the reference 3DGS's cameras.json two folders up, a gvae train "
+                             "run's capture) when they see it; off: views placed around it")
 DISTILL_DESCRIPTION = ("Fine-tune the result against the object's own renders for at most this many iterations, "
                        "stopping sooner when renders set aside stop improving (-1: automatic, at most 1000 for "
                        "objects of up to 50,000 Gaussians, stopped after about 3 minutes, none for larger ones; 0: "
@@ -513,16 +533,18 @@ class GVAE_OT_compact(JobOperator, Operator):
     removal: EnumProperty(name="Removal", default="MERGE", items=REMOVAL_ITEMS)
     distill: IntProperty(name="Fine-Tune Iterations", default=-1, min=-1, description=DISTILL_DESCRIPTION)
     seed: IntProperty(name="Seed", default=0, min=0, description="Random seed (repeatable runs)")
+    cameras: StringProperty(name="Cameras", subtype="FILE_PATH", default="", description=CAMERAS_DESCRIPTION)
+    found_cameras: BoolProperty(name="Training Cameras", default=True, description=FOUND_CAMERAS_DESCRIPTION)
 
     def _job(self, context) -> CompactJob:
         return CompactJob(context.active_object, keep=None if self.count else self.keep, count=self.count or None,
                           removal=self.removal.lower(), distill="auto" if self.distill < 0 else self.distill,
-                          seed=self.seed)
+                          seed=self.seed, cameras=self.cameras, found_cameras=self.found_cameras)
 
     def _report_text(self, info: dict) -> str:
         return (f"Compact: {info['before']} -> {info['after']} Gaussians ({info['after'] / max(info['before'], 1):.0%})"
                 f" in {info['seconds']:.2f} s; PSNR against the input's render {info['psnr']:.2f} dB"
-                + _timing_text(info))
+                + "".join(f"; {note}" for note in info.get("views", ())) + _timing_text(info))
 
 
 classes = (GVAE_OT_refine, GVAE_OT_compact)

@@ -37,6 +37,10 @@ class GVAE_Settings(PropertyGroup):
     compact_removal: EnumProperty(name="Removal", default="MERGE", items=refine_ops.REMOVAL_ITEMS)
     compact_distill: IntProperty(name="Fine-Tune Iterations", default=-1, min=-1,
                                  description=refine_ops.DISTILL_DESCRIPTION)
+    compact_cameras: StringProperty(name="Cameras", subtype="FILE_PATH", default="",
+                                    description=refine_ops.CAMERAS_DESCRIPTION)
+    compact_found_cameras: BoolProperty(name="Training Cameras", default=True,
+                                        description=refine_ops.FOUND_CAMERAS_DESCRIPTION)
     photos_folder: StringProperty(name="Folder", subtype="DIR_PATH", default="",
                                   description=photos_ops.FOLDER_DESCRIPTION)
     photos_height: IntProperty(name="Size", default=0, min=0, soft_max=1080, subtype="PIXEL",
@@ -169,11 +173,13 @@ REFINE_NOTE = (
 COMPACT_NOTE = (
     "Drops what no view sees and the tenth the",
     "picture needs least (by the Hessian), merges",
-    "the rest pairwise; scored from views placed",
-    "all around the object (inside a scene), then",
-    "fine-tunes against the object's own renders",
-    "(-1: up to 1000 iterations, 50,000 Gaussians).",
-    "Warns when the views miss part of it",
+    "the rest pairwise; scored from the training",
+    "cameras found beside the imported file (or",
+    "Cameras), else from views placed all around",
+    "the object (inside a scene), then fine-tunes",
+    "against the object's own renders (-1: up to",
+    "1000 iterations, 50,000 Gaussians). Warns",
+    "when the views miss part of it",
     "(README: Compaction).",
 )
 
@@ -220,6 +226,10 @@ class GVAE_PT_compact(_JobPanel):
         col.prop(settings, "compact_keep")
         col.prop(settings, "compact_removal")
         col.prop(settings, "compact_distill")
+        col.prop(settings, "compact_cameras")
+        found = col.column()
+        found.enabled = not settings.compact_cameras.strip()
+        found.prop(settings, "compact_found_cameras")
         if convert.is_any_splat(obj):
             n = convert.splat_count(obj)
             col.label(text=f"{n:,} -> {max(1, round(settings.compact_keep * n)):,} Gaussians")
@@ -228,6 +238,8 @@ class GVAE_PT_compact(_JobPanel):
         op.keep = settings.compact_keep
         op.removal = settings.compact_removal
         op.distill = settings.compact_distill
+        op.cameras = settings.compact_cameras
+        op.found_cameras = settings.compact_found_cameras
 
 
 #: What New from Photos does, under its button.

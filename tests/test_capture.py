@@ -400,3 +400,63 @@ def test_bad_captures_are_refused_by_name(tmp_path):
         read_capture(folder, images=False)
     with pytest.raises(ValueError, match="leaves none to train on"):
         read_capture(_write_text(tmp_path / "two", cams[:1]), test_every=2, images=False)
+
+
+def test_reference_3dgs_cameras_json_reads_as_the_cameras_it_holds(tmp_path):
+    """The reference 3DGS's `cameras.json` (camera-to-world rotation and centre, focal lengths,
+    principal point at the centre): read as a file or as its model folder, held out by name like
+    any capture; it holds no photos, and asking for them or giving a broken file says so by name."""
+    from gvae_core.capture.gs_cameras import write_gs_cameras  # noqa: PLC0415
+
+    cams = [Camera(c.world_to_cam, c.fx, c.fy, c.width / 2.0, c.height / 2.0, c.width, c.height) for c in _cameras()]
+    model = tmp_path / "model"
+    model.mkdir()
+    write_gs_cameras(cams, [f"img_{i}" for i in range(4)], model / "cameras.json")
+    entry = json.loads((model / "cameras.json").read_text())[1]  # the reference's fields, its conventions
+    assert set(entry) == {"id", "img_name", "width", "height", "position", "rotation", "fx", "fy"}
+    np.testing.assert_allclose(entry["position"], cams[1].center, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(entry["rotation"]) @ [0, 0, 1], cams[1].rotation[2], atol=1e-12)  # z forward
+    for path in (model / "cameras.json", model):
+        capture = read_capture(path, images=False)
+        assert capture.kind == "3dgs-cameras" and capture.points is None
+        _same_cameras(capture.cameras, cams)
+    assert [c.width for c in load_cameras(model, test_every=2)] == [cams[1].width, cams[3].width]
+    with pytest.raises(DatasetError, match=r"cameras.json: the reference 3DGS's cameras.json holds cameras without "
+                                           r"photos"):
+        read_capture(model)
+    broken = json.loads((model / "cameras.json").read_text())
+    del broken[2]["fy"]
+    (tmp_path / "b.json").write_text(json.dumps(broken))
+    with pytest.raises(DatasetError, match=r"b.json: camera 2: missing fy"):
+        read_capture(tmp_path / "b.json", images=False)
+    broken[2]["fy"], broken[3]["rotation"] = 500.0, [[2, 0, 0], [0, 1, 0], [0, 0, 1]]
+    (tmp_path / "b.json").write_text(json.dumps(broken))
+    with pytest.raises(DatasetError, match=r"b.json: camera 3: rotation is not a rotation matrix"):
+        read_capture(tmp_path / "b.json", images=False)
+
+
+def test_the_cameras_a_splats_training_left_beside_it_are_found(tmp_path):
+    """`cameras_beside`: the reference 3DGS's MODEL/cameras.json two folders above its
+    point_cloud.ply, a `gvae train` run's capture (its training cameras, held out as the run did);
+    nothing for a lone file; a run whose capture is gone is passed over with why."""
+    from gvae_core.capture import cameras_beside  # noqa: PLC0415
+    from gvae_core.capture.gs_cameras import write_gs_cameras  # noqa: PLC0415
+
+    cams = [Camera(c.world_to_cam, c.fx, c.fy, c.width / 2.0, c.height / 2.0, c.width, c.height) for c in _cameras()]
+    model = tmp_path / "model"
+    (model / "point_cloud" / "iteration_7000").mkdir(parents=True)
+    write_gs_cameras(cams, [f"img_{i}" for i in range(4)], model / "cameras.json")
+    found, passed = cameras_beside(model / "point_cloud" / "iteration_7000" / "point_cloud.ply")
+    assert passed == [] and found.source == model / "cameras.json" and "4 training cameras" in found.how
+    _same_cameras(found.cameras, cams)
+    capture = _write_text(tmp_path / "capture" / "sparse" / "0", cams)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "run.json").write_text(json.dumps({"data": str(capture), "config": {"test_every": 2}}))
+    found, passed = cameras_beside(run / "stage_2.ply")
+    assert passed == [] and "1 in 2 held out" in found.how
+    _same_cameras(found.cameras, [cams[1], cams[3]])
+    (run / "run.json").write_text(json.dumps({"data": str(tmp_path / "gone"), "config": {}}))
+    found, passed = cameras_beside(run / "stage_2.ply")
+    assert found is None and len(passed) == 1 and "gone cannot be read" in passed[0]
+    assert cameras_beside(tmp_path / "lone" / "splat.ply") == (None, [])

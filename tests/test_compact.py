@@ -306,9 +306,10 @@ def test_small_clouds_are_fine_tuned_against_their_own_renders_by_default(monkey
     from gvae_core.cli import compact as cli  # noqa: PLC0415 - (its copy, for --help without torch)
 
     assert (cli.AUTO_DISTILL, cli.AUTO_DISTILL_MAX, cli.AUTO_DISTILL_SECONDS, cli.SET_ASIDE_EVERY,
-            cli.PHOTOS_PRUNE_FROM) == (compaction.AUTO_DISTILL, compaction.AUTO_DISTILL_MAX,
-                                       compaction.AUTO_DISTILL_SECONDS, compaction.SET_ASIDE_EVERY,
-                                       compaction.PHOTOS_PRUNE_FROM)
+            cli.PHOTOS_PRUNE_FROM, cli.PRUNE_FROM_ITERATIONS, cli.DEFAULT_ITERATIONS) == (
+        compaction.AUTO_DISTILL, compaction.AUTO_DISTILL_MAX, compaction.AUTO_DISTILL_SECONDS,
+        compaction.SET_ASIDE_EVERY, compaction.PHOTOS_PRUNE_FROM, compaction.PRUNE_FROM_ITERATIONS,
+        compaction.DEFAULT_ITERATIONS)
     monkeypatch.setattr(compaction, "AUTO_DISTILL", 3)
     cloud = _cloud(80, extras=False)
     r = compact(cloud, keep=0.5, resolution=24)
@@ -356,3 +357,31 @@ def test_cli_fine_tunes_with_the_captures_images(tmp_path, capsys):
                  "--rounds", "1", "--views", "2", "--resolution", "16"]) == 0
     text = capsys.readouterr().out
     assert "3 images at 16 px" in text and "round 1: 30 Gaussians" in text and len(read_ply(out)) == 30
+
+
+def test_cli_scores_from_the_training_cameras_found_beside_the_file(tmp_path, capsys):
+    """`gvae compact MODEL/point_cloud/iteration_N/point_cloud.ply` scores from the reference 3DGS's
+    MODEL/cameras.json as `--cameras` would (the same output), says so, and places views with
+    `--placed-views` or when the cameras found do not see the cloud (moved: said why)."""
+    from gvae_core.capture.gs_cameras import write_gs_cameras  # noqa: PLC0415
+
+    cloud, front, back = _walled()
+    model = tmp_path / "model"
+    (model / "point_cloud" / "iteration_7").mkdir(parents=True)
+    write_gs_cameras([front, back], ["front", "back"], model / "cameras.json")
+    src = write_ply(cloud, model / "point_cloud" / "iteration_7" / "point_cloud.ply")
+    args = ["--keep", "0.5", "--views", "1", "--resolution", "40", "--distill", "0"]
+    assert main(["compact", str(src), str(tmp_path / "given.ply"), *args, "--cameras", str(model)]) == 0
+    capsys.readouterr()
+    assert main(["compact", str(src), str(tmp_path / "found.ply"), *args]) == 0
+    assert f"scoring from 2 training cameras from {model / 'cameras.json'}" in capsys.readouterr().out
+    given, found = read_ply(tmp_path / "given.ply"), read_ply(tmp_path / "found.ply")
+    np.testing.assert_array_equal(found.means, given.means)
+    assert main(["compact", str(src), str(tmp_path / "placed.ply"), *args, "--placed-views"]) == 0
+    assert "scoring from" not in capsys.readouterr().out
+    assert not np.array_equal(read_ply(tmp_path / "placed.ply").means, given.means)
+    far = [Camera.look_at(c.center + 100.0, c.center + 101.0, width=40, height=40) for c in (front, back)]
+    write_gs_cameras(far, ["front", "back"], model / "cameras.json")
+    assert main(["compact", str(src), str(tmp_path / "moved.ply"), *args]) == 0
+    out = capsys.readouterr().out
+    assert "but they see 0% of" in out and "views placed around it instead" in out and "scoring from" not in out

@@ -119,3 +119,19 @@ def test_with_images_the_default_is_what_the_set_aside_images_chose(monkeypatch)
         kept = r.groups[r.groups >= 0]
         merged = len(kept) > len(np.unique(kept))  # some output row stands for two or more input rows
         assert used[-1] == name and merged == (name == "hessian") and len(r.cloud) == round(120 * keep)
+
+
+def test_with_images_the_fine_tuning_is_shorter_where_the_prune_is_the_default(monkeypatch):
+    """At most PRUNE_FROM_ITERATIONS a round keeping PHOTOS_PRUNE_FROM or more, DEFAULT_ITERATIONS
+    below (what the images set aside preferred on the plush); `iterations` given wins."""
+    assert compaction.default_iterations(0.5, None, 100) == compaction.PRUNE_FROM_ITERATIONS < \
+        compaction.DEFAULT_ITERATIONS == compaction.default_iterations(None, 10, 100)
+    monkeypatch.setattr(compaction, "PRUNE_FROM_ITERATIONS", 3)
+    monkeypatch.setattr(compaction, "DEFAULT_ITERATIONS", 2)
+    cloud = example_cloud(120, seed=5).with_sh_degree(0)
+    images = _views(cloud, 10, size=16)
+    for keep, ran in ((0.5, 3), (0.1, 2)):
+        r = compact(cloud, keep=keep, images=images, plateau=False, views=2, resolution=16)
+        assert r.rounds[0]["iterations"] == ran
+    assert compact(cloud, keep=0.5, images=images, iterations=1, plateau=False, views=2,
+                   resolution=16).rounds[0]["iterations"] == 1

@@ -6,7 +6,7 @@ them fair. Each checkout may keep its compiled kernels in a cache of its own (`-
 kernels differ would otherwise compile them again in every run. A first run of each, not counted,
 makes them ready.
 
-    python tools/ab_command.py --a /work/main --b . --cache-b RUNS/cache --runs 3 -- compact IN.ply OUT.ply --keep 0.5
+    python tools/ab_command.py --a MAIN --b . --cache-b RUNS/cache --runs 3 -- compact IN.ply OUT.ply --keep 0.5
 """
 
 from __future__ import annotations

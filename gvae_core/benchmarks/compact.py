@@ -232,7 +232,7 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
     fine-tuned on the same photos for as many iterations as ours with photos ran at each fraction
     (the same cost: what the compaction is measured against beside the input itself)."""
     from ..capture import load_cameras, load_capture_images, read_capture  # noqa: PLC0415
-    from ..compaction import DEFAULT_ITERATIONS, fine_tune_height, set_aside  # noqa: PLC0415
+    from ..compaction import fine_tune_height, set_aside  # noqa: PLC0415
     from ..compaction.finetune import tuning_config  # noqa: PLC0415
     from ..rendering import RenderSettings  # noqa: PLC0415
     from ..train import evaluate_views, fine_tune  # noqa: PLC0415
@@ -289,7 +289,7 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
         if "s an iteration" in message or "set-aside PSNR" in message:
             say(f"    {message} [{_loadavg()}]")
 
-    most = DEFAULT_ITERATIONS if iterations is None else iterations
+    most = iterations  # (None: compaction's default_iterations for the fraction)
     for fraction in fractions:
         tuned_iterations = None
         for label, score_name, removal, with_photos, with_cameras, distill, *drop in methods:

@@ -8,7 +8,9 @@ image file, name and split, and the capture's SfM points when it has them. Forma
   their frames are the splits) or one `transforms*.json` file (instant-ngp, nerfstudio: all its
   frames train), `capture.transforms`;
 - a COLMAP capture (`sparse/0` and `images/` as the reference 3DGS, gsplat and nerfstudio read it,
-  or the model folder or one of its files), `capture.colmap`.
+  or the model folder or one of its files), `capture.colmap`;
+- the reference 3DGS's `cameras.json` (or its model folder holding one): cameras without photos,
+  `capture.gs_cameras`.
 
 Frames whose image is missing are dropped, and counted (`Capture.skipped`, with a warning); an
 image whose size differs from its camera's is read as a scaled copy when its aspect agrees (an
@@ -32,6 +34,7 @@ from PIL import Image, UnidentifiedImageError
 from ..camera import Camera
 from ..datasets import DatasetError, Views, premultiplied, read_rgba, resize_rgba
 from .colmap import ColmapModel, SfMPoints, colmap_files, read_colmap
+from .gs_cameras import GS_CAMERAS, is_gs_cameras, read_gs_cameras
 from .lens import Lens, undistort_image, undistorted_camera
 from .transforms import read_transforms
 
@@ -178,14 +181,14 @@ def find_photos(path) -> tuple[Path, list[str]]:
 
 
 def find_capture(path: Path) -> tuple[str, Path | tuple[Path, Path]]:
-    """What `path` names: ("nerf-synthetic", folder), ("transforms", file) or ("colmap", (cameras
-    file, images file)); DatasetError when it is none of them."""
+    """What `path` names: ("nerf-synthetic", folder), ("transforms", file), ("colmap", (cameras
+    file, images file)) or ("3dgs-cameras", file); DatasetError when it is none of them."""
     path = Path(path)
     if not path.exists():
         raise DatasetError(f"{path}: no such file or folder (expected a capture: a COLMAP sparse model with its "
                            f"images, a transforms*.json file, or a NeRF-Synthetic folder)")
     if path.is_file() and path.suffix.lower() == ".json":
-        return "transforms", path
+        return ("3dgs-cameras" if is_gs_cameras(path) else "transforms"), path
     folder = path if path.is_dir() else path.parent
     if path.is_dir() and not colmap_files(folder):
         if (folder / "transforms_train.json").is_file():
@@ -200,14 +203,16 @@ def find_capture(path: Path) -> tuple[str, Path | tuple[Path, Path]]:
             found = sorted(folder.glob("transforms*.json"))
             if len(found) == 1:
                 return "transforms", found[0]
+            if is_gs_cameras(folder / GS_CAMERAS):  # the reference 3DGS's model folder
+                return "3dgs-cameras", folder / GS_CAMERAS
             photos, names = find_photos(folder)
             if names:
                 raise DatasetError(f"{path}: {len(names)} photos in {photos} and no cameras (no COLMAP model, no "
                                    f"transforms*.json): make them by structure from motion with `gvae sfm {path}` "
                                    f"(gvae train, render, refine and compact do it themselves; from Python "
                                    f"gvae_core.capture.ensure_capture)")
-            raise DatasetError(f"{path}: no cameras found (no transforms*.json and no COLMAP cameras/images "
-                               f".bin or .txt) and no photos")
+            raise DatasetError(f"{path}: no cameras found (no transforms*.json, no COLMAP cameras/images "
+                               f".bin or .txt, no 3DGS cameras.json) and no photos")
     files = colmap_files(folder)
     if not files:
         raise DatasetError(f"{path}: not a COLMAP sparse model (needs cameras.bin and images.bin, or cameras.txt "
@@ -235,6 +240,13 @@ def read_capture(path, test_every: int | None = None, *, splits: Sequence[str] |
         t = read_transforms(found)
         frames = [(t, t.files, ["train"] * len(t.files))]
         source = found
+    elif kind == "3dgs-cameras":
+        if images:
+            raise DatasetError(f"{found}: the reference 3DGS's cameras.json holds cameras without photos; give the "
+                               f"capture the splat was trained from (its COLMAP folder) for its images")
+        t = read_gs_cameras(found)
+        frames = [(t, [None] * len(t.cameras), ["train"] * len(t.cameras))]
+        source = found
     else:
         frames = []
         for split in splits or SPLITS:
@@ -247,7 +259,7 @@ def read_capture(path, test_every: int | None = None, *, splits: Sequence[str] |
             frames.append((t, t.files, [split] * len(t.files)))
         source = found
     capture = _assemble(Path(path), source, kind, frames, images)
-    if capture.points is None and kind != "nerf-synthetic":
+    if capture.points is None and kind in ("colmap", "transforms"):
         capture = dataclasses.replace(capture, points=_triangulated_points(capture))
     return capture.held_out(test_every)
 

@@ -22,8 +22,9 @@ from ..camera import Camera
 from ..cloud import GaussianCloud
 from ..conventions import LOG_SCALE_RANGE
 
-__all__ = ["scoring_views", "default_views", "placed_views", "PlacedViews", "outside_views", "inside_views",
-           "surround", "surround_radius", "Surround", "DEFAULT_VIEWS", "DEFAULT_RESOLUTION"]
+__all__ = ["scoring_views", "in_view", "fibonacci_lattice", "default_views", "placed_views", "PlacedViews",
+           "outside_views", "inside_views", "surround", "surround_radius", "Surround", "DEFAULT_VIEWS",
+           "DEFAULT_RESOLUTION"]
 
 #: Views the Hessian is computed from by default, and their height in pixels (`scoring_views`,
 #: `default_views`).
@@ -74,7 +75,7 @@ class Surround:
     positions: np.ndarray
 
 
-def _lattice(cells: int) -> np.ndarray:
+def fibonacci_lattice(cells: int) -> np.ndarray:
     """(cells, 3) unit vectors, a Fibonacci lattice: about evenly spread over the sphere."""
     k = np.arange(cells) + 0.5
     z = 1.0 - 2.0 * k / cells
@@ -128,7 +129,7 @@ def surround(cloud: GaussianCloud, normalization=None, *, sample: int = 200_000)
     content = size < math.sqrt(fine * coarse)
     if content.mean() < SURROUND_CONTENT:
         return None
-    lattice = _lattice(SURROUND_CELLS)
+    lattice = fibonacci_lattice(SURROUND_CELLS)
     around = p[~content] - np.median(p[content], axis=0)
     enclosed = len(np.unique(np.argmax(around @ lattice.T, axis=1))) / SURROUND_CELLS
     if enclosed < SURROUND_ENCLOSED:
@@ -208,7 +209,7 @@ def outside_views(cloud: GaussianCloud, views: int = DEFAULT_VIEWS, resolution: 
     center, half = normalization or cloud.normalization()
     radius = 1.4 * half / math.sin(0.5 * fov_x)
     return [Camera.look_at(center + radius * d, center, (0.0, 0.0, 1.0), width=resolution, height=resolution,
-                           fov_x=fov_x) for d in _lattice(max(int(views), 1))]
+                           fov_x=fov_x) for d in fibonacci_lattice(max(int(views), 1))]
 
 
 @dataclass
@@ -257,7 +258,7 @@ def inside_views(cloud: GaussianCloud, views: int = DEFAULT_VIEWS, resolution: i
     ok, _, rel, r = _around(src, center, sample)
     if len(ok) < 64:
         return []
-    lattice = _lattice(SURROUND_CELLS)
+    lattice = fibonacci_lattice(SURROUND_CELLS)
     cell = np.argmax(rel @ lattice.T, axis=1)
     reach = np.zeros(SURROUND_CELLS)  # per direction, the far side of the cloud
     for k in np.unique(cell):
@@ -285,6 +286,21 @@ def default_views(cloud: GaussianCloud, views: int = DEFAULT_VIEWS, resolution: 
     return placed_views(cloud, views, resolution, fov_x, normalization).scoring
 
 
+def in_view(cameras: Sequence[Camera], cloud: GaussianCloud, sample: int = 20_000) -> np.ndarray:
+    """(len(cameras), K) bool: which of K of the cloud's finite centres (all, or a fixed random
+    `sample` of them) each camera has in its image, in front of it."""
+    p = np.asarray(cloud.numpy().means, np.float64)
+    p = p[np.isfinite(p).all(1)]
+    if len(p) > sample:
+        p = p[np.random.default_rng(0).choice(len(p), sample, replace=False)]
+    out = np.zeros((len(cameras), len(p)), bool)
+    for i, cam in enumerate(cameras):
+        uv, z = cam.project(p)
+        with np.errstate(invalid="ignore"):
+            out[i] = (z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height)
+    return out
+
+
 def scoring_views(cameras: Sequence[Camera], views: int = DEFAULT_VIEWS, resolution: int = DEFAULT_RESOLUTION,
                   cloud: GaussianCloud | None = None) -> list[Camera]:
     """`views` of the capture's `cameras` to compute the Hessian from: those that see the cloud
@@ -298,16 +314,8 @@ def scoring_views(cameras: Sequence[Camera], views: int = DEFAULT_VIEWS, resolut
         raise ValueError("scoring views: no cameras")
     seen = np.ones(len(cams))
     if cloud is not None and len(cloud):
-        p = np.asarray(cloud.numpy().means, np.float64)
-        p = p[np.isfinite(p).all(1)]
-        if len(p) > 20_000:
-            p = p[np.random.default_rng(0).choice(len(p), 20_000, replace=False)]
-        for i, cam in enumerate(cams):
-            uv, z = cam.project(p)
-            with np.errstate(invalid="ignore"):
-                inside = (z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) \
-                    & (uv[:, 1] <= cam.height)
-            seen[i] = inside.mean() if len(p) else 0.0
+        sees = in_view(cams, cloud)
+        seen = sees.mean(1) if sees.shape[1] else np.zeros(len(cams))
         keep = np.flatnonzero(seen >= 0.01)
         if len(keep) == 0:
             raise ValueError(f"none of the {len(cams)} cameras sees the cloud (are they in the cloud's frame? a "

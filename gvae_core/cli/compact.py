@@ -11,9 +11,10 @@ from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS
 from . import progress_lines
 from .sfm import prepare_capture
 
-#: (`compaction.AUTO_DISTILL`, `AUTO_DISTILL_MAX`, `AUTO_DISTILL_SECONDS`, `SET_ASIDE_EVERY` and
-#: `PHOTOS_PRUNE_FROM`, without importing torch for --help.)
+#: (`compaction.AUTO_DISTILL`, `AUTO_DISTILL_MAX`, `AUTO_DISTILL_SECONDS`, `SET_ASIDE_EVERY`,
+#: `PHOTOS_PRUNE_FROM`, `PRUNE_FROM_ITERATIONS` and `DEFAULT_ITERATIONS`, without importing torch for --help.)
 AUTO_DISTILL, AUTO_DISTILL_MAX, AUTO_DISTILL_SECONDS, SET_ASIDE_EVERY, PHOTOS_PRUNE_FROM = 1000, 50_000, 180.0, 8, 0.3
+PRUNE_FROM_ITERATIONS, DEFAULT_ITERATIONS = 1000, 3000
 
 
 def register(subparsers) -> None:
@@ -37,9 +38,13 @@ def register(subparsers) -> None:
                         help="keep as few as hold the picture at the training resolution, seen from the scoring views, "
                         "at or above DB of PSNR against the input's own render (for example 40)")
     c.add_argument("--cameras", type=Path, default=None, metavar="PATH",
-                   help="the capture's cameras: a transforms*.json file or a COLMAP sparse model (--views of them "
-                   "score; none of what any of them sees is dropped as unseen); default: views placed around the "
+                   help="the capture's cameras: a transforms*.json file, a COLMAP sparse model or the reference "
+                   "3DGS's cameras.json (--views of them score; none of what any of them sees is dropped as "
+                   "unseen); default: the training cameras found beside IN (the reference 3DGS's MODEL/cameras.json "
+                   "two folders up, a gvae train run's capture) when they see it, else views placed around the "
                    "cloud, all around an object, inside a scene that surrounds its centre")
+    c.add_argument("--placed-views", action="store_true",
+                   help="score from views placed around the cloud even where training cameras are found beside IN")
     c.add_argument("--views", type=int, default=DEFAULT_VIEWS,
                    help="scoring views (of the capture's cameras, spread out; 0: all of them) (default: %(default)s)")
     c.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION,
@@ -67,8 +72,9 @@ def register(subparsers) -> None:
     c.add_argument("--rounds", type=int, default=None,
                    help="removal and fine-tuning rounds with --images or --distill (default: 1)")
     c.add_argument("--iterations", type=int, default=None,
-                   help="the most fine-tuning iterations a round with --images (default: 3000; PUP 3D-GS runs "
-                   "5000); each round stops sooner when the images set aside stop improving")
+                   help=f"the most fine-tuning iterations a round with --images (default: {PRUNE_FROM_ITERATIONS} "
+                   f"keeping {PHOTOS_PRUNE_FROM:.0%}% or more, {DEFAULT_ITERATIONS} below; PUP 3D-GS runs 5000); each "
+                   "round stops sooner when the images set aside stop improving")
     c.add_argument("--no-plateau", dest="plateau", action="store_false",
                    help="with --images or --distill: set no images aside and run every iteration (default: every "
                    f"{SET_ASIDE_EVERY}th training image is set aside, never trained on, and each round stops when "
@@ -107,8 +113,8 @@ def parse_keep(text: str) -> float:
 
 
 def run_compact(args: argparse.Namespace) -> int:
-    from ..capture import load_cameras, load_capture_images  # noqa: PLC0415 - torch-free, but only here
-    from ..compaction import DEFAULT_ITERATIONS, compact, distill_iterations, fine_tune_height  # noqa: PLC0415
+    from ..capture import load_cameras, load_capture_images, training_cameras  # noqa: PLC0415 - torch-free
+    from ..compaction import compact, distill_iterations, fine_tune_height  # noqa: PLC0415
     from ..formats import output_format, read_splat_file, write_splat_file  # noqa: PLC0415
 
     output_format(args.output)  # a name it cannot write is refused before any work
@@ -124,6 +130,11 @@ def run_compact(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     cloud = read_splat_file(args.input, sanitize=args.sanitize)
     cameras = load_cameras(args.cameras, args.test_every) if args.cameras is not None else None
+    if cameras is None and args.images is None and not args.placed_views:
+        cameras, lines = training_cameras(args.input, cloud)
+        for line in lines:
+            tail = " (--placed-views to place views instead)" if line.startswith("scoring from") else ""
+            print(f"gvae compact: {line}{tail}", flush=True)
     images = None
     if args.images is not None:
         height = args.image_height or fine_tune_height(cloud, load_cameras(args.images, args.test_every))
@@ -132,7 +143,7 @@ def run_compact(args: argparse.Namespace) -> int:
     progress = progress_lines()
     result = compact(cloud, keep=keep, count=args.count, tolerance=args.tolerance, cameras=cameras, views=args.views,
                      resolution=args.resolution, score=args.score, removal=args.removal, images=images,
-                     rounds=args.rounds, iterations=DEFAULT_ITERATIONS if args.iterations is None else args.iterations,
+                     rounds=args.rounds, iterations=args.iterations,
                      distill=args.distill, plateau=args.plateau, seed=args.seed,
                      progress=progress if images is not None or distill_iterations(args.distill, len(cloud), images,
                                                                                    args.tolerance) else None)

@@ -58,8 +58,8 @@ from ..resources import check_compact_memory, reuse_freed_memory
 from . import finetune
 from .finetune import (AUTO_DISTILL, AUTO_DISTILL_MAX, AUTO_DISTILL_SECONDS, CHECK_EVERY, DEFAULT_ITERATIONS,
                        DISTILL_ASIDE, DISTILL_CHECK_EVERY, DISTILL_VIEWS, PHOTOS_PRUNE_FROM, PHOTOS_REMOVAL,
-                       PHOTOS_SCORE, SET_ASIDE_EVERY, Tuning, compact_with_images, fine_tune_height, own_renders,
-                       set_aside)
+                       PHOTOS_SCORE, PRUNE_FROM_ITERATIONS, SET_ASIDE_EVERY, Tuning, compact_with_images,
+                       fine_tune_height, own_renders, set_aside)
 from .graph import NEIGHBOURS, owner_root
 from .merge import merge_groups, merge_groups_reference, ordered
 from .moments import COLOUR_WEIGHT
@@ -70,12 +70,12 @@ from .tolerance import tolerance_count
 from .views import CompactionViews, compaction_views, compare, sight
 
 __all__ = ["SCORES", "REMOVALS", "CompactResult", "CompactionViews", "compact", "compaction_scores",
-           "compaction_views", "default_method", "distill_iterations", "fine_tune_height", "merge_groups",
-           "merge_groups_reference", "own_renders", "owner_root", "pixel_hits", "pixel_hits_reference",
+           "compaction_views", "default_iterations", "default_method", "distill_iterations", "fine_tune_height",
+           "merge_groups", "merge_groups_reference", "own_renders", "owner_root", "pixel_hits", "pixel_hits_reference",
            "removal_groups", "set_aside", "target_count", "AUTO_DISTILL", "AUTO_DISTILL_MAX", "AUTO_DISTILL_SECONDS",
            "CHECK_EVERY", "COLOUR_WEIGHT", "DEFAULT_ITERATIONS", "DISTILL_ASIDE", "DISTILL_VIEWS", "NEIGHBOURS",
-           "PHOTOS_PRUNE_FROM", "PHOTOS_REMOVAL", "PHOTOS_SCORE", "PRUNE_FRACTION", "PSNR_CAP", "SET_ASIDE_EVERY",
-           "UNSEEN", "UNSEEN_WARNING"]
+           "PHOTOS_PRUNE_FROM", "PHOTOS_REMOVAL", "PHOTOS_SCORE", "PRUNE_FROM_ITERATIONS", "PRUNE_FRACTION", "PSNR_CAP",
+           "SET_ASIDE_EVERY", "UNSEEN", "UNSEEN_WARNING"]
 
 
 # ------------------------------------------------------------------------------ checks
@@ -101,11 +101,22 @@ def default_method(images, keep, count, n: int, score: str | None, removal: str 
     `images` keeping PHOTOS_PRUNE_FROM or more of the `n` Gaussians, PHOTOS_SCORE pruned
     (PHOTOS_REMOVAL); else the Hessian's merge. One given alone goes with the other's "hessian" or
     "merge"."""
-    if score is None and removal is None and images is not None:
-        fraction = count / n if _number(count) and n else keep
-        if _number(fraction) and fraction >= PHOTOS_PRUNE_FROM:
-            return PHOTOS_SCORE, PHOTOS_REMOVAL
+    if score is None and removal is None and images is not None and _kept(keep, count, n) >= PHOTOS_PRUNE_FROM:
+        return PHOTOS_SCORE, PHOTOS_REMOVAL
     return score or "hessian", removal or "merge"
+
+
+def default_iterations(keep, count, n: int) -> int:
+    """The most fine-tuning iterations a round with images when none are asked for: keeping
+    PHOTOS_PRUNE_FROM or more of the `n` Gaussians, PRUNE_FROM_ITERATIONS, else DEFAULT_ITERATIONS
+    (`finetune` says why)."""
+    return PRUNE_FROM_ITERATIONS if _kept(keep, count, n) >= PHOTOS_PRUNE_FROM else DEFAULT_ITERATIONS
+
+
+def _kept(keep, count, n: int) -> float:
+    """The fraction kept that `keep` or `count` of `n` asks for (0 when a tolerance decides)."""
+    fraction = count / n if _number(count) and n else keep
+    return float(fraction) if _number(fraction) else 0.0
 
 
 def _number(value) -> bool:
@@ -161,7 +172,7 @@ def _check_arguments(n: int, keep, count, tolerance, images, distill: int, round
 def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | None = None,
             tolerance: float | None = None, cameras: Sequence[Camera] | None = None, views: int = DEFAULT_VIEWS,
             resolution: int = DEFAULT_RESOLUTION, score: str | None = None, removal: str | None = None,
-            images=None, rounds: int | None = None, iterations: int = DEFAULT_ITERATIONS, distill: int | str = "auto",
+            images=None, rounds: int | None = None, iterations: int | None = None, distill: int | str = "auto",
             plateau: bool = True, seed: int = 0,
             neighbours: int = NEIGHBOURS, prune: float = PRUNE_FRACTION,
             render_settings: RenderSettings | None = None,
@@ -178,7 +189,8 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     the input that merging drops first, the lowest scores (`removal_groups`; 0: merge all that is seen);
     `neighbours`: of each Gaussian in the merge graph. `images`: the capture's training images
     (`datasets.Views`, in the cloud's frame, at the resolution to fine-tune at): `rounds` rounds
-    (default 1) of removal and at most `iterations` of fine-tuning each (`train.fine_tune`), the scores
+    (default 1) of removal and at most `iterations` (None: `default_iterations`) of fine-tuning each
+    (`train.fine_tune`), the scores
     then come from `images`' cameras; with `plateau` (the default) every SET_ASIDE_EVERY-th image is set
     aside, never trained on, and each round's fine-tuning stops when their PSNR stops rising
     (`finetune.tune`), without it every iteration runs. `distill`: without images, fine-tune as with
@@ -200,6 +212,7 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     n = len(src)
     auto = isinstance(distill, str)
     distill = distill_iterations(distill, n, images, tolerance)
+    iterations = default_iterations(keep, count, n) if iterations is None else iterations
     target = _check_arguments(n, keep, count, tolerance, images, distill, rounds, iterations)
     if check_memory:
         extra = sum(int(np.prod(np.shape(v)[1:], dtype=np.int64)) for v in src.extra.values())

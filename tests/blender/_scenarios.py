@@ -1160,6 +1160,36 @@ def scenario_compact_job(bpy, args: dict) -> dict:
     return res
 
 
+def scenario_compact_cameras(bpy, args: dict) -> dict:
+    """Which cameras the Compact job hands the core (a stand-in that records them): those found beside
+    the imported file (the reference 3DGS's MODEL/cameras.json), none with Training Cameras off, the
+    Cameras path when given; the operator's report says which."""
+    import types
+
+    import numpy as np
+
+    from bl_ext.user_default.gaussian_vae.gvae_addon import convert, refine_ops
+
+    bpy.ops.import_scene.gaussian_splat(filepath=args["ply"])
+    obj = bpy.context.active_object
+    res = {"source": obj.get(convert.SOURCE_PROP)}
+    got = []
+
+    def compact(cloud, *, progress=None, cameras=None, **kw):
+        got.append(None if cameras is None else len(cameras))
+        rows = np.arange(len(cloud))
+        progress(1.0, "stand-in done")
+        return types.SimpleNamespace(cloud=cloud, rows=rows, psnr=99.0, timings={}, warnings=[])
+
+    notes = []
+    for kw in ({}, {"found_cameras": False}, {"cameras": args["cameras"]}):
+        job = refine_ops.CompactJob(obj, keep=1.0, compact=compact, **kw).start()
+        job.wait(60)
+        notes.append(job.finish()["views"])
+    res["got"], res["notes"] = got, notes
+    return res
+
+
 def scenario_eevee(bpy, args: dict) -> dict:
     """EEVEE (Blender's default engine) renders the imported splats to PNG. First an empty scene
     (the probe: whether EEVEE runs here at all, without a GPU it needs a software OpenGL), then the

@@ -114,3 +114,27 @@ def test_refine_with_the_captures_images(extension_zip, tmp_path):
     assert after >= before and undone == before and redone == after
     assert {"gvae_octave_limit", "gvae_octave_opacity", "gvae_octave_scale_0"} <= set(res["octave_attrs"])
     assert res["settings"] == ["images", "image_height"] and res["job_fields"]
+
+
+def test_compact_scores_from_the_cameras_found_beside_the_imported_file(extension_zip, tmp_path):
+    """An import remembers its file; Compact hands the core the training cameras found beside it (the
+    reference 3DGS's MODEL/cameras.json two folders up), none with Training Cameras off, and the
+    Cameras path's when one is given, saying which."""
+    requires_blender_torch()  # (gvae_core.capture, in Blender's Python)
+    from gvae_core import Camera  # noqa: PLC0415
+    from gvae_core.capture.gs_cameras import write_gs_cameras  # noqa: PLC0415
+
+    cloud = make_cloud(40, degree=1)
+    model = tmp_path / "model"
+    (model / "point_cloud" / "iteration_7").mkdir(parents=True)
+    src = write_ply(cloud, model / "point_cloud" / "iteration_7" / "point_cloud.ply")
+    centre = np.asarray(cloud.means, np.float64).mean(0)
+    cams = [Camera.look_at(centre + 4.0 * np.array(d), centre, width=64, height=48)
+            for d in ((1, 0, 0.3), (0, 1, 0.3), (-1, 0, 0.3))]
+    write_gs_cameras(cams, ["a", "b", "c"], model / "cameras.json")
+    write_gs_cameras(cams[:2], ["a", "b"], tmp_path / "two.json")
+    res = run_scenario("compact_cameras", tmp_path, extension_zip, ply=str(src), cameras=str(tmp_path / "two.json"))
+    assert res["source"] == str(src)
+    assert res["got"] == [3, None, 2]
+    assert "scoring from 3 training cameras from" in res["notes"][0][-1] and res["notes"][1] == []
+    assert res["notes"][2] == [f"scoring from 2 cameras of {tmp_path / 'two.json'}"]
