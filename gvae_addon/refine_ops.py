@@ -267,32 +267,47 @@ class RefineJob(CoreJob):
 
 
 class CompactJob(CoreJob):
-    """`gvae_core.compaction.compact` on a splat object (`keep` a fraction or `count` Gaussians),
-    scored from the capture's cameras: those at `cameras` (a capture, a transforms.json, the
-    reference 3DGS's cameras.json) when given, else with `found_cameras` those its training left
-    beside the file it was imported from (`capture.training_cameras`), else views placed around
-    it; each remaining Gaussian keeps the `gvae_step` of the input row it stands for. `compact`: a
-    stand-in for the core function (tests)."""
+    """`gvae_core.compaction.compact` on a splat object (`keep` a fraction or `count` Gaussians):
+    with the capture's photos at `images` (any capture `gvae train` reads) fine-tuned on them, as
+    `gvae compact --images` (`removal` None: the core's default for the fraction); else scored from
+    the capture's cameras: those at `cameras` (a capture, a transforms.json, the reference 3DGS's
+    cameras.json) when given, else with `found_cameras` those its training left beside the file it
+    was imported from (`capture.training_cameras`), else views placed around it. Each remaining
+    Gaussian keeps the `gvae_step` of the input row it stands for. `removal` None: the core's
+    default (`compaction.default_method`). Paths are resolved (`//`) here, on the main thread.
+    `compact`: a stand-in for the core function (tests)."""
 
     label, participle = "Compact", "compacted"
 
-    def __init__(self, obj, *, keep: float | None = 0.5, count: int | None = None, removal: str = "merge",
+    def __init__(self, obj, *, keep: float | None = 0.5, count: int | None = None, removal: str | None = "merge",
                  distill: int | str = "auto", seed: int = 0, cameras: str = "", found_cameras: bool = True,
-                 compact=None):
+                 images: str = "", compact=None):
         super().__init__(obj, compact)
         self.keep, self.count, self.removal, self.distill, self.seed = keep, count, removal, distill, seed
-        self.cameras_path, self.source = cameras.strip(), obj.get(convert.SOURCE_PROP) if found_cameras else None
+        self.cameras_path = bpy.path.abspath(cameras.strip()) if cameras.strip() else ""
+        self.images_path = bpy.path.abspath(images.strip()) if images.strip() else ""
+        self.source = obj.get(convert.SOURCE_PROP) if found_cameras else None
         self.notes: list[str] = []
 
     def _load(self):
         return runtime.core_compact()
 
     def _run(self, compact, cloud, progress):
-        from gvae_core.capture import load_cameras, training_cameras  # noqa: PLC0415 - in the worker
+        # (in the worker: reading a capture's photos takes seconds)
+        from gvae_core.capture import load_cameras, load_capture_images, training_cameras  # noqa: PLC0415
+        from gvae_core.compaction import fine_tune_height  # noqa: PLC0415
 
+        if self.images_path:
+            progress(0.0, f"reading the photos of {self.images_path}")
+            height = fine_tune_height(cloud, load_cameras(self.images_path))
+            images = load_capture_images(self.images_path, height)
+            self.notes.append(f"fine-tuned on {len(images)} photos of {self.images_path} at {images.cameras[0].height} "
+                              "px")
+            return compact(cloud, keep=self.keep, count=self.count, removal=self.removal, seed=self.seed,
+                           images=images, progress=progress)
         cameras = None
         if self.cameras_path:
-            cameras = load_cameras(bpy.path.abspath(self.cameras_path))
+            cameras = load_cameras(self.cameras_path)
             self.notes.append(f"scoring from {len(cameras)} cameras of {self.cameras_path}")
         elif self.source:
             cameras, self.notes = training_cameras(self.source, cloud)
@@ -306,8 +321,10 @@ class CompactJob(CoreJob):
 
     def _info(self) -> dict:
         r = self.result
+        tuned = [{k: x.get(k) for k in ("iterations", "best_at", "judged_on", "psnr_before", "psnr_after")}
+                 for x in getattr(r, "rounds", ())]
         return {"after": len(r.cloud), "psnr": float(r.psnr), "timings": dict(r.timings),
-                "warnings": list(getattr(r, "warnings", ())), "views": list(self.notes)}
+                "warnings": list(getattr(r, "warnings", ())), "views": list(self.notes), "tuned": tuned}
 
 
 #: Jobs running now, by `key` (the object's name; the panel shows their progress; one job per key).
@@ -503,8 +520,13 @@ class GVAE_OT_refine(JobOperator, Operator):
 
 
 #: Compact's removal choices and what its fine-tuning does (the operator and the panel's settings).
-REMOVAL_ITEMS = (("MERGE", "Merge", "Merge Gaussians into their neighbours (moments kept)"),
+REMOVAL_ITEMS = (("AUTO", "Auto", "Merge; with Photos, what the photos set aside chose: LightGaussian's prune "
+                  "keeping 30% or more, the merge below"),
+                 ("MERGE", "Merge", "Merge Gaussians into their neighbours (moments kept)"),
                  ("PRUNE", "Prune", "Drop the Gaussians with the lowest scores"))
+COMPACT_IMAGES_DESCRIPTION = ("The capture's photos (a COLMAP capture, a transforms.json with its images, a "
+                              "NeRF-Synthetic folder): remove, then fine-tune on them until the photos set aside stop "
+                              "improving (1-3 minutes for 50,000 Gaussians), as gvae compact --images; empty: without")
 CAMERAS_DESCRIPTION = ("The capture's cameras to score from (a COLMAP capture folder, a transforms.json, the reference "
                        "3DGS's cameras.json); empty: the training cameras found beside the imported file, else views "
                        "placed around the object")
@@ -530,21 +552,27 @@ class GVAE_OT_compact(JobOperator, Operator):
                         description="Fraction of the Gaussians to keep")
     count: IntProperty(name="Count", default=0, min=0,
                        description="Number of Gaussians to keep (0: use Keep)")
-    removal: EnumProperty(name="Removal", default="MERGE", items=REMOVAL_ITEMS)
+    removal: EnumProperty(name="Removal", default="AUTO", items=REMOVAL_ITEMS)
     distill: IntProperty(name="Fine-Tune Iterations", default=-1, min=-1, description=DISTILL_DESCRIPTION)
     seed: IntProperty(name="Seed", default=0, min=0, description="Random seed (repeatable runs)")
     cameras: StringProperty(name="Cameras", subtype="FILE_PATH", default="", description=CAMERAS_DESCRIPTION)
     found_cameras: BoolProperty(name="Training Cameras", default=True, description=FOUND_CAMERAS_DESCRIPTION)
+    images: StringProperty(name="Photos", subtype="DIR_PATH", default="", description=COMPACT_IMAGES_DESCRIPTION)
 
     def _job(self, context) -> CompactJob:
         return CompactJob(context.active_object, keep=None if self.count else self.keep, count=self.count or None,
-                          removal=self.removal.lower(), distill="auto" if self.distill < 0 else self.distill,
-                          seed=self.seed, cameras=self.cameras, found_cameras=self.found_cameras)
+                          removal=None if self.removal == "AUTO" else self.removal.lower(),
+                          distill="auto" if self.distill < 0 else self.distill, seed=self.seed, cameras=self.cameras,
+                          found_cameras=self.found_cameras, images=self.images)
 
     def _report_text(self, info: dict) -> str:
         return (f"Compact: {info['before']} -> {info['after']} Gaussians ({info['after'] / max(info['before'], 1):.0%})"
                 f" in {info['seconds']:.2f} s; PSNR against the input's render {info['psnr']:.2f} dB"
-                + "".join(f"; {note}" for note in info.get("views", ())) + _timing_text(info))
+                + "".join(f"; {note}" for note in info.get("views", ()))
+                + "".join(f"; fine-tuned {t['iterations']} iterations (best at {t['best_at']}), PSNR on "
+                          f"{t['judged_on']} {t['psnr_before']:.2f} -> {t['psnr_after']:.2f} dB"
+                          for t in info.get("tuned", ()))
+                + _timing_text(info))
 
 
 classes = (GVAE_OT_refine, GVAE_OT_compact)

@@ -34,9 +34,11 @@ class GVAE_Settings(PropertyGroup):
                               description=refine_ops.IMAGE_HEIGHT_DESCRIPTION)
     compact_keep: FloatProperty(name="Keep", default=0.5, min=0.001, max=1.0, subtype="FACTOR",
                                 description="Fraction of the Gaussians Compact keeps")
-    compact_removal: EnumProperty(name="Removal", default="MERGE", items=refine_ops.REMOVAL_ITEMS)
+    compact_removal: EnumProperty(name="Removal", default="AUTO", items=refine_ops.REMOVAL_ITEMS)
     compact_distill: IntProperty(name="Fine-Tune Iterations", default=-1, min=-1,
                                  description=refine_ops.DISTILL_DESCRIPTION)
+    compact_images: StringProperty(name="Photos", subtype="DIR_PATH", default="",
+                                   description=refine_ops.COMPACT_IMAGES_DESCRIPTION)
     compact_cameras: StringProperty(name="Cameras", subtype="FILE_PATH", default="",
                                     description=refine_ops.CAMERAS_DESCRIPTION)
     compact_found_cameras: BoolProperty(name="Training Cameras", default=True,
@@ -178,7 +180,9 @@ COMPACT_NOTE = (
     "Cameras), else from views placed all around",
     "the object (inside a scene), then fine-tunes",
     "against the object's own renders (-1: up to",
-    "1000 iterations, 50,000 Gaussians). Warns",
+    "1000 iterations, 50,000 Gaussians). With",
+    "Photos: fine-tuned on the capture's photos",
+    "instead, as gvae compact --images. Warns",
     "when the views miss part of it",
     "(README: Compaction).",
 )
@@ -225,9 +229,13 @@ class GVAE_PT_compact(_JobPanel):
     def _settings(self, col, settings, obj) -> None:
         col.prop(settings, "compact_keep")
         col.prop(settings, "compact_removal")
-        col.prop(settings, "compact_distill")
-        col.prop(settings, "compact_cameras")
-        found = col.column()
+        col.prop(settings, "compact_images")
+        with_photos = bool(settings.compact_images.strip())
+        views = col.column()
+        views.enabled = not with_photos  # (the photos' own cameras score, and the photos fine-tune)
+        views.prop(settings, "compact_distill")
+        views.prop(settings, "compact_cameras")
+        found = views.column()
         found.enabled = not settings.compact_cameras.strip()
         found.prop(settings, "compact_found_cameras")
         if convert.is_any_splat(obj):
@@ -239,6 +247,7 @@ class GVAE_PT_compact(_JobPanel):
         op.removal = settings.compact_removal
         op.distill = settings.compact_distill
         op.cameras = settings.compact_cameras
+        op.images = settings.compact_images
         op.found_cameras = settings.compact_found_cameras
 
 

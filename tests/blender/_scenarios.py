@@ -1161,9 +1161,9 @@ def scenario_compact_job(bpy, args: dict) -> dict:
 
 
 def scenario_compact_cameras(bpy, args: dict) -> dict:
-    """Which cameras the Compact job hands the core (a stand-in that records them): those found beside
-    the imported file (the reference 3DGS's MODEL/cameras.json), none with Training Cameras off, the
-    Cameras path when given; the operator's report says which."""
+    """What the Compact job hands the core (a stand-in that records it): the cameras found beside the
+    imported file (the reference 3DGS's MODEL/cameras.json), none with Training Cameras off, the
+    Cameras path's when given, the Photos' images (with the core's default removal); and what it says."""
     import types
 
     import numpy as np
@@ -1175,18 +1175,22 @@ def scenario_compact_cameras(bpy, args: dict) -> dict:
     res = {"source": obj.get(convert.SOURCE_PROP)}
     got = []
 
-    def compact(cloud, *, progress=None, cameras=None, **kw):
-        got.append(None if cameras is None else len(cameras))
+    def compact(cloud, *, progress=None, cameras=None, images=None, removal="?", **kw):
+        got.append([None if cameras is None else len(cameras), None if images is None else len(images), removal])
         rows = np.arange(len(cloud))
         progress(1.0, "stand-in done")
-        return types.SimpleNamespace(cloud=cloud, rows=rows, psnr=99.0, timings={}, warnings=[])
+        rounds = [] if images is None else [{"iterations": 7, "best_at": 5, "judged_on": "the 1 of 4 set aside",
+                                             "psnr_before": 20.0, "psnr_after": 21.5}]
+        return types.SimpleNamespace(cloud=cloud, rows=rows, psnr=99.0, timings={}, warnings=[], rounds=rounds)
 
-    notes = []
-    for kw in ({}, {"found_cameras": False}, {"cameras": args["cameras"]}):
+    notes, tuned = [], []
+    for kw in ({}, {"found_cameras": False}, {"cameras": args["cameras"]}, {"images": args["images"], "removal": None}):
         job = refine_ops.CompactJob(obj, keep=1.0, compact=compact, **kw).start()
         job.wait(60)
-        notes.append(job.finish()["views"])
-    res["got"], res["notes"] = got, notes
+        info = job.finish()
+        notes.append(info["views"])
+        tuned.append(info["tuned"])
+    res["got"], res["notes"], res["tuned"] = got, notes, tuned
     return res
 
 

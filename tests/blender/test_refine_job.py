@@ -4,8 +4,11 @@ without a window (`RefineJob.start/poll/cancel/finish`), as the modal operator d
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
+from PIL import Image
 
 from gvae_core.ply import write_ply
 from tests.blender.conftest import requires_blender_torch, run_scenario
@@ -118,8 +121,9 @@ def test_refine_with_the_captures_images(extension_zip, tmp_path):
 
 def test_compact_scores_from_the_cameras_found_beside_the_imported_file(extension_zip, tmp_path):
     """An import remembers its file; Compact hands the core the training cameras found beside it (the
-    reference 3DGS's MODEL/cameras.json two folders up), none with Training Cameras off, and the
-    Cameras path's when one is given, saying which."""
+    reference 3DGS's MODEL/cameras.json two folders up), none with Training Cameras off, the Cameras
+    path's when one is given, saying which; with Photos, the capture's images at the height the splat
+    was trained at and the core's default removal, and the report carries the fine-tuning's figures."""
     requires_blender_torch()  # (gvae_core.capture, in Blender's Python)
     from gvae_core import Camera  # noqa: PLC0415
     from gvae_core.capture.gs_cameras import write_gs_cameras  # noqa: PLC0415
@@ -133,8 +137,18 @@ def test_compact_scores_from_the_cameras_found_beside_the_imported_file(extensio
             for d in ((1, 0, 0.3), (0, 1, 0.3), (-1, 0, 0.3))]
     write_gs_cameras(cams, ["a", "b", "c"], model / "cameras.json")
     write_gs_cameras(cams[:2], ["a", "b"], tmp_path / "two.json")
-    res = run_scenario("compact_cameras", tmp_path, extension_zip, ply=str(src), cameras=str(tmp_path / "two.json"))
+    photos = tmp_path / "photos"  # the capture's photos: a transforms_train.json and its four images
+    photos.mkdir()
+    frames = []
+    for i, cam in enumerate(cams + [Camera.look_at(centre + (0.0, -4.0, 1.2), centre, width=64, height=48)]):
+        Image.new("RGB", (cam.width, cam.height), (90, 120, 150)).save(photos / f"r_{i}.png")
+        frames.append({"file_path": f"r_{i}", "transform_matrix": cam.to_blender_c2w().tolist()})
+    (photos / "transforms_train.json").write_text(json.dumps({"camera_angle_x": cams[0].fov_x, "frames": frames}))
+    res = run_scenario("compact_cameras", tmp_path, extension_zip, ply=str(src), cameras=str(tmp_path / "two.json"),
+                       images=str(photos))
     assert res["source"] == str(src)
-    assert res["got"] == [3, None, 2]
+    assert res["got"] == [[3, None, "merge"], [None, None, "merge"], [2, None, "merge"], [None, 4, None]]
     assert "scoring from 3 training cameras from" in res["notes"][0][-1] and res["notes"][1] == []
     assert res["notes"][2] == [f"scoring from 2 cameras of {tmp_path / 'two.json'}"]
+    assert res["notes"][3][0].startswith(f"fine-tuned on 4 photos of {photos} at ")
+    assert res["tuned"][:3] == [[], [], []] and res["tuned"][3][0]["psnr_after"] == 21.5
