@@ -135,3 +135,15 @@ def test_with_images_the_fine_tuning_is_shorter_where_the_prune_is_the_default(m
         assert r.rounds[0]["iterations"] == ran
     assert compact(cloud, keep=0.5, images=images, iterations=1, plateau=False, views=2,
                    resolution=16).rounds[0]["iterations"] == 1
+
+
+def test_a_fine_tuning_stopped_by_its_cap_while_still_improving_is_said():
+    """Judged by a plateau, ran every iteration and liked the last best: a warning naming how to allow
+    more; stopped by the plateau (best earlier) or run without one (no checks): none."""
+    from gvae_core.compaction.finetune import still_gaining  # noqa: PLC0415
+
+    capped = {"iterations": 1000, "best_at": 1000, "checks": [(100, 30.0), (1000, 31.0)]}
+    said = still_gaining([{**capped, "best_at": 600}, capped], "--iterations (more than 1,000)")
+    assert said == ["round 2 of the fine-tuning was still improving at its last iteration (1,000): allow more with "
+                    "--iterations (more than 1,000)"]
+    assert still_gaining([{**capped, "checks": []}], "--distill") == []

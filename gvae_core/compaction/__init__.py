@@ -59,7 +59,7 @@ from . import finetune
 from .finetune import (AUTO_DISTILL, AUTO_DISTILL_MAX, AUTO_DISTILL_SECONDS, CHECK_EVERY, DEFAULT_ITERATIONS,
                        DISTILL_ASIDE, DISTILL_CHECK_EVERY, DISTILL_VIEWS, PHOTOS_PRUNE_FROM, PHOTOS_REMOVAL,
                        PHOTOS_SCORE, PRUNE_FROM_ITERATIONS, SET_ASIDE_EVERY, Tuning, compact_with_images,
-                       fine_tune_height, own_renders, set_aside)
+                       fine_tune_height, own_renders, set_aside, still_gaining)
 from .graph import NEIGHBOURS, owner_root
 from .merge import merge_groups, merge_groups_reference, ordered
 from .moments import COLOUR_WEIGHT
@@ -245,7 +245,9 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
         else:
             result = _compact(src, target, tolerance, cameras, looks, how, seed, settings, say, timings,
                               listened=progress is not None)
-    result.warnings = unseen_warning(n, result.unseen, looks is not None and looks.placed)
+    result.warnings = unseen_warning(n, result.unseen, looks is not None and looks.placed) + still_gaining(
+        result.rounds, f"--iterations (more than {iterations:,})" if images is not None else
+        f"--distill (more than {distill:,}; Fine-Tune Iterations in Blender)")
     result.cloud = result.cloud.replace(background=src.background)  # drawn over what the input was trained over
     timings["total"] = time.perf_counter() - t_start
     say(1.0, result.summary())

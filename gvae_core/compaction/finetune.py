@@ -247,6 +247,15 @@ def tune(cloud: GaussianCloud, tuning: Tuning, config, seed: int,
     return tuned, record
 
 
+def still_gaining(records: Sequence[dict], option: str) -> list[str]:
+    """A warning for each round whose fine-tuning, judged by a plateau (`tune`), ran all its
+    iterations and liked its last state best: it was stopped by the cap, not the plateau (a splat
+    trained briefly still gains; `option` names how to allow more)."""
+    return [f"round {k} of the fine-tuning was still improving at its last iteration ({r['iterations']:,}): "
+            f"allow more with {option}" for k, r in enumerate(records, 1)
+            if r.get("checks") and r["best_at"] == r["iterations"] and r["iterations"] > 0]
+
+
 def _with_parameters(tuned: GaussianCloud, params: GaussianCloud, cameras: Sequence[Camera], config) -> GaussianCloud:
     """`tuned` (what `fine_tune` returned) with the Gaussians' parameters of `params` (a state the
     fine-tuning went through), the anti-aliasing size recomputed for them."""
