@@ -269,7 +269,7 @@ class RefineJob(CoreJob):
 class CompactJob(CoreJob):
     """`gvae_core.compaction.compact` on a splat object (`keep` a fraction or `count` Gaussians):
     with the capture's photos at `images` (any capture `gvae train` reads) fine-tuned on them, as
-    `gvae compact --images` (`removal` None: the core's default for the fraction); else scored from
+    `gvae compact --images`; else scored from
     the capture's cameras: those at `cameras` (a capture, a transforms.json, the reference 3DGS's
     cameras.json) when given, else with `found_cameras` those its training left beside the file it
     was imported from (`capture.training_cameras`), else views placed around it. Each remaining
