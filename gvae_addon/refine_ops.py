@@ -294,13 +294,12 @@ class CompactJob(CoreJob):
 
     def _run(self, compact, cloud, progress):
         # (in the worker: reading a capture's photos takes seconds)
-        from gvae_core.capture import load_cameras, load_capture_images, training_cameras  # noqa: PLC0415
-        from gvae_core.compaction import fine_tune_height  # noqa: PLC0415
+        from gvae_core.capture import load_cameras, training_cameras  # noqa: PLC0415
+        from gvae_core.compaction import fine_tune_images  # noqa: PLC0415
 
         if self.images_path:
             progress(0.0, f"reading the photos of {self.images_path}")
-            height = fine_tune_height(cloud, load_cameras(self.images_path))
-            images = load_capture_images(self.images_path, height)
+            images = fine_tune_images(cloud, self.images_path)
             self.notes.append(f"fine-tuned on {len(images)} photos of {self.images_path} at {images.cameras[0].height} "
                               "px")
             return compact(cloud, keep=self.keep, count=self.count, removal=self.removal, seed=self.seed,

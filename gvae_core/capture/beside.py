@@ -21,7 +21,7 @@ from ..camera import Camera
 from ..cloud import GaussianCloud
 from ..datasets import DatasetError
 from .dataset import read_capture
-from .gs_cameras import GS_CAMERAS, is_gs_cameras
+from .gs_cameras import GS_CAMERAS, read_gs_cameras
 from .views import in_view
 
 __all__ = ["FoundCameras", "cameras_beside", "training_cameras", "FOUND_MIN_SEEN"]
@@ -51,11 +51,8 @@ def cameras_beside(splat) -> tuple[FoundCameras | None, list[str]]:
     for folder in path.parents[:LEVELS + 1]:
         candidate = folder / GS_CAMERAS
         if candidate.is_file():
-            if not is_gs_cameras(candidate):
-                passed.append(f"{candidate}: not the reference 3DGS's cameras.json")
-                continue
-            try:
-                cams = read_capture(candidate, images=False).split_cameras("train")
+            try:  # (read once: a file of another kind is passed over with what is wrong with it)
+                cams = read_gs_cameras(candidate).cameras
             except (DatasetError, OSError) as exc:
                 passed.append(str(exc))
                 continue

@@ -113,8 +113,8 @@ def parse_keep(text: str) -> float:
 
 
 def run_compact(args: argparse.Namespace) -> int:
-    from ..capture import load_cameras, load_capture_images, training_cameras  # noqa: PLC0415 - torch-free
-    from ..compaction import compact, distill_iterations, fine_tune_height  # noqa: PLC0415
+    from ..capture import load_cameras, training_cameras  # noqa: PLC0415 - torch-free
+    from ..compaction import compact, distill_iterations, fine_tune_images  # noqa: PLC0415
     from ..formats import output_format, read_splat_file, write_splat_file  # noqa: PLC0415
 
     output_format(args.output)  # a name it cannot write is refused before any work
@@ -135,10 +135,7 @@ def run_compact(args: argparse.Namespace) -> int:
         for line in lines:
             tail = " (--placed-views to place views instead)" if line.startswith("scoring from") else ""
             print(f"gvae compact: {line}{tail}", flush=True)
-    images = None
-    if args.images is not None:
-        height = args.image_height or fine_tune_height(cloud, load_cameras(args.images, args.test_every))
-        images = load_capture_images(args.images, height, args.test_every)
+    images = None if args.images is None else fine_tune_images(cloud, args.images, args.test_every, args.image_height)
     t_read = time.perf_counter() - t0
     progress = progress_lines()
     result = compact(cloud, keep=keep, count=args.count, tolerance=args.tolerance, cameras=cameras, views=args.views,

@@ -59,7 +59,7 @@ from . import finetune
 from .finetune import (AUTO_DISTILL, AUTO_DISTILL_MAX, AUTO_DISTILL_SECONDS, CHECK_EVERY, DEFAULT_ITERATIONS,
                        DISTILL_ASIDE, DISTILL_CHECK_EVERY, DISTILL_VIEWS, PHOTOS_PRUNE_FROM, PHOTOS_REMOVAL,
                        PHOTOS_SCORE, PRUNE_FROM_ITERATIONS, SET_ASIDE_EVERY, Tuning, compact_with_images,
-                       fine_tune_height, own_renders, set_aside, still_gaining)
+                       fine_tune_height, fine_tune_images, own_renders, set_aside, still_gaining)
 from .graph import NEIGHBOURS, owner_root
 from .merge import merge_groups, merge_groups_reference, ordered
 from .moments import COLOUR_WEIGHT
@@ -71,11 +71,11 @@ from .views import CompactionViews, compaction_views, compare, sight
 
 __all__ = ["SCORES", "REMOVALS", "CompactResult", "CompactionViews", "compact", "compaction_scores",
            "compaction_views", "default_iterations", "default_method", "distill_iterations", "fine_tune_height",
-           "merge_groups", "merge_groups_reference", "own_renders", "owner_root", "pixel_hits", "pixel_hits_reference",
-           "removal_groups", "set_aside", "target_count", "AUTO_DISTILL", "AUTO_DISTILL_MAX", "AUTO_DISTILL_SECONDS",
-           "CHECK_EVERY", "COLOUR_WEIGHT", "DEFAULT_ITERATIONS", "DISTILL_ASIDE", "DISTILL_VIEWS", "NEIGHBOURS",
-           "PHOTOS_PRUNE_FROM", "PHOTOS_REMOVAL", "PHOTOS_SCORE", "PRUNE_FROM_ITERATIONS", "PRUNE_FRACTION", "PSNR_CAP",
-           "SET_ASIDE_EVERY", "UNSEEN", "UNSEEN_WARNING"]
+           "fine_tune_images", "merge_groups", "merge_groups_reference", "own_renders", "owner_root", "pixel_hits",
+           "pixel_hits_reference", "removal_groups", "set_aside", "target_count", "AUTO_DISTILL", "AUTO_DISTILL_MAX",
+           "AUTO_DISTILL_SECONDS", "CHECK_EVERY", "COLOUR_WEIGHT", "DEFAULT_ITERATIONS", "DISTILL_ASIDE",
+           "DISTILL_VIEWS", "NEIGHBOURS", "PHOTOS_PRUNE_FROM", "PHOTOS_REMOVAL", "PHOTOS_SCORE",
+           "PRUNE_FROM_ITERATIONS", "PRUNE_FRACTION", "PSNR_CAP", "SET_ASIDE_EVERY", "UNSEEN", "UNSEEN_WARNING"]
 
 
 # ------------------------------------------------------------------------------ checks

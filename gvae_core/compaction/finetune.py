@@ -21,7 +21,7 @@ import torch
 
 from ..antialias import DILATION_KEY, FILTER_KEY, dilation_3d, filter_3d, resolve_antialias, with_dilation_3d
 from ..camera import Camera
-from ..capture import DEFAULT_RESOLUTION, placed_views, scoring_views
+from ..capture import DEFAULT_RESOLUTION, load_cameras, load_capture_images, placed_views, scoring_views
 from ..cloud import GaussianCloud
 from ..fidelity import training_rate_views
 from ..octaves import training_height
@@ -101,6 +101,15 @@ def fine_tune_height(cloud: GaussianCloud, cameras: Sequence[Camera]) -> int | N
     the cloud has no size to say it."""
     height, _ = training_height(cloud, list(cameras))
     return int(round(height)) if math.isfinite(height) else None
+
+
+def fine_tune_images(cloud: GaussianCloud, capture, test_every: int | None = None, height: int | None = None):
+    """The training photos of the capture at `capture` (`datasets.Views`; every `test_every`-th held
+    out as training held it out) at `height`, else at the height they trained `cloud` at
+    (`fine_tune_height`): the images `compact(images=...)` fine-tunes on (`gvae compact --images`,
+    Blender's Compact with Photos)."""
+    height = height or fine_tune_height(cloud, load_cameras(capture, test_every))
+    return load_capture_images(capture, height, test_every)
 
 
 def own_renders(cloud: GaussianCloud, cameras=None, resolution: int = DEFAULT_RESOLUTION,

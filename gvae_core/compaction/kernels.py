@@ -450,10 +450,10 @@ def eigh3(sigma, lo, hi, vals, vecs):
                         arq = a[min(r, q), max(r, q)]
                         a[min(r, p), max(r, p)] = arp - sn * (arq + arp * tau)
                         a[min(r, q), max(r, q)] = arq + sn * (arp - arq * tau)
-                        for r in range(3):
-                            vrp, vrq = v[r, p], v[r, q]
-                            v[r, p] = vrp - sn * (vrq + vrp * tau)
-                            v[r, q] = vrq + sn * (vrp - vrq * tau)
+                        for row in range(3):
+                            vrp, vrq = v[row, p], v[row, q]
+                            v[row, p] = vrp - sn * (vrq + vrp * tau)
+                            v[row, q] = vrq + sn * (vrp - vrq * tau)
         # ascending, the columns with them
         o0, o1, o2 = 0, 1, 2
         if a[o1, o1] < a[o0, o0]:
