@@ -708,8 +708,8 @@ class ParameterAverage:
     """The running average of a model's parameters over the iterations (Polyak averaging, with
     exponential weights): a step trains on one photo, so the last iterate carries that photo's pull
     (on the plush the set-aside PSNR of successive checks of a fine-tune moved by up to 0.3 dB);
-    the average of the last 1 / (1 - `decay`) or so steps does not. Early on the weight of the newest
-    is at least (10 + t) / (1 + t)'s complement, so the start is forgotten quickly."""
+    the average of the last 1 / (1 - `decay`) or so steps does not. The decay at step t is
+    min(`decay`, (1 + t) / (10 + t)): the first steps weigh more, so the start is soon forgotten."""
 
     def __init__(self, model: GaussianModel, decay: float):
         if not 0.0 < decay < 1.0:
@@ -740,10 +740,11 @@ def _optimise(model: GaussianModel, cams: list[Camera], targets: torch.Tensor, c
     the stage or, with `lr_window` = (offset, horizon), as at iteration offset + it of a decay
     over horizon iterations, staying at its final value after; 0.8·L1 + 0.2·(1 − SSIM)), with the
     `densify` strategy's density control and opacity resets when given, without any when None (a
-    fine-tune keeps its Gaussians; `average`, taking in every step, with none). `degree_at(it)`: the SH degree at the
-    stage's iteration `it` (1-based); `progress(it)` every 10 iterations; `check(it)` every
-    `check_every` iterations: a reason to stop, or None. Returns the counts of cloned, split and
-    pruned Gaussians, the iterations done and why it stopped early (None: it did not)."""
+    fine-tune keeps its Gaussians); `average` takes in every step (used without `densify`: the same
+    rows throughout). `degree_at(it)`: the SH degree at the stage's iteration `it` (1-based);
+    `progress(it)` every 10 iterations; `check(it)` every `check_every` iterations: a reason to
+    stop, or None. Returns the counts of cloned, split and pruned Gaussians, the iterations done
+    and why it stopped early (None: it did not)."""
     counts: dict[str, Any] = {"cloned": 0, "split": 0, "pruned": 0}
     n_iter, bg = sched["iterations"], config.background
     offset, horizon = (0, n_iter) if lr_window is None else lr_window

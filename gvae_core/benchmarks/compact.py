@@ -45,7 +45,7 @@ import numpy as np
 
 from ..antialias import DILATION_KEY, with_training_cameras
 from ..capture import load_nerf_synthetic
-from ..compaction import PRUNE_FRACTION, compact, moments
+from ..compaction import PRUNE_FRACTION, compact, finetune, moments
 from ..examples import example_cloud
 from ..experiment import PROTOCOLS, SMOKE, Evaluator, prepare_scene
 from ..metrics.image import image_scores
@@ -234,8 +234,6 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
     against beside the input itself)."""
     from ..capture import load_cameras, load_capture_images, read_capture  # noqa: PLC0415
     from ..compaction import fine_tune_height, set_aside  # noqa: PLC0415
-    from ..compaction import finetune  # noqa: PLC0415
-    from ..compaction.finetune import tuning_config  # noqa: PLC0415
     from ..rendering import RenderSettings  # noqa: PLC0415
     from ..train import evaluate_views, fine_tune  # noqa: PLC0415
 
@@ -313,7 +311,7 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
             add(label, fraction, r.cloud, seconds, cpu, peak, **info)
         if input_tuned and tuned_iterations:
             fit, aside = set_aside(photos) if plateau else (photos, None)
-            config = tuning_config(base, RenderSettings(), seed)
+            config = finetune.tuning_config(base, RenderSettings(), seed)
             out, seconds, cpu, peak = timed(fine_tune, base, fit, tuned_iterations, config=config, seed=seed,
                                             average=finetune.AVERAGE)
             add(INPUT_TUNED, fraction, out, seconds, cpu, peak, iterations=tuned_iterations,
@@ -605,20 +603,12 @@ def main(argv=None) -> int:
         methods = [dataclasses.replace(m, distill=m.distill if distill is None else distill, rounds=args.rounds)
                    if m.label in (OURS, PLACED) else m for m in methods]
     if args.distill_target:
-        from ..compaction import finetune  # noqa: PLC0415
-
         finetune.DISTILL_TARGET = args.distill_target
     if args.tuning:
-        from ..compaction import finetune  # noqa: PLC0415
-
         finetune.TUNING = {k: float(v) for k, v in (item.split("=", 1) for item in args.tuning)}
     if args.average is not None:
-        from ..compaction import finetune  # noqa: PLC0415
-
         finetune.AVERAGE = args.average or None
     if args.distill_average is not None:
-        from ..compaction import finetune  # noqa: PLC0415
-
         finetune.DISTILL_AVERAGE = args.distill_average or None
     if args.capture is not None:
         if args.base is None:
