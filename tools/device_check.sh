@@ -5,11 +5,11 @@
 # planned iterations). Expects the capture in .dev/plush (images/, sparse/), a cloud trained from it in
 # .dev/cloud.ply and, where the machine's Python lacks them, wheels in .whl/ (plyfile, zstandard).
 set -u
-OUT=${OUT:-/tmp/gvae-device}; mkdir -p "$OUT"; MINUTES=${MINUTES:-4}
+WORK=$(mktemp -d); OUT=${OUT:-$WORK/out}; mkdir -p "$OUT"; MINUTES=${MINUTES:-4}
 export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD
 if ls .whl/*.whl >/dev/null 2>&1; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl \
-    && export PYTHONPATH=/tmp/site:$PWD
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target $WORK/site .whl/*.whl \
+    && export PYTHONPATH=$WORK/site:$PWD
 fi
 nvidia-smi -L; nproc
 python3 -c "import torch, numpy, numba; print('torch', torch.__version__, 'numpy', numpy.__version__, 'numba', numba.__version__, torch.cuda.get_device_name())"
@@ -48,7 +48,7 @@ for dev in ("cuda", "cpu"):
         print(ka.table(sort_by="self_cpu_time_total", row_limit=8))  # its last line: the GPU's busy time
 PY
 t0=$(date +%s)
-timeout $((MINUTES * 60 + 120)) python3 -m gvae_core train .dev/plush --test-every 8 --out /tmp/run --device cuda \
+timeout $((MINUTES * 60 + 120)) python3 -m gvae_core train .dev/plush --test-every 8 --out $WORK/run --device cuda \
   --set max_minutes=$MINUTES --quiet > "$OUT/train.log" 2>&1
 echo "train rc=$? wall $(( $(date +%s) - t0 )) s"; tail -25 "$OUT/train.log"
-cp /tmp/run/log.json "$OUT/log.json" 2>/dev/null
+cp $WORK/run/log.json "$OUT/log.json" 2>/dev/null
