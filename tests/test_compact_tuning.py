@@ -9,9 +9,10 @@ import numpy as np
 
 import gvae_core.compaction as compaction
 import gvae_core.compaction.finetune as finetune
+import gvae_core.train as train
 from gvae_core import Camera
 from gvae_core.antialias import DILATION_KEY
-from gvae_core.compaction import PHOTOS_PRUNE_FROM, compact, default_method, set_aside
+from gvae_core.compaction import PHOTOS_PRUNE_FROM, compact, compaction_scores, default_method, set_aside
 from gvae_core.compaction.finetune import Tuning, tune, tuning_config
 from gvae_core.datasets import Views
 from gvae_core.examples import example_cloud
@@ -119,6 +120,22 @@ def test_with_images_the_default_is_what_the_set_aside_images_chose(monkeypatch)
         kept = r.groups[r.groups >= 0]
         merged = len(kept) > len(np.unique(kept))  # some output row stands for two or more input rows
         assert used[-1] == name and merged == (name == "hessian") and len(r.cloud) == round(120 * keep)
+
+
+def test_with_images_lightgaussian_counts_every_camera_and_the_result_is_averaged(monkeypatch):
+    """With images LightGaussian's score sums its hits over every camera (set-aside ones too), not
+    `views` of them (the Hessian's); the fine-tuning ends on the running average of its iterates
+    (AVERAGE), the distillation as DISTILL_AVERAGE says."""
+    cloud = example_cloud(120, seed=6).with_sh_degree(0)
+    images = _views(cloud, 10, size=16)
+    averages = []
+    real = train.fine_tune
+    monkeypatch.setattr(train, "fine_tune", lambda *a, **k: averages.append(k["average"]) or real(*a, **k))
+    r = compact(cloud, keep=0.5, images=images, iterations=2, views=2, resolution=16)
+    np.testing.assert_allclose(r.scores, compaction_scores(cloud, "lightgaussian", images.cameras))
+    assert not np.allclose(r.scores, compaction_scores(cloud, "lightgaussian", images.cameras[:2]))
+    compact(cloud, keep=0.5, resolution=16, distill=2)
+    assert averages == [finetune.AVERAGE, finetune.DISTILL_AVERAGE] and 0 < finetune.AVERAGE < 1
 
 
 def test_with_images_the_fine_tuning_is_shorter_where_the_prune_is_the_default(monkeypatch):

@@ -45,7 +45,7 @@ import numpy as np
 
 from ..antialias import DILATION_KEY, with_training_cameras
 from ..capture import load_nerf_synthetic
-from ..compaction import PRUNE_FRACTION, compact, moments
+from ..compaction import PRUNE_FRACTION, compact, finetune, moments
 from ..examples import example_cloud
 from ..experiment import PROTOCOLS, SMOKE, Evaluator, prepare_scene
 from ..metrics.image import image_scores
@@ -222,18 +222,18 @@ INPUT_TUNED = "input + fine-tune as long"
 
 def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0.1), *, methods=CAPTURE_METHODS,
                  splat: bool = True, input_tuned: bool = True, iterations: int | None = None, rounds: int | None = None,
-                 plateau: bool = True, seed: int = 0, say=print) -> list[dict]:
+                 plateau: bool = True, seed: int = 0, views: int = VIEWS, say=print) -> list[dict]:
     """A trained capture's cloud (`base_path`, the PLY `gvae train` wrote) compacted to each fraction
     by every row of `methods` and splat-transform's decimation; each scored on the capture's
     held-out photos (every `test_every`-th by name, at the height the cloud was trained at:
     `compaction.fine_tune_height`), PSNR and SSIM, with seconds (wall and process CPU) and peak
     RSS. The rows with photos fine-tune on the capture's training photos (`compact(images=...)`:
     every SET_ASIDE_EVERY-th set aside to judge, `plateau`); `input_tuned`: the uncompacted cloud
-    fine-tuned on the same photos for as many iterations as ours with photos ran at each fraction
-    (the same cost: what the compaction is measured against beside the input itself)."""
+    fine-tuned on the same photos for as many iterations as ours with photos ran at each fraction,
+    ending on the average of its iterates as they do (the same cost: what the compaction is measured
+    against beside the input itself)."""
     from ..capture import load_cameras, load_capture_images, read_capture  # noqa: PLC0415
     from ..compaction import fine_tune_height, set_aside  # noqa: PLC0415
-    from ..compaction.finetune import tuning_config  # noqa: PLC0415
     from ..rendering import RenderSettings  # noqa: PLC0415
     from ..train import evaluate_views, fine_tune  # noqa: PLC0415
 
@@ -296,7 +296,7 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
             r, seconds, cpu, peak = timed(
                 compact, base, keep=fraction, images=photos if with_photos else None, score=score_name,
                 removal=removal, cameras=cameras if with_cameras else None, iterations=most, distill=distill,
-                rounds=rounds if with_photos else None, plateau=plateau, seed=seed, progress=checks,
+                rounds=rounds if with_photos else None, plateau=plateau, seed=seed, progress=checks, views=views,
                 prune=drop[0] if drop else PRUNE_FRACTION)
             info = {}
             if r.rounds:
@@ -311,8 +311,9 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
             add(label, fraction, r.cloud, seconds, cpu, peak, **info)
         if input_tuned and tuned_iterations:
             fit, aside = set_aside(photos) if plateau else (photos, None)
-            config = tuning_config(base, RenderSettings(), seed)
-            out, seconds, cpu, peak = timed(fine_tune, base, fit, tuned_iterations, config=config, seed=seed)
+            config = finetune.tuning_config(base, RenderSettings(), seed)
+            out, seconds, cpu, peak = timed(fine_tune, base, fit, tuned_iterations, config=config, seed=seed,
+                                            average=finetune.AVERAGE)
             add(INPUT_TUNED, fraction, out, seconds, cpu, peak, iterations=tuned_iterations,
                 note=f"{tuned_iterations} iterations, as ours with photos at {fraction:.0%}")
     command, note = splat_transform() if splat else (None, None)
@@ -567,6 +568,16 @@ def main(argv=None) -> int:
     parser.add_argument("--capture-row", nargs=3, action="append", default=[], metavar=("SCORE", "REMOVAL", "PRUNE"),
                         help="with --capture: also a row with photos of this score, removal and fraction dropped "
                         "before merging (repeatable)")
+    parser.add_argument("--average", type=float, default=None, metavar="DECAY",
+                        help="with --capture: the decay of the running average of the iterates the photos' "
+                        "fine-tuning ends on (default: compaction.finetune.AVERAGE; 0: the last iterate)")
+    parser.add_argument("--distill-average", type=float, default=None, metavar="DECAY",
+                        help="the same for the fine-tuning against the input's own renders (default: "
+                        "compaction.finetune.DISTILL_AVERAGE)")
+    parser.add_argument("--fine-tune-seed", type=int, default=0,
+                        help="with --capture: the seed of the compactions' fine-tuning (default: %(default)s)")
+    parser.add_argument("--views", type=int, default=VIEWS,
+                        help="with --capture: the cameras that score (default: %(default)s; 0: all of them)")
     parser.add_argument("--iterations", type=int, default=None, help="with --capture: the most fine-tuning iterations "
                         "a round (default: compact's)")
     parser.add_argument("--tuning", nargs="+", default=[], metavar="FIELD=VALUE",
@@ -592,13 +603,13 @@ def main(argv=None) -> int:
         methods = [dataclasses.replace(m, distill=m.distill if distill is None else distill, rounds=args.rounds)
                    if m.label in (OURS, PLACED) else m for m in methods]
     if args.distill_target:
-        from ..compaction import finetune  # noqa: PLC0415
-
         finetune.DISTILL_TARGET = args.distill_target
     if args.tuning:
-        from ..compaction import finetune  # noqa: PLC0415
-
         finetune.TUNING = {k: float(v) for k, v in (item.split("=", 1) for item in args.tuning)}
+    if args.average is not None:
+        finetune.AVERAGE = args.average or None
+    if args.distill_average is not None:
+        finetune.DISTILL_AVERAGE = args.distill_average or None
     if args.capture is not None:
         if args.base is None:
             parser.error("--capture needs --base")
@@ -610,7 +621,7 @@ def main(argv=None) -> int:
         rows = capture_rows(args.base, args.capture, args.test_every, tuple(args.fractions), methods=methods,
                             splat=not args.no_splat_transform, input_tuned=args.input_tuned,
                             iterations=args.iterations, rounds=args.rounds, plateau=args.plateau,
-                            say=lambda msg: print(msg, flush=True))
+                            views=args.views, seed=args.fine_tune_seed, say=lambda msg: print(msg, flush=True))
         print("\n".join(["", *capture_table(rows)]))
         if args.out is not None:
             args.out.mkdir(parents=True, exist_ok=True)

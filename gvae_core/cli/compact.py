@@ -46,7 +46,8 @@ def register(subparsers) -> None:
     c.add_argument("--placed-views", action="store_true",
                    help="score from views placed around the cloud even where training cameras are found beside IN")
     c.add_argument("--views", type=int, default=DEFAULT_VIEWS,
-                   help="scoring views (of the capture's cameras, spread out; 0: all of them) (default: %(default)s)")
+                   help="scoring views (of the capture's cameras, spread out; 0: all of them; with --images "
+                   "LightGaussian's score counts every camera) (default: %(default)s)")
     c.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION,
                    help="scoring view height in pixels (default: %(default)s)")
     c.add_argument("--score", default=None, choices=("hessian", "lightgaussian", "opacity", "random"),

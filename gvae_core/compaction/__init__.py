@@ -234,10 +234,11 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
             renders = own_renders(src, cameras, resolution, drawn, DISTILL_VIEWS + aside)
             fit, judge = set_aside(renders, (DISTILL_VIEWS + aside) // aside) if aside else (renders, None)
             tuning = Tuning(fit, judge, distill, 1 if rounds is None else rounds, "the input's own renders",
-                            DISTILL_CHECK_EVERY, seconds=AUTO_DISTILL_SECONDS if auto else None)
+                            DISTILL_CHECK_EVERY, seconds=AUTO_DISTILL_SECONDS if auto else None,
+                            average=finetune.DISTILL_AVERAGE)
         elif images is not None:
             fit, judge = set_aside(images) if plateau else (images, None)
-            tuning = Tuning(fit, judge, iterations, 1 if rounds is None else rounds)
+            tuning = Tuning(fit, judge, iterations, 1 if rounds is None else rounds, average=finetune.AVERAGE)
         if tuning is not None:  # (distilled: every capture camera, or a placed scene's extra views, also looks)
             extra = [] if looks is None else looks.others if looks.placed else looks.scoring + looks.others
             result = compact_with_images(src, target, tuning, how, seed, views, resolution, settings, say, timings,
