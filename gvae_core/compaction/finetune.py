@@ -304,15 +304,17 @@ def compact_with_images(src: GaussianCloud, target: int, tuning: Tuning, how: di
     (`tune`). Each round scores from `views` of the images' cameras (`capture.scoring_views`), or for
     LightGaussian's score from all of them (its global significance sums its hits over the training
     views: one sweep a view); what none of the images' cameras (nor the set-aside ones, the `extra`
-    views, those `inside` gives, `views.sight`) sees is dropped as unseen."""
+    views, those `inside` gives, `views.sight`) sees is dropped as unseen. The summary's PSNR is
+    from the `views` (and the other views that see what was removed)."""
     n = len(src)
     config = tuning_config(src, settings, seed)
     cur, groups = src, np.arange(n)
     first = None
     records = []
     all_cams = list(tuning.images.cameras) + (list(tuning.aside.cameras) if tuning.aside is not None else [])
-    cams = scoring_views(all_cams, 0 if how["score"] == "lightgaussian" else views, resolution, src)
-    chosen = [c.world_to_cam for c in cams]
+    cams = scoring_views(all_cams, views, resolution, src)  # (the Hessian's, and the report's)
+    scoring = scoring_views(all_cams, 0, resolution, src) if how["score"] == "lightgaussian" else cams
+    chosen = [c.world_to_cam for c in scoring]
     others = [c.scaled(resolution) if c.height > resolution else c for c in all_cams
               if not any(np.array_equal(c.world_to_cam, w) for w in chosen)] + list(extra)
     reference = input_images(src, cams, settings)
@@ -323,7 +325,7 @@ def compact_with_images(src: GaussianCloud, target: int, tuning: Tuning, how: di
         t0 = time.perf_counter()
         say(base, f"round {r + 1}/{rounds}: scoring {len(cur):,} Gaussians ({how['score']})")
         frames: list = []
-        scores = compaction_scores(cur, how["score"], cams, settings=settings, seed=seed + r, frames=frames)
+        scores = compaction_scores(cur, how["score"], scoring, settings=settings, seed=seed + r, frames=frames)
         seen = sight(cur, scores, how["score"], frames, others, settings, inside)
         del frames
         if first is None:
