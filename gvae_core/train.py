@@ -838,8 +838,7 @@ def fine_tune(cloud: GaussianCloud, views: Views, iterations: int, *, config: Tr
         def check(it: int) -> str | None:
             current = (model.cloud() if mean is None else mean.cloud()).detach()
             if config.antialias == "mip":  # (the filter of the centres drawn)
-                size = filter_3d(current.means.cpu().numpy(), views.cameras)
-                current = current.replace(extra={FILTER_KEY: torch.from_numpy(size).to(dev)})
+                current = current.replace(extra={FILTER_KEY: _centres_filter(current.means, views.cameras)})
             return "should_stop" if should_stop(it, current) else None
     targets = training_targets(views, config.background).to(dev)
     _optimise(model, views.cameras, targets, config, sched, rng, gen,
@@ -936,7 +935,12 @@ def train_more(run_dir, iterations: int, *, stage: int | None = None, progress: 
 
 
 def _model_filter(model: GaussianModel, cameras: list[Camera]) -> torch.Tensor:
-    return torch.from_numpy(filter_3d(model.params["means"].detach().cpu().numpy(), cameras)).to(model.device)
+    return _centres_filter(model.params["means"].detach(), cameras)
+
+
+def _centres_filter(means: torch.Tensor, cameras: list[Camera]) -> torch.Tensor:
+    """Mip-Splatting's 3D filter of Gaussians at `means` for `cameras`, on the device of `means`."""
+    return torch.from_numpy(filter_3d(means.cpu().numpy(), cameras)).to(means.device)
 
 
 def _stage_size(out: Path | None, stage: int, cloud: GaussianCloud, data: TrainingData, config: TrainConfig,
