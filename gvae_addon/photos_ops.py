@@ -2,9 +2,9 @@
 becomes a splat object, as `gvae train FOLDER --out RUN [--image-height H] [--test-every 8]` trains it.
 
 A background job (`refine_ops.BackgroundJob`, driven by the same operator machinery as Refine and
-Compact): in the worker, structure from motion when the folder has photos and no model
-(`gvae_core.capture.ensure_capture`), then the training stages (`gvae_core.train.train_progressive`) into
-a run folder that is kept (`gvae train RUN --more N` continues it; starting the job again on the same
+Compact): in the worker, the core's front door from a folder to a trained splat
+(`gvae_core.train.train_capture`: structure from motion when the folder has photos and no model, then
+the training stages) into a run folder that is kept (`gvae train RUN --more N` continues it; starting the job again on the same
 folder and size resumes after the last finished stage). Every call into `gvae_core` is in
 `train_capture`. Only `finish`, on the main thread, changes the blend file: the splat object (the
 add-on's or Blender's own), the capture's cameras as Blender cameras (optional) and the scene set up for
@@ -13,7 +13,6 @@ splats, as Import does; so cancel and failure leave the scene as it was.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
@@ -28,11 +27,10 @@ from . import convert, io_ops, refine_ops, runtime
 #: The folder New from Photos trains into, inside the capture folder (with `run_name`'s name).
 RUN_PARENT = "gvae"
 #: The profile whose stage proportions and iterations New from Photos uses (`gvae train`'s default).
-PROFILES = (("DEFAULT", "Default", "gvae train's default: three stages, 600 / 400 / 400 iterations"),
-            ("TINY", "Tiny", "A quick look: small stages, 200 / 150 / 150 iterations, SH degree 1"),
+PROFILES = (("DEFAULT", "Default", "gvae train's default: three stages, the last one trained until the photos set "
+                                    "aside stop improving"),
+            ("TINY", "Tiny", "A quick look: small stages of fixed length, SH degree 1"),
             ("FULL", "Full", "The reference's schedule: four stages up to 30,000 iterations (hours on a CPU)"))
-#: How much of the job's progress bar structure from motion takes when it runs.
-SFM_SHARE = 0.2
 #: Every n-th photo (sorted by name) held out to judge the training (LLFF / Mip-NeRF 360's 8).
 HELD_OUT_EVERY = 8
 JOB_KEY = "New from Photos"
@@ -52,85 +50,47 @@ def run_name(height: int, profile: str, held_out: bool) -> str:
 
 def train_capture(folder: str, run_dir: str, *, height: int, profile: str, iterations: int, held_out: bool,
                   threads: int | None, report, cancelled) -> dict:
-    """The one place New from Photos calls gvae_core (in the worker thread): structure from motion when
-    `folder` needs it, then `train_progressive` as `gvae train` runs it for the same options.
-    `report(fraction, message, heldout)` is called as the work goes (it raises to cancel);
-    `cancelled()` says whether to stop. Returns the final cloud, the log, the capture's cameras (the
-    held-out ones marked) and what structure from motion did."""
+    """The one place New from Photos calls gvae_core (in the worker thread): the core's front door
+    (`gvae_core.train.train_capture`, what `gvae train` calls) for these options. `report(fraction,
+    message, heldout)` is called as the work goes (it raises to cancel); `cancelled()` says whether to
+    stop. Returns the final cloud, the log, the capture's cameras (the held-out ones marked) and what
+    structure from motion did."""
     report(0.0, "starting", None)  # (a cancel before the first stage needs no torch)
-    from gvae_core import capture as core_capture  # noqa: PLC0415 - imported in the worker (torch)
-    from gvae_core import train as core_train  # noqa: PLC0415
-    from gvae_core.capture.sfm import SfMOptions, ensure_capture  # noqa: PLC0415
-    from gvae_core.cli.train import stage_heights  # noqa: PLC0415
+    from gvae_core.train import train_capture as core_train_capture  # noqa: PLC0415 - imported in the worker
+    from gvae_core.train.config import configure  # noqa: PLC0415
 
-    # What `gvae train` does first: structure from motion for photos without cameras, points triangulated
-    # with the poses of a capture that has none (pycolmap; the SfM options' defaults, its threads).
-    work = runtime.pycolmap_work(folder)
-    share = SFM_SHARE if work else 0.0
-    try:
-        sfm = ensure_capture(folder, SfMOptions(threads=threads), points=True, cancel=cancelled,
-                             progress=lambda stage, fraction, message: report(
-                                 share * fraction, f"{work}: {message or stage}", None))
-    except Exception:
-        if cancelled():  # (SfM's own cancel error, or ours raised through its progress report)
-            report(share, "cancelled", None)
-        raise
-    kind = core_capture.find_capture(Path(folder))[0]
-    # (a NeRF-Synthetic folder holds its test views apart already: they are the held-out ones)
-    test_every = HELD_OUT_EVERY if held_out and kind != "nerf-synthetic" else None
-    name = profile.lower()
-    base = core_train.TrainConfig.profile(name)
-    resolutions = stage_heights(height, base.resolutions) if height else None
-    overrides = {"resolutions": resolutions, "test_every": test_every}
-    if iterations:
-        overrides["iterations"] = (iterations,) * len(resolutions or base.resolutions)
-    config = core_train.TrainConfig.profile(name, **overrides)
-    stages, total = len(config.resolutions), sum(config.iterations)
-    done_before = [sum(config.iterations[:s]) for s in range(stages)]
-    data = core_train.training_data(folder, test_every=test_every)
-    last = {"heldout": None}
-
-    def at(stage: int, step: int, message: str) -> None:
-        fraction = share + (1.0 - share) * (done_before[stage] + step) / max(total, 1)
-        report(fraction, message, last["heldout"])
-
-    def heldout_so_far() -> float | None:
-        log = Path(run_dir) / "log.json"
-        try:
-            entries = json.loads(log.read_text(encoding="utf-8")) if log.is_file() else []
-        except (OSError, ValueError):
-            return None
-        return entries[-1].get("test_psnr") if entries else None
-
-    def views(split: str, h: int):
-        # Called at each stage's start (and by its evaluation): progress and cancel at stage boundaries.
-        if split == "train":
-            s = config.resolutions.index(h) if h in config.resolutions else 0
-            last["heldout"] = heldout_so_far()
-            at(s, 0, f"stage {s + 1}/{stages} at {h} px")
-        elif cancelled():
-            report(1.0, "cancelling", None)
-        return data.views(split, h)
+    config = configure(profile.lower(), image_height=height or None, iterations=iterations or None,
+                       test_every=HELD_OUT_EVERY if held_out else None)
+    heldout = [None]
 
     def on_progress(event: dict) -> None:
-        # {stage (0-based), stages, step, steps, message, ...; test_psnr at a stage's end}. The bar follows
-        # the planned iterations; the last stage may train on past them until its validation photos stop
-        # improving, which the message says.
-        s = min(int(event.get("stage", 0)), stages - 1)
+        # The bar follows the planned iterations; the last stage may train on past them until its validation
+        # photos stop improving, which the message says.
         if event.get("test_psnr") is not None:
-            last["heldout"] = float(event["test_psnr"])
-        planned, step = config.iterations[s], int(event.get("step", 0))
-        where = f"step {step}/{planned}" if step <= planned else f"step {step}, until it stops improving"
-        at(s, min(step, planned), f"stage {s + 1}/{stages} at {config.resolutions[s]} px, {where}")
+            heldout[0] = float(event["test_psnr"])
+        report(event["fraction"], _message(event), heldout[0])
 
-    result = core_train.train_progressive(
-        core_train.TrainingData(views, data.points, data.description, data.source), config, out_dir=run_dir,
-        progress=False, threads=threads, on_progress=on_progress)
-    capture = core_capture.read_capture(folder, test_every, images=False)
-    return {"cloud": result.cloud, "log": result.log, "sfm": None if sfm is None else sfm.summary(),
+    try:
+        done = core_train_capture(folder, config, run_dir, own_test_split=True, progress=False, threads=threads,
+                                  on_progress=on_progress, cancel=cancelled)
+    except Exception:
+        if cancelled():  # (the core's cancel, or ours raised through its progress report)
+            report(1.0, "cancelled", None)
+        raise
+    result, capture, config = done.result, done.capture, done.config
+    return {"cloud": result.cloud, "log": result.log, "sfm": None if done.sfm is None else done.sfm.summary(),
             "cameras": capture.cameras, "names": capture.names, "splits": capture.splits, "kind": capture.kind,
             "size": (config.resolutions[-1], result.log[-1]["resolution"] if result.log else None),
-            "source": str(Path(run_dir).resolve() / f"stage_{stages - 1}.ply")}
+            "source": str(Path(run_dir).resolve() / f"stage_{len(config.resolutions) - 1}.ply")}
+
+
+def _message(event: dict) -> str:
+    """What the status bar says of a progress event of the core's front door."""
+    if event["phase"] == "sfm":
+        return event["message"]
+    step, planned = event["step"], event["planned"]
+    where = f"step {step}/{planned}" if step <= planned else f"step {step}, until it stops improving"
+    return f"stage {event['stage'] + 1}/{event['stages']} at {event['resolution']} px, {where}"
 
 
 class PhotosJob(refine_ops.BackgroundJob):

@@ -163,3 +163,14 @@ def look_target(cameras) -> np.ndarray:
     if np.linalg.cond(a) > 1e8:
         return np.mean([c.center + 3.0 * c.rotation[2] for c in cameras], 0)
     return np.linalg.solve(a, b)
+
+
+def scene_extent(cameras) -> tuple[np.ndarray, float]:
+    """The reference 3DGS's camera normalisation: the centre of the camera centres and 1.1 x the
+    largest distance from it (the scale of positional learning rates and of densification)."""
+    centers = np.stack([c.center for c in cameras])
+    mid = centers.mean(0)
+    radius = 1.1 * float(np.linalg.norm(centers - mid, axis=1).max())
+    if radius < 1e-9:  # one camera: its distance to the point it looks at
+        radius = 1.1 * float(np.linalg.norm(look_target(cameras) - centers[0])) or 1.0
+    return mid, radius

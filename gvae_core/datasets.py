@@ -8,7 +8,10 @@ so transparent pixels do not bleed their colour into the result.
 from __future__ import annotations
 
 import math
+import re
+from collections.abc import Sequence
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +19,8 @@ from PIL import Image, UnidentifiedImageError
 
 from .camera import Camera
 
-__all__ = ["DatasetError", "Views", "read_rgba", "resize_rgba", "premultiplied", "resize_area", "resize_area_reference"]
+__all__ = ["DatasetError", "Views", "read_rgba", "resize_rgba", "premultiplied", "resize_area", "resize_area_reference",
+           "every_nth", "name_order"]
 
 class DatasetError(ValueError):
     """A dataset folder that cannot be read: the message names the file and what is wrong."""
@@ -46,6 +50,12 @@ class Views:
     def __len__(self) -> int:
         return len(self.cameras)
 
+    def subset(self, rows) -> Views:
+        """The views at `rows` (indices, in the order given)."""
+        rows = np.asarray(rows, np.int64)
+        return Views([self.cameras[i] for i in rows], self.images[rows], self.alphas[rows],
+                     [self.names[i] for i in rows])
+
     def at_resolution(self, height: int) -> Views:
         """The same views at another image height: cameras scaled, RGBA area-averaged in
         premultiplied space (as reading a capture does)."""
@@ -61,6 +71,33 @@ class Views:
         bg = np.asarray(background, np.float32).reshape(1, 1, 1, -1)
         a = self.alphas[..., None]
         return (self.images * a + bg * (1.0 - a)).astype(np.float32, copy=False)
+
+
+def name_order(names: Sequence[str]) -> list[int]:
+    """Indices of `names` sorted by name, numbers by value ("r_2" before "r_10", as a file browser
+    lists them; the plain sort wherever numbers are zero-padded, as cameras name photos)."""
+    def key(i: int):
+        parts = re.split(r"(\d+)", names[i])
+        return [(0, int(p), "") if p.isdigit() else (1, 0, p) for p in parts], names[i]
+    return sorted(range(len(names)), key=key)
+
+
+def every_nth(names: Sequence[str], every, offset=0) -> np.ndarray:
+    """The one hold-out rule: the rows of every `every`-th of `names` sorted by name (`name_order`),
+    from the `offset`-th, in ascending row order. `every` and `offset` may be fractions (a number of
+    picks spread evenly: every n/k-th from half way); the k-th pick is the name at position
+    round(offset + k * every), the rounding of the exact value (`fractions.Fraction`)."""
+    n = len(names)
+    every, offset = Fraction(every), Fraction(offset)
+    if every <= 0 or offset < 0:
+        raise ValueError(f"every_nth: every must be positive and offset >= 0, got {every}, {offset}")
+    order = name_order(names)
+    positions = []
+    k = 0
+    while offset + k * every < n:
+        positions.append(int(np.round(float(offset + k * every))))
+        k += 1
+    return np.array(sorted({order[p] for p in positions if p < n}), np.int64)
 
 
 def read_rgba(path: Path) -> np.ndarray:

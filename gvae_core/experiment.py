@@ -62,7 +62,8 @@ from .rendering.reference import render_reference
 from .scenes import SPLITS, cache_dir, make_scene
 from .scenes.faults import FAULTS, faulted_scene
 from .superres import CHILD_GRADIENT, EXPOSURE_WEIGHT, POSE_WEIGHT, SuperResConfig, fit_octaves
-from .train import TrainConfig, fine_tune, scene_extent, train_progressive
+from .camera import scene_extent
+from .train import TrainConfig, fine_tune, train_progressive
 from .vae import default_model_dir, load_model
 
 #: Methods in result rows.

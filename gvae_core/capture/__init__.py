@@ -1,8 +1,9 @@
 """Captures: the cameras and photos a splat is trained from, read through one door.
 
-`read_capture(path, test_every)` reads a COLMAP capture (binary or text; `colmap`), a
-`transforms*.json` of instant-ngp or nerfstudio, a NeRF-Synthetic folder (`transforms`) or the
-reference 3DGS's `cameras.json` (cameras only, `gs_cameras`) into
+`open_capture(path, test_every)` reads a capture in one call (`door`): a folder of photos gets
+its cameras by structure from motion first (`sfm`), then `read_capture` reads a COLMAP capture
+(binary or text; `colmap`), a `transforms*.json` of instant-ngp or nerfstudio, a NeRF-Synthetic
+folder (`transforms`) or the reference 3DGS's `cameras.json` (cameras only, `gs_cameras`) into
 one `Capture` (`dataset`): per frame a pinhole camera in the OpenCV convention of DESIGN.md with
 lens distortion undone (`lens`, as COLMAP's undistorter), its image, name and split (held-out
 views every `test_every`-th by name), and the SfM points when there are any. Every command that
@@ -20,11 +21,12 @@ from ..datasets import DatasetError, Views
 from .colmap import COLMAP_MODELS, SfMPoints, read_colmap_cameras, read_colmap_points
 from .beside import FoundCameras, cameras_beside, training_cameras
 from .dataset import SPLITS, TEST_EVERY, Capture, find_capture, read_capture
+from .door import open_capture
 from .lens import Lens, undistort_image, undistorted_camera
 from .views import (DEFAULT_RESOLUTION, DEFAULT_VIEWS, PlacedViews, Surround, default_views, in_view, inside_views,
                     outside_views, placed_views, scoring_views, surround, surround_radius)
 
-__all__ = ["Capture", "read_capture", "find_capture", "load_cameras", "load_capture_images", "load_nerf_synthetic",
+__all__ = ["Capture", "open_capture", "read_capture", "find_capture", "load_cameras", "load_capture_images", "load_nerf_synthetic",
            "SfMPoints", "Lens", "undistort_image", "undistorted_camera", "read_colmap_cameras", "read_colmap_points",
            "COLMAP_MODELS", "SPLITS", "TEST_EVERY", "DatasetError", "scoring_views", "default_views", "placed_views",
            "PlacedViews", "outside_views", "inside_views", "surround", "surround_radius", "Surround", "DEFAULT_VIEWS",
@@ -34,13 +36,13 @@ __all__ = ["Capture", "read_capture", "find_capture", "load_cameras", "load_capt
 def load_cameras(path, test_every: int | None = None) -> list[Camera]:
     """The cameras a cloud was trained from: the training views of the capture at `path` (every
     frame of one transforms file or COLMAP model, but the held-out ones), without their images."""
-    return read_capture(path, test_every, images=False).split_cameras("train")
+    return open_capture(path, test_every, images=False).split_cameras("train")
 
 
 def load_capture_images(path, resolution: int | None = None, test_every: int | None = None) -> Views:
     """The capture's training images with their cameras (for fitting a cloud trained from them),
     scaled to `resolution` pixels high (None: as stored; never up)."""
-    capture = read_capture(path, test_every)
+    capture = open_capture(path, test_every)
     height = capture.cameras[capture.indices("train")[0]].height if len(capture.indices("train")) else None
     return capture.load("train", None if resolution is None or height is None else min(int(resolution), height))
 

@@ -15,7 +15,7 @@ image file, name and split, and the capture's SfM points when it has them. Forma
 Frames whose image is missing are dropped, and counted (`Capture.skipped`, with a warning); an
 image whose size differs from its camera's is read as a scaled copy when its aspect agrees (an
 `images_4` folder beside a full-size model), else refused. `held_out(every)` marks every
-`every`-th frame sorted by image name as a test view (the LLFF / Mip-NeRF 360 convention, 8).
+`every`-th frame by image name as a test view (the LLFF / Mip-NeRF 360 convention, 8).
 `Capture.load(split, height)` reads the images: straight RGBA (alpha 1 for photos), undistorted
 into the frame's pinhole, area-averaged to `height` in premultiplied space (`datasets`).
 """
@@ -32,7 +32,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from ..camera import Camera
-from ..datasets import DatasetError, Views, premultiplied, read_rgba, resize_rgba
+from ..datasets import DatasetError, Views, every_nth, premultiplied, read_rgba, resize_rgba
 from .colmap import ColmapModel, SfMPoints, colmap_files, read_colmap
 from .gs_cameras import GS_CAMERAS, is_gs_cameras, read_gs_cameras
 from .lens import Lens, undistort_image, undistorted_camera
@@ -61,7 +61,8 @@ class Capture:
     read for its camera only names no image), `names`,
     `splits` ("train", "test" or "val"), `lenses` (the distortion its photo was taken through) and
     `photo_cameras` (the pinhole part of that camera, at the stored size). `points`: the SfM points
-    (None without); `skipped`: frames dropped because their image is missing."""
+    (None without); `skipped`: frames dropped because their image is missing; `sfm_report`: what
+    structure from motion did when the call that read it ran it (`capture.sfm.SfMReport`)."""
 
     source: Path
     kind: str
@@ -73,6 +74,7 @@ class Capture:
     photo_cameras: list[Camera]
     points: SfMPoints | None = None
     skipped: list[str] = dataclasses.field(default_factory=list)
+    sfm_report: object | None = None
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -90,8 +92,9 @@ class Capture:
         return [self.cameras[i] for i in self.indices(split)]
 
     def held_out(self, every: int | None) -> Capture:
-        """The same frames with every `every`-th one, sorted by image name, a test view and the
-        rest training views (None: as read). A NeRF-Synthetic folder has its own test split."""
+        """The same frames with every `every`-th one by image name (`datasets.every_nth`, from the
+        first) a test view and the rest training views (None: as read). A NeRF-Synthetic folder has
+        its own test split."""
         if every is None:
             return self
         every = int(every)
@@ -100,11 +103,10 @@ class Capture:
         if self.kind == "nerf-synthetic":
             raise ValueError(f"{self.source}: a NeRF-Synthetic folder has its own test split "
                              f"(transforms_test.json); --test-every is for captures with one set of images")
-        order = sorted(range(len(self)), key=lambda i: self.files[i].name if self.files[i] else self.names[i])
+        keys = [f.name if f is not None else name for f, name in zip(self.files, self.names)]
         splits = ["train"] * len(self)
-        for rank, i in enumerate(order):
-            if rank % every == 0:
-                splits[i] = "test"
+        for i in every_nth(keys, every):
+            splits[i] = "test"
         if "train" not in splits:
             raise ValueError(f"{self.source}: holding out every {every}th of {len(self)} images leaves none to "
                              f"train on")

@@ -45,16 +45,16 @@ import torch
 import torch.nn.functional as F
 
 from ..antialias import DILATION_KEY, FILTER_KEY
-from ..camera import Camera
+from ..camera import Camera, scene_extent
 from ..cloud import GaussianCloud
 from ..conventions import activate_opacities
 from ..datasets import Views
-from ..densify import DensifyStrategy, g_scale
+from ..densify import g_scale
 from ..detail.fit import ORACLE_LEARNING_RATES, crop
 from ..losses import photometric_loss, psnr
 from ..octaves import FIELDS, REFINED_SIZE_CHANGE, SIZE, with_octaves
 from ..rendering import RenderOutput, RenderSettings, render
-from ..train import scene_extent
+from ..train.strategy import DensifyStrategy
 from .children import CHILD_LOGIT, densify
 from .guards import ExposureCorrection, PoseCorrection
 from .optim import VisibleAdam

@@ -1,0 +1,75 @@
+"""The validation photos of a stage: training photos set aside (never trained on) and drawn every
+few iterations (the curve), and for the stage that trains until it converges, when to stop (the
+`gvae_core.plateau.Plateau` rule once the planned iterations are done, or the time budget) and the
+state they liked best."""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+from ..antialias import FILTER_KEY
+from ..camera import Camera
+from ..datasets import Views
+from ..plateau import Plateau
+from ..rendering import RenderSettings
+from .config import TrainConfig
+from .evaluation import evaluate_psnr
+from .loop import centres_filter
+from .model import GaussianModel
+
+__all__ = ["Validation"]
+
+
+class Validation:
+    """A stage's validation photos `views`. `planned`: the stage's planned iterations; `converging`:
+    whether it trains on past them until the photos stop improving (from `started`, a
+    `time.perf_counter()`, `config.max_minutes` at most); `test_views` (converging only): the
+    held-out views, drawn once at the planned count for the log (they never decide)."""
+
+    def __init__(self, config: TrainConfig, views: Views, cameras: list[Camera], settings: RenderSettings,
+                 started: float, planned: int, converging: bool, say, test_views: Views | None = None):
+        self.views, self.cameras, self.background, self.settings = views, cameras, config.background, settings
+        self.test_views, self.test_at_planned = test_views, None
+        self.plateau = Plateau(patience=config.patience, min_gain=config.min_gain)
+        self.deadline = None if config.max_minutes is None else started + 60.0 * config.max_minutes
+        self.planned, self.converging, self.say = planned, converging, say
+        self.curve: list[tuple[int, float]] = []
+        self.best, self.best_step, self.best_params = -math.inf, 0, None
+
+    def check(self, model: GaussianModel, it: int, degree: int, report) -> str | None:
+        """The validation PSNR at iteration `it` (said, reported, on the curve); a reason to stop, or None."""
+        current = model.cloud().detach()
+        if self.settings.antialias == "mip":  # drawn as training draws it: with the training cameras' filter
+            current = current.replace(extra={FILTER_KEY: centres_filter(model.params["means"].detach(), self.cameras)})
+        value = evaluate_psnr(current, self.views, self.background, degree, None, self.settings)
+        self.curve.append((it, round(value, 4)))
+        message = f"step {it}: validation photos {value:.2f} dB, {len(model)} Gaussians"
+        self.say(message)
+        report(it, message, validation_psnr=round(value, 4))
+        if not self.converging:
+            return None
+        if it >= self.planned and value > self.best:  # (the best state once densification is over)
+            self.best, self.best_step = value, it
+            self.best_params = {n: p.detach().clone() for n, p in model.params.items()}
+        if it < self.planned:
+            return None
+        if self.test_at_planned is None and self.test_views is not None:  # said in the log, never decides
+            self.test_at_planned = (it, evaluate_psnr(current, self.test_views, self.background, degree, None,
+                                                      self.settings))
+        if self.plateau.update(it, value):
+            return f"converged: {self.plateau.reason}"
+        if self.deadline is not None and time.perf_counter() > self.deadline:
+            return "stopped by the time budget (max_minutes)"
+        return None
+
+    def summary(self, stopped: str | None, iterations: int) -> dict[str, Any]:
+        """The log's record of the validation: the curve and, converging, why it stopped and the state kept."""
+        out: dict[str, Any] = {"validation_curve": self.curve}
+        if self.converging:
+            out["stopped"] = stopped or f"reached max_iterations ({iterations})"
+            out["best_step"] = self.best_step if self.best_params is not None else iterations
+            if self.test_at_planned is not None:
+                out["test_psnr_at_planned"] = [self.test_at_planned[0], round(self.test_at_planned[1], 4)]
+        return out
