@@ -4,8 +4,8 @@ becomes a splat object, as `gvae train FOLDER --out RUN [--image-height H] [--te
 A background job (`refine_ops.BackgroundJob`, driven by the same operator machinery as Refine and
 Compact): in the worker, the core's front door from a folder to a trained splat
 (`gvae_core.train.train_capture`: structure from motion when the folder has photos and no model, then
-the training stages) into a run folder that is kept (`gvae train RUN --more N` continues it; starting the job again on the same
-folder and size resumes after the last finished stage). Every call into `gvae_core` is in
+the training stages) into a run folder that is kept (`gvae train RUN --more N` continues it; starting
+the job again on the same folder and size resumes after the last finished stage). Every call into `gvae_core` is in
 `train_capture`. Only `finish`, on the main thread, changes the blend file: the splat object (the
 add-on's or Blender's own), the capture's cameras as Blender cameras (optional) and the scene set up for
 splats, as Import does; so cancel and failure leave the scene as it was.

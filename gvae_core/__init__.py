@@ -36,6 +36,7 @@ _LAZY = {
     "train_progressive": "gvae_core.train",
     "TrainConfig": "gvae_core.train",
     "TrainResult": "gvae_core.train",
+    "train_capture": "gvae_core.train",
     "Lineage": "gvae_core.lineage",
     "make_scene": "gvae_core.scenes",
     "list_scenes": "gvae_core.scenes",

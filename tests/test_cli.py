@@ -212,18 +212,34 @@ def test_every_option_states_its_default():
     assert not missing, "--help does not state the default of:\n" + "\n".join(missing)
 
 
-def test_train_help_states_the_profiles_defaults(capsys):
+def test_train_flags_are_made_from_the_configuration(capsys, monkeypatch):
+    """Every TrainConfig field has a flag whose help is the field's and states its default and each
+    profile's value where it differs; the flags given become the configuration."""
+    import dataclasses  # noqa: PLC0415
+
+    from gvae_core.cli.fields import flag_of  # noqa: PLC0415
+    from gvae_core.cli.train import config_of  # noqa: PLC0415
     from gvae_core.train import PROFILES, TrainConfig  # noqa: PLC0415
 
+    monkeypatch.setenv("COLUMNS", "100000")  # (no line breaks inside a help text)
     with pytest.raises(SystemExit):
         main(["train", "--help"])
     text = " ".join(capsys.readouterr().out.split())
+    for f in dataclasses.fields(TrainConfig):
+        assert flag_of(f) in text and " ".join(f.metadata["help"].split()) in text, f.name
     for name in PROFILES:
         c = TrainConfig.profile(name)
         for numbers in (c.resolutions, c.iterations):
             assert " ".join(map(str, numbers)) in text, (name, numbers)
-        assert str(c.init_count) in text and c.init in text
-    assert "default: the profile's: auto; random with --profile full" in text
+    assert "(default: 300 300 1000; tiny: 200 150 150; legacy: 600 400 400; full: 7000 7000 7000 30000)" in text
+    assert "(default: auto; full: random)" in text
+    parse = build_parser("train").parse_args
+    args = parse(["train", "x", "--out", "o", "--image-height", "240", "--gaussians-per-pixel", "0", "--iterations",
+                  "50", "--patience", "900", "--no-carry-optimizer"])
+    config = config_of(args)
+    assert config.resolutions == (120, 180, 240) and config.iterations == (50, 50, 50) and not config.converge
+    assert config.gaussians_per_pixel is None and config.patience == 900 and not config.carry_optimizer
+    assert config_of(parse(["train", "x", "--profile", "tiny"])) == TrainConfig.profile("tiny")
 
 
 def test_train_refine_and_compact_warn_nothing_from_the_project(tmp_path, capsys):

@@ -1,6 +1,7 @@
-"""Density control: the split rule, the optimiser bookkeeping of structural edits and the
-reference strategy's decisions (no renderer)."""
+"""Density control: the split rule, the optimiser bookkeeping of structural edits, the reference
+strategy's decisions and its schedule's hooks (no renderer)."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -9,8 +10,10 @@ import torch
 
 from gvae_core import quaternions
 from gvae_core.cloud import GaussianCloud
-from gvae_core.densify import GaussianModel, split_children
+from gvae_core.densify import split_children
 from gvae_core.train import TrainConfig
+from gvae_core.train.model import GaussianModel
+from gvae_core.train.strategy import DensifyState, DensifyStrategy
 
 
 def cloud_of(n, rng, log_scale=-3.0, degree=1):
@@ -117,24 +120,25 @@ def test_split_replaces_parent_by_two_smaller_children_sampled_from_it():
 def test_densify_and_prune_selects_by_gradient_size_and_opacity():
     rng = np.random.default_rng(2)
     cfg = TrainConfig(max_gaussians=None)
-    strategy = cfg.densify_strategy()
+    strategy = DensifyStrategy.for_stage(cfg, 0, None)
     c = cloud_of(6, rng)
     c.scales[:] = np.log(0.001)          # small: cloned
     c.scales[1] = np.log(0.05)           # large: split (percent_dense * extent = 0.01)
     c.scales[4] = np.log(0.5)            # larger than 0.1 * extent: pruned when prune_large
     c.opacities[3] = -8.0                # sigmoid < 0.005: pruned
     m = model_with_state(c, cfg, extent=1.0)
-    m.grad_accum = torch.tensor([3e-4, 3e-4, 1e-4, 0.0, 0.0, 1e-3]) * 2
-    m.grad_count = torch.full((6,), 2.0)
-    done = strategy.densify_and_prune(m, torch.Generator().manual_seed(0), prune_large=True, image_height=100)
+    state = DensifyState(torch.tensor([3e-4, 3e-4, 1e-4, 0.0, 0.0, 1e-3]) * 2, torch.full((6,), 2.0), torch.zeros(6))
+    done = strategy.densify_and_prune(m, state, torch.Generator().manual_seed(0), prune_large=True,
+                                      image_height=100)
     assert done == {"cloned": 2, "split": 1, "pruned": 2}
     # kept originals 0, 2, 5; clones of 0 and 5; two children of 1
     assert m.ids.tolist() == [0, 2, 5, 6, 7, 8, 9]
     assert m.parents.tolist() == [-1] * 7
-    assert float(m.grad_accum.abs().sum()) == 0.0 and len(m.grad_count) == 7
+    assert float(state.grad_sum.abs().sum()) == 0.0 and len(state.count) == 7  # the statistics restart
     # without prune_large the oversized one stays
     m2 = model_with_state(c, cfg, extent=1.0)
-    strategy.densify_and_prune(m2, torch.Generator().manual_seed(0), prune_large=False, image_height=100)
+    state = DensifyState(torch.tensor([3e-4, 3e-4, 1e-4, 0.0, 0.0, 1e-3]) * 2, torch.full((6,), 2.0), torch.zeros(6))
+    strategy.densify_and_prune(m2, state, torch.Generator().manual_seed(0), prune_large=False, image_height=100)
     assert 4 in m2.ids.tolist() and 3 not in m2.ids.tolist()
 
 
@@ -142,9 +146,9 @@ def test_max_gaussians_keeps_the_highest_gradients():
     rng = np.random.default_rng(3)
     cfg = TrainConfig(max_gaussians=7)
     m = model_with_state(cloud_of(5, rng, log_scale=np.log(0.001)), cfg)
-    m.grad_accum = torch.tensor([5e-4, 9e-4, 3e-4, 8e-4, 1e-5])
-    m.grad_count = torch.ones(5)
-    cfg.densify_strategy().densify_and_prune(m, torch.Generator(), prune_large=False, image_height=10)
+    state = DensifyState(torch.tensor([5e-4, 9e-4, 3e-4, 8e-4, 1e-5]), torch.ones(5), torch.zeros(5))
+    DensifyStrategy.for_stage(cfg, 0, cfg.max_gaussians).densify_and_prune(m, state, torch.Generator(),
+                                                                          prune_large=False, image_height=10)
     assert len(m) == 7
     assert m.ids.tolist() == [0, 1, 2, 3, 4, 5, 6]
     assert torch.equal(m.params["means"].detach()[5:], m.params["means"].detach()[[1, 3]])
@@ -163,9 +167,10 @@ def test_reset_opacity_and_stats_in_ndc_units():
     # pixel gradient (2, 4) on a 100 x 50 image is (100, 100) in NDC units
     grad = torch.tensor([[2.0, 4.0], [1.0, 1.0], [0.0, 0.0]])
     visible = torch.tensor([True, False, True])
-    m.add_stats(grad, visible, torch.tensor([3, 0, 7], dtype=torch.int32), 100, 50)
-    assert m.grad_accum.tolist() == pytest.approx([math.hypot(100, 100), 0.0, 0.0])
-    assert m.grad_count.tolist() == [1.0, 0.0, 1.0] and m.max_radii.tolist() == [3.0, 0.0, 7.0]
+    state = DensifyState.zeros(3, "cpu")
+    state.add(grad, visible, torch.tensor([3, 0, 7], dtype=torch.int32), 100, 50)
+    assert state.grad_sum.tolist() == pytest.approx([math.hypot(100, 100), 0.0, 0.0])
+    assert state.count.tolist() == [1.0, 0.0, 1.0] and state.max_radii.tolist() == [3.0, 0.0, 7.0]
 
 
 def test_adam_state_carries_to_a_model_of_the_same_rows():
@@ -197,3 +202,47 @@ def test_adam_state_carries_to_a_model_of_the_same_rows():
         plain.step()
     for p, q in zip(a.params.values(), copies):
         torch.testing.assert_close(p.detach(), q.detach())
+
+
+class _Result:
+    """What the strategy's hooks read of a render: the projected centres, visibility, radii."""
+
+    def __init__(self, n):
+        self.means2d = torch.zeros(n, 2, requires_grad=True)
+        self.visible = torch.ones(n, dtype=torch.bool)
+        self.radii = torch.full((n,), 3)
+
+
+def test_the_strategy_owns_its_schedule_statistics_and_opacity_reset():
+    """A round only every `every` steps from `start` to `stop`, none at the stage's last step; the
+    statistics gather between rounds and restart after one; the opacity reset every `reset_every`
+    before `stop` when the configuration has resets, never without; large ones pruned only after
+    the first reset interval."""
+    rng = np.random.default_rng(5)
+    cfg = TrainConfig(resolutions=(10,), iterations=(3000,), max_gaussians=None, opacity_resets=True)
+    strategy = DensifyStrategy.for_stage(cfg, 0, None)
+    assert (strategy.start, strategy.stop, strategy.every, strategy.reset_every, strategy.last) == (50, 1500, 25,
+                                                                                                       300, 3000)
+    m = model_with_state(cloud_of(4, rng, log_scale=np.log(0.001)), cfg)
+    m.params["opacities"].data[:] = 3.0
+    state = strategy.initialize_state(m)
+    camera = type("Cam", (), {"width": 20, "height": 10})()
+    rounds = []
+    for step in range(1, 301):
+        result = _Result(len(m))
+        strategy.step_pre_backward(result)
+        (result.means2d * torch.tensor([1e-2, 0.0])).sum().backward()  # a gradient above the threshold
+        done = strategy.step_post_backward(m, state, result, camera, step, torch.Generator().manual_seed(step))
+        if done is not None:
+            rounds.append(step)
+    assert rounds == list(range(50, 301, 25))  # from `start`, every `every`
+    assert float(state.count.max()) == 0.0  # (a round at 300 restarted them)
+    assert float(torch.sigmoid(m.params["opacities"].detach()).max()) == pytest.approx(0.01)  # reset at 300
+    late = dataclasses.replace(strategy, last=325)
+    n = len(m)
+    for step in (325, 1525):  # the stage's last step, and past `stop`: nothing
+        assert late.step_post_backward(m, state, _Result(n), camera, step, torch.Generator()) is None
+    off = DensifyStrategy.for_stage(dataclasses.replace(cfg, opacity_resets=False), 0, None)
+    m.params["opacities"].data[:] = 3.0
+    off.step_post_backward(m, off.initialize_state(m), _Result(len(m)), camera, 300, torch.Generator())
+    assert float(torch.sigmoid(m.params["opacities"].detach()).min()) > 0.9  # no reset without resets

@@ -2,6 +2,7 @@
 from a known cloud (PSNR rises stage to stage, lineage invariants, determinism and resume, outputs
 and the CLI)."""
 
+import dataclasses
 import json
 import math
 import shutil
@@ -22,10 +23,11 @@ from gvae_core.ply import read_ply
 from gvae_core.quaternions import from_rotmat
 from gvae_core.rendering import RenderSettings, render
 from gvae_core.initialization import hull_points, initial_bounds, initial_cloud
-from gvae_core.cli.train import _DEFAULT_ITERATIONS, _DEFAULT_PER_PIXEL
-from gvae_core.densify import GaussianModel
-from gvae_core.train import (ADDED_FIELDS, PROGRESS_KEYS, ParameterAverage, TrainConfig, _gaussian_limit, evaluate_psnr,
-                             fine_tune, position_lr, scene_extent, split_validation, train_progressive)
+from gvae_core.camera import scene_extent
+from gvae_core.train import (PROGRESS_KEYS, ParameterAverage, RunFolder, TrainConfig, evaluate_psnr, gaussian_limit,
+                             fine_tune, position_lr, split_validation, train_progressive)
+from gvae_core.train.model import GaussianModel
+from gvae_core.train.run_folder import FORMAT_1_LEFT_OUT
 
 
 def test_schedules_scale_with_the_budget():
@@ -256,38 +258,41 @@ def test_training_on_a_named_device(device):
         train_progressive(synthetic_views, cfg, progress=False, device="gpu0")
 
 
-def test_added_config_fields_keep_existing_run_keys():
-    """`antialias` at its default is left out of to_dict (run directories and experiment cache keys
-    of existing runs stay valid); any other value is written and so changes the key."""
-    default = TrainConfig.profile("default")
-    assert "antialias" not in default.to_dict() and "seed" in default.to_dict()
-    mip = TrainConfig.profile("default", antialias="mip")
+def test_the_configuration_round_trips_and_refuses_what_it_does_not_know():
+    default, mip = TrainConfig.profile("default"), TrainConfig.profile("default", antialias="mip")
     assert mip.to_dict() == {**default.to_dict(), "antialias": "mip"}
+    for config in (default, mip, TrainConfig.profile("legacy"), TrainConfig.profile("tiny")):
+        assert TrainConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
     with pytest.raises(ValueError, match="antialias"):
         TrainConfig(antialias="auto")
+    with pytest.raises(ValueError, match="unknown field"):
+        TrainConfig.from_dict({**default.to_dict(), "wobble": 1})
 
 
-def test_added_fields_read_back_as_the_training_before_them():
-    """A configuration that trains as before issue 50 (`legacy`) keeps the key it had (none of the
-    new fields written); the default writes the ones it changes; a run.json without them reads back
-    as the training it was."""
-    legacy, default = TrainConfig.profile("legacy"), TrainConfig.profile("default")
-    assert not set(ADDED_FIELDS) & set(legacy.to_dict())
-    assert default.to_dict()["converge"] is True and default.to_dict()["validation_views"] == 8
-    assert TrainConfig.from_dict(legacy.to_dict()) == legacy
-    assert TrainConfig.from_dict(default.to_dict()) == default
-    assert not TrainConfig.from_dict({"resolutions": [10], "iterations": [5]}).converge
+def test_a_run_folder_of_the_first_format_reads_back_as_the_training_it_was(tmp_path):
+    """run.json of format 1 left out the fields still at the values it trained with: read back,
+    they take those values (such a run resumes); format 2 writes every field."""
+    legacy = TrainConfig.profile("legacy", resolutions=(10,), iterations=(5,))
+    old = {k: v for k, v in legacy.to_dict().items() if k not in FORMAT_1_LEFT_OUT}
+    (tmp_path / "run.json").write_text(json.dumps({"config": old, "stages_done": 0, "next_id": 0, "data": None}))
+    state = RunFolder(tmp_path).state()
+    assert state.config == legacy and state.stages_done == 0 and state.data is None
+    assert RunFolder(tmp_path).resume(legacy) is None  # nothing finished, nothing to refuse
+    with pytest.raises(ValueError, match="different configuration .*seed"):
+        RunFolder(tmp_path).resume(dataclasses.replace(legacy, seed=4))
+    (tmp_path / "run.json").write_text("{")
+    with pytest.raises(ValueError, match="not a training run state file"):
+        RunFolder(tmp_path).state()
 
 
 def test_the_budget_follows_the_photos_pixels():
     """`gaussians_per_pixel` caps a stage at that many Gaussians per pixel of one training photo,
-    the smaller of it and `max_gaussians` wins and says so; the CLI's --help states the defaults."""
+    the smaller of it and `max_gaussians` wins and says so."""
     cam = orbit(1, 2.5, 0.5, width=40, height=30, fov_x=1.0)[0]
-    assert _gaussian_limit(TrainConfig(gaussians_per_pixel=0.5, max_gaussians=None), 8, cam) == (
+    assert gaussian_limit(TrainConfig(gaussians_per_pixel=0.5, max_gaussians=None), 8, cam) == (
         600, "0.5 per pixel of a photo")
-    assert _gaussian_limit(TrainConfig(gaussians_per_pixel=0.5, max_gaussians=100), 8, cam) == (100, "max_gaussians")
-    assert _gaussian_limit(TrainConfig(gaussians_per_pixel=None, max_gaussians=None), 8, cam)[1] == "what memory allows"
-    assert TrainConfig().gaussians_per_pixel == _DEFAULT_PER_PIXEL and TrainConfig().iterations == _DEFAULT_ITERATIONS
+    assert gaussian_limit(TrainConfig(gaussians_per_pixel=0.5, max_gaussians=100), 8, cam) == (100, "max_gaussians")
+    assert gaussian_limit(TrainConfig(gaussians_per_pixel=None, max_gaussians=None), 8, cam)[1] == "what memory allows"
     with pytest.raises(ValueError, match="gaussians_per_pixel"):
         TrainConfig(gaussians_per_pixel=0)
 

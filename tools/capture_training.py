@@ -120,11 +120,12 @@ def _picture(run: Path, path: Path, count: int = 3) -> None:
     from gvae_core.capture import read_capture  # noqa: PLC0415
     from gvae_core.metrics.image import render_views  # noqa: PLC0415
     from gvae_core.ply import read_ply  # noqa: PLC0415
+    from gvae_core.train import RunFolder  # noqa: PLC0415
 
-    state = json.loads((run / "run.json").read_text())
-    stage = int(state["stages_done"]) - 1
-    height = state["config"]["resolutions"][stage]
-    views = read_capture(state["data"], state["config"].get("test_every")).load("test", height)
+    state = RunFolder(run).finished()
+    stage = state.stages_done - 1
+    height = state.config.resolutions[stage]
+    views = read_capture(state.data, state.config.test_every).load("test", height)
     pick = np.linspace(0, len(views) - 1, min(count, len(views))).round().astype(int)
     one = type(views)([views.cameras[i] for i in pick], views.images[pick], views.alphas[pick])
     renders = render_views(read_ply(run / f"stage_{stage}.ply"), one)

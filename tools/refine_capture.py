@@ -42,7 +42,7 @@ from gvae_core.octaves import with_octaves
 from gvae_core.ply import read_ply
 from gvae_core.refinement import refine
 from gvae_core.superres import SuperResConfig, fit_octaves
-from gvae_core.train import TrainConfig, fine_tune
+from gvae_core.train import RunFolder, TrainConfig, fine_tune
 
 ROWS = ("unrefined", "detail", "images", "more", "oracle", "real", "trace")
 
@@ -89,11 +89,10 @@ def main(argv: list[str] | None = None) -> int:
         from gvae_core.experiment import PROTOCOLS, prepare_scene  # noqa: PLC0415
 
         args.run = prepare_scene(args.scene, PROTOCOLS["quick"].fits(), seed=args.seed, threads=args.threads).run_dir
-    run = json.loads((args.run / "run.json").read_text())
-    config = TrainConfig.from_dict(run["config"])
-    stage = int(run["stages_done"]) - 1
+    run = RunFolder(args.run).finished()
+    config, stage = run.config, run.stages_done - 1
     height = config.resolutions[stage]
-    capture = read_capture(run["data"], config.test_every)
+    capture = read_capture(run.data, config.test_every)
     cloud = read_ply(args.cloud or args.run / f"stage_{stage}.ply")
     train = capture.load("train", height)
     test = {2 * height: capture.load("test", 2 * height), height: capture.load("test", height)}

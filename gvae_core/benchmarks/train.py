@@ -12,6 +12,7 @@ start of the stage.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 import time
@@ -69,27 +70,10 @@ STEP_PARTS = ("project", "bin", "composite", "loss", "backward (loss, image)", "
               "project backward", "optimizer", "statistics", "densify")
 
 
-def profile_step(cloud, views, *, steps: int = 20, sh_degree: int = 3, densify_every: int = 25,
-                 config=None, seed: int = 0) -> dict[str, float]:
-    """CPU seconds of this thread per training step, part by part (`STEP_PARTS`), over `steps`
-    steps of the trainer's recipe on `cloud` and the training `views` (one view a step, in a seeded
-    order): the renderer's stages forward and backward (timed inside the compiled path: run it with
-    one torch thread, so that the thread's CPU time is the step's), the loss, the optimiser, the
-    densification statistics and a round of density control every `densify_every` steps (its
-    cost spread over the steps; at the cloud's count, as at a budget). Also "step" (the whole step),
-    "other" (what no part covers) and "gaussians_end"."""
-    import dataclasses  # noqa: PLC0415
-
-    import numpy as np  # noqa: PLC0415
-    import torch  # noqa: PLC0415
-
-    from ..densify import GaussianModel  # noqa: PLC0415
-    from ..losses import photometric_loss  # noqa: PLC0415
-    from ..rendering import RenderSettings, compiled, render  # noqa: PLC0415
-
-    config = config or TrainConfig()
-    spent = dict.fromkeys(STEP_PARTS, 0.0)
-    clock = time.thread_time
+@contextlib.contextmanager
+def _timed_renderer(spent: dict[str, float], clock):
+    """The compiled renderer's stages, forward and backward, timed into `spent` while in the block."""
+    from ..rendering import compiled  # noqa: PLC0415
 
     def timed(part, fn):
         def wrapper(*a, **k):
@@ -104,25 +88,54 @@ def profile_step(cloud, views, *, steps: int = 20, sh_degree: int = 3, densify_e
                "composite": (compiled, "composite_forward"), "composite backward": (compiled, "composite_backward")}
     saved = {part: getattr(owner, name) for part, (owner, name) in patched.items()}
     saved_backward = compiled.ProjectFunction.backward
-    from ..train import scene_extent, training_targets  # noqa: PLC0415
+    try:
+        for part, (owner, name) in patched.items():
+            setattr(owner, name, timed(part, saved[part]))
+        compiled.ProjectFunction.backward = staticmethod(timed("project backward", saved_backward))
+        yield
+    finally:
+        for part, (owner, name) in patched.items():
+            setattr(owner, name, saved[part])
+        compiled.ProjectFunction.backward = saved_backward
 
+
+def profile_step(cloud, views, *, steps: int = 20, sh_degree: int = 3, densify_every: int = 25,
+                 config=None, seed: int = 0) -> dict[str, float]:
+    """CPU seconds of this thread per training step, part by part (`STEP_PARTS`), over `steps`
+    steps of the trainer's recipe on `cloud` and the training `views` (one view a step, in a seeded
+    order): the renderer's stages forward and backward (timed inside the compiled path: run it with
+    one torch thread, so that the thread's CPU time is the step's), the loss, the optimiser, the
+    densification statistics and a round of density control every `densify_every` steps (its
+    cost spread over the steps; at the cloud's count, as at a budget). Also "step" (the whole step),
+    "other" (what no part covers) and "gaussians_end"."""
+    import numpy as np  # noqa: PLC0415
+    import torch  # noqa: PLC0415
+
+    from ..camera import scene_extent  # noqa: PLC0415
+    from ..losses import photometric_loss  # noqa: PLC0415
+    from ..rendering import RenderSettings, render  # noqa: PLC0415
+    from ..train.evaluation import training_targets  # noqa: PLC0415
+    from ..train.model import GaussianModel  # noqa: PLC0415
+    from ..train.strategy import DensifyStrategy  # noqa: PLC0415
+
+    config = config or TrainConfig()
+    spent = dict.fromkeys(STEP_PARTS, 0.0)
+    clock = time.thread_time
     _, extent = scene_extent(views.cameras)
-    model = GaussianModel(cloud.replace(extra={}), np.arange(len(cloud)), np.full(len(cloud), -1),
-                          config.learning_rates(extent), extent, len(cloud), None)
-    strategy = dataclasses.replace(config.densify_strategy(), max_gaussians=len(cloud))  # at its budget
+    model = GaussianModel.fresh(cloud.replace(extra={}), config.learning_rates(extent), extent)
+    strategy = DensifyStrategy.for_stage(config, 0, len(cloud))  # at its budget
+    state = strategy.initialize_state(model)
     targets = training_targets(views, config.background)
     settings = RenderSettings(antialias=config.antialias)
     order = np.random.default_rng(seed).permutation(max(steps, len(views)))
     gen = torch.Generator().manual_seed(seed)
     total = 0.0
-    try:
-        for part, (owner, name) in patched.items():
-            setattr(owner, name, timed(part, saved[part]))
-        compiled.ProjectFunction.backward = staticmethod(timed("project backward", saved_backward))
+    with _timed_renderer(spent, clock):
         for it in range(1, steps + 1):
             v = int(order[it - 1] % len(views))
+            camera = views.cameras[v]
             t0 = clock()
-            result = render(model.cloud(), views.cameras[v], background=config.background, sh_degree=sh_degree,
+            result = render(model.cloud(), camera, background=config.background, sh_degree=sh_degree,
                             settings=settings)
             result.means2d.retain_grad()
             t = clock()
@@ -135,8 +148,7 @@ def profile_step(cloud, views, *, steps: int = 20, sh_degree: int = 3, densify_e
                                                               - inner)
             with torch.no_grad():
                 t = clock()
-                model.add_stats(result.means2d.grad, result.visible, result.radii, views.cameras[v].width,
-                                views.cameras[v].height)
+                state.add(result.means2d.grad, result.visible, result.radii, camera.width, camera.height)
                 spent["statistics"] += clock() - t
                 t = clock()
                 model.optimizer.step()
@@ -144,13 +156,9 @@ def profile_step(cloud, views, *, steps: int = 20, sh_degree: int = 3, densify_e
                 spent["optimizer"] += clock() - t
                 if it % densify_every == 0:
                     t = clock()
-                    strategy.densify_and_prune(model, gen, image_height=views.cameras[v].height, prune_large=False)
+                    strategy.densify_and_prune(model, state, gen, image_height=camera.height, prune_large=False)
                     spent["densify"] += clock() - t
             total += clock() - t0
-    finally:
-        for part, (owner, name) in patched.items():
-            setattr(owner, name, saved[part])
-        compiled.ProjectFunction.backward = saved_backward
     out = {part: s / steps for part, s in spent.items()}
     out["step"] = total / steps
     out["other"] = out["step"] - sum(spent.values()) / steps
@@ -179,9 +187,9 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     if args.plain_adam:
-        from .. import densify  # noqa: PLC0415
+        from ..train import model as trainable  # noqa: PLC0415
 
-        densify.adam = lambda groups: torch.optim.Adam(groups, lr=0.0, eps=1e-15, foreach=False)
+        trainable.adam = lambda groups: torch.optim.Adam(groups, lr=0.0, eps=1e-15, foreach=False)
     views = read_capture(args.capture).held_out(args.test_every).load("train", args.height)
     cloud = read_ply(args.cloud)
     profile_step(cloud, views, steps=args.warmup)  # kernels loaded, memory touched

@@ -26,7 +26,8 @@ from .lens import Lens, undistort_image, undistorted_camera
 from .views import (DEFAULT_RESOLUTION, DEFAULT_VIEWS, PlacedViews, Surround, default_views, in_view, inside_views,
                     outside_views, placed_views, scoring_views, surround, surround_radius)
 
-__all__ = ["Capture", "open_capture", "read_capture", "find_capture", "load_cameras", "load_capture_images", "load_nerf_synthetic",
+__all__ = ["Capture", "open_capture", "read_capture", "find_capture", "load_cameras", "load_capture_images",
+           "load_nerf_synthetic",
            "SfMPoints", "Lens", "undistort_image", "undistorted_camera", "read_colmap_cameras", "read_colmap_points",
            "COLMAP_MODELS", "SPLITS", "TEST_EVERY", "DatasetError", "scoring_views", "default_views", "placed_views",
            "PlacedViews", "outside_views", "inside_views", "surround", "surround_radius", "Surround", "DEFAULT_VIEWS",

@@ -212,7 +212,7 @@ def find_capture(path: Path) -> tuple[str, Path | tuple[Path, Path]]:
                 raise DatasetError(f"{path}: {len(names)} photos in {photos} and no cameras (no COLMAP model, no "
                                    f"transforms*.json): make them by structure from motion with `gvae sfm {path}` "
                                    f"(gvae train, render, refine and compact do it themselves; from Python "
-                                   f"gvae_core.capture.ensure_capture)")
+                                   f"gvae_core.capture.open_capture)")
             raise DatasetError(f"{path}: no cameras found (no transforms*.json, no COLMAP cameras/images "
                                f".bin or .txt, no 3DGS cameras.json) and no photos")
     files = colmap_files(folder)

@@ -36,22 +36,24 @@ def register(subparsers) -> None:
     p.add_argument("scene", type=Path, metavar="CAPTURE",
                    help="the capture folder (or its COLMAP model, or a transforms*.json), or a folder of photos "
                         "(structure from motion makes its cameras first: gvae sfm); with --more, a run folder")
-    p.add_argument("--out", type=Path, help="run directory to write (created if needed; required but with --more)")
+    p.add_argument("--out", type=Path, help="run directory to write (created if needed; required but with --more: "
+                   "no default)")
     p.add_argument("--more", type=int, metavar="N",
                    help="train the finished run CAPTURE's last stage N more iterations; writes "
-                        "stage_<s>_more_<N>.ply and more.json there")
+                        "stage_<s>_more_<N>.ply and more.json there (default: off)")
     p.add_argument("--profile", choices=tuple(PROFILES), default="default",
                    help="preset of the fields below (default: %(default)s)")
     size = p.add_mutually_exclusive_group()
     add_fields(p, TrainConfig, ("resolutions",), profiles=PROFILES, groups={"resolutions": size})
     size.add_argument("--image-height", type=int, metavar="H",
-                      help="the last stage's image height; earlier stages in the profile's proportions")
+                      help="the last stage's image height; earlier stages in the profile's proportions (default: the "
+                           "profile's heights)")
     size.add_argument("--downscale", type=float, metavar="F",
                       help="the last stage at the stored images' size divided by F (floor), e.g. 4 for 1/4; earlier "
-                           "stages in the profile's proportions")
+                           "stages in the profile's proportions (default: the profile's heights)")
     add_fields(p, TrainConfig, MAIN_FIELDS, profiles=PROFILES)
     p.add_argument("--init-points", type=Path, metavar="FILE",
-                   help="initial points instead of --init's: .npy (N,3) or (N,6 with RGB), or a PLY")
+                   help="initial points instead of --init's: .npy (N,3) or (N,6 with RGB), or a PLY (default: none)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; 1 is "
                    "often fastest on a busy machine)")
     p.add_argument("--device", default=None, help=DEVICE_HELP)

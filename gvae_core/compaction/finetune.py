@@ -23,6 +23,7 @@ from ..antialias import DILATION_KEY, FILTER_KEY, dilation_3d, filter_3d, resolv
 from ..camera import Camera
 from ..capture import DEFAULT_RESOLUTION, load_cameras, load_capture_images, placed_views, scoring_views
 from ..cloud import GaussianCloud
+from ..datasets import every_nth
 from ..fidelity import training_rate_views
 from ..octaves import training_height
 from ..plateau import Plateau
@@ -143,23 +144,14 @@ def own_renders(cloud: GaussianCloud, cameras=None, resolution: int = DEFAULT_RE
 
 def set_aside(images, every: int = SET_ASIDE_EVERY):
     """(fit, aside): `images` (`datasets.Views`) split into the views the fine-tuning trains on and
-    every `every`-th by name (from the middle of the first `every`: away from a capture's own
-    held-out every-8th) that only judge it. (images, None) when fewer than two would be set aside
-    or fewer than two left."""
-    from ..datasets import Views  # noqa: PLC0415
-
+    every `every`-th by name from the middle of the first `every` (`datasets.every_nth`: away from a
+    capture's own held-out every-8th) that only judge it. (images, None) when fewer than two would
+    be set aside or fewer than two left."""
     n = len(images)
-    order = sorted(range(n), key=lambda i: images.names[i])
-    aside = sorted(i for rank, i in enumerate(order) if rank % every == every // 2)
+    aside = every_nth(images.names, every, every // 2)
     if len(aside) < 2 or n - len(aside) < 2:
         return images, None
-    fit = sorted(set(range(n)) - set(aside))
-
-    def pick(rows):
-        return Views([images.cameras[i] for i in rows], images.images[rows], images.alphas[rows],
-                     [images.names[i] for i in rows])
-
-    return pick(fit), pick(aside)
+    return images.subset(np.setdiff1d(np.arange(n), aside)), images.subset(aside)
 
 
 @dataclass

@@ -48,7 +48,7 @@ from ..antialias import DILATION_KEY, FILTER_KEY
 from ..camera import Camera, scene_extent
 from ..cloud import GaussianCloud
 from ..conventions import activate_opacities
-from ..datasets import Views
+from ..datasets import Views, every_nth
 from ..densify import g_scale
 from ..detail.fit import ORACLE_LEARNING_RATES, crop
 from ..losses import photometric_loss, psnr
@@ -424,12 +424,13 @@ def training_psnr(cloud: GaussianCloud, views: Views, targets: torch.Tensor, bac
     return float(np.mean(values))
 
 
-def holdout_rows(count: int, every: int) -> np.ndarray:
-    """Which of `count` images judge a fit instead of being fitted: every `every`-th from the
-    `every // 2`-th (none with `every` 0, or fewer than 2 * `every` images)."""
-    if every <= 0 or count < 2 * every:
+def holdout_rows(names, every: int) -> np.ndarray:
+    """Which of the images named `names` judge a fit instead of being fitted: every `every`-th by
+    name from the `every // 2`-th (`datasets.every_nth`; none with `every` 0, or fewer than
+    2 * `every` images)."""
+    if every <= 0 or len(names) < 2 * every:
         return np.zeros(0, np.int64)
-    return np.arange(every // 2, count, every, dtype=np.int64)
+    return every_nth(names, every, every // 2)
 
 
 def _tiles(width: int, height: int, patch: int) -> list[tuple[int, int, int, int]]:
@@ -483,7 +484,7 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     targets = torch.from_numpy(views.composite(background))
     rng = np.random.default_rng(config.seed)
     gen = torch.Generator().manual_seed(int(config.seed))
-    held = holdout_rows(len(views), int(config.holdout))
+    held = holdout_rows(views.names, int(config.holdout))
     fitted_rows = np.setdiff1d(np.arange(len(views)), held)
     check_rows = fitted_rows[np.linspace(0, len(fitted_rows) - 1, min(check_views, len(fitted_rows))).round()
                              .astype(int)]

@@ -12,8 +12,6 @@ uninterrupted one.
 
 from __future__ import annotations
 
-import dataclasses
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,7 +31,7 @@ from ..rendering import RenderSettings, resolve_device
 from ..resources import current_rss_mb, estimate_train_memory, peak_rss_mb, reset_peak_rss
 from .config import TrainConfig
 from .data import TrainingData, split_validation, training_data
-from .evaluation import rounded, stage_scores, training_targets
+from .evaluation import stage_scores, training_targets
 from .loop import Stage, StageOutcome, run_stage
 from .model import GaussianModel
 from .reporting import ProgressHook, Reporter, torch_threads
@@ -201,10 +199,11 @@ def _train_stage(run: _Run, s: int) -> None:
     if watch is not None and watch.best_params is not None and converging:
         model.load_params(watch.best_params)  # the state the validation photos liked best
     run.carried = model.optimizer_state() if config.carry_optimizer and s < n_stages - 1 else None
-    entry = {"stage": s, "resolution": height, "iterations": outcome.iterations, "seconds": round(seconds, 3),
-             "seconds_per_iteration": round(seconds / max(outcome.iterations, 1), 5),
-             "cpu_seconds": round(cpu_seconds, 3), "gaussian_limit": limit, **start, **memory}
-    _finish_stage(run, s, model, views, validation, entry, outcome, watch, converging, report)
+    timing = {"iterations": outcome.iterations, "seconds": round(seconds, 3),
+              "seconds_per_iteration": round(seconds / max(outcome.iterations, 1), 5),
+              "cpu_seconds": round(cpu_seconds, 3)}
+    _finish_stage(run, s, model, (views, validation), (timing, {"gaussian_limit": limit, **start, **memory}),
+                  outcome, watch, converging, report)
 
 
 def _optimise(run: _Run, stage: Stage, watch: Validation | None, report: Reporter, s: int,
@@ -234,10 +233,13 @@ def _optimise(run: _Run, stage: Stage, watch: Validation | None, report: Reporte
     return outcome, seconds, cpu_seconds, memory
 
 
-def _finish_stage(run: _Run, s: int, model: GaussianModel, views: Views, validation: Views | None, entry: dict,
-                  outcome: StageOutcome, watch: Validation | None, converging: bool, report: Reporter) -> None:
-    """Snapshot stage `s` into the lineage, score it, log it, write it."""
+def _finish_stage(run: _Run, s: int, model: GaussianModel, photos: tuple[Views, Views | None],
+                  said: tuple[dict, dict], outcome: StageOutcome, watch: Validation | None, converging: bool,
+                  report: Reporter) -> None:
+    """Snapshot stage `s` into the lineage, score it on its `photos` (training, validation), log it
+    with what `said` of its run (timing; budget, start and memory), write it."""
     config, n_stages, height = run.config, len(run.config.resolutions), run.config.resolutions[s]
+    (views, validation), (timing, setting) = photos, said
     settings = RenderSettings(antialias=config.antialias)
     size_key, size_fn = anti_aliasing_size(config)
     snap = model.snapshot().replace(background=config.background)
@@ -251,13 +253,14 @@ def _finish_stage(run: _Run, s: int, model: GaussianModel, views: Views, validat
     t1 = time.perf_counter()
     scores = stage_scores(snap.replace(extra={size_key: run.final_size}).to_torch(device=run.device), config,
                           degree, settings, views, validation, run.data.views("test", height))
-    entry = {**entry, "n_gaussians": len(snap), "train_psnr": scores["train_psnr"], "test_psnr": scores["test_psnr"],
-             "test_ssim": scores["test_ssim"], "sh_degree": degree, "eval_seconds": round(time.perf_counter() - t1, 3),
-             "next_id": run.next_id, "cloned": outcome.cloned, "split": outcome.split, "pruned": outcome.pruned}
+    entry = {"stage": s, "resolution": height, **timing, "n_gaussians": len(snap), "train_psnr": scores["train_psnr"],
+             "test_psnr": scores["test_psnr"], "test_ssim": scores["test_ssim"], **setting, "sh_degree": degree,
+             "eval_seconds": round(time.perf_counter() - t1, 3), "next_id": run.next_id, "cloned": outcome.cloned,
+             "split": outcome.split, "pruned": outcome.pruned}
     if watch is not None:
         entry.update(validation_views=len(validation), validation_psnr=scores["validation_psnr"],
                      **watch.summary(outcome.stopped if converging else None, outcome.iterations))
-    run.log.append(_ordered(entry))
+    run.log.append(entry)
     if converging:
         _say_converged(run, s, entry, scores, len(snap))
     report(outcome.iterations, f"stage {s + 1}/{n_stages} done: {len(snap)} Gaussians", **scores)
@@ -266,21 +269,11 @@ def _finish_stage(run: _Run, s: int, model: GaussianModel, views: Views, validat
                                                      run.data.source, run.carried))
 
 
-#: The order of a stage's log entry (log.json).
-_LOG_ORDER = ("stage", "resolution", "iterations", "seconds", "seconds_per_iteration", "cpu_seconds", "n_gaussians",
-              "train_psnr", "test_psnr", "test_ssim", "gaussian_limit", "start", "start_coverage",
-              "start_coverage_min", "peak_rss_mb", "rss_start_mb", "peak_rss_exact", "sh_degree", "eval_seconds",
-              "next_id", "cloned", "split", "pruned")
-
-
-def _ordered(entry: dict) -> dict:
-    return {**{k: entry[k] for k in _LOG_ORDER if k in entry}, **{k: v for k, v in entry.items() if k not in _LOG_ORDER}}
-
-
 def _say_converged(run: _Run, s: int, entry: dict, scores: dict, count: int) -> None:
-    said = entry.get("test_psnr_at_planned")
-    test = scores["test_psnr"]
-    held = "" if test is None else f", held-out {test:.2f} dB" + (f" (at step {said[0]}: {said[1]:.2f})" if said else "")
+    said, test = entry.get("test_psnr_at_planned"), scores["test_psnr"]
+    held = "" if test is None else f", held-out {test:.2f} dB"
+    if said and test is not None:
+        held += f" (at step {said[0]}: {said[1]:.2f})"
     val = scores["validation_psnr"]
     run.say(f"stage {s + 1}: {entry['stopped']}; kept step {entry['best_step']}: validation {val:.2f} dB{held}, "
             f"{count} Gaussians")
