@@ -100,14 +100,15 @@ def _timed_renderer(spent: dict[str, float], clock):
 
 
 def profile_step(cloud, views, *, steps: int = 20, sh_degree: int = 3, densify_every: int = 25,
-                 config=None, seed: int = 0) -> dict[str, float]:
+                 config=None, seed: int = 0, fused_adam: bool = True) -> dict[str, float]:
     """CPU seconds of this thread per training step, part by part (`STEP_PARTS`), over `steps`
     steps of the trainer's recipe on `cloud` and the training `views` (one view a step, in a seeded
     order): the renderer's stages forward and backward (timed inside the compiled path: run it with
     one torch thread, so that the thread's CPU time is the step's), the loss, the optimiser, the
     densification statistics and a round of density control every `densify_every` steps (its
     cost spread over the steps; at the cloud's count, as at a budget). Also "step" (the whole step),
-    "other" (what no part covers) and "gaussians_end"."""
+    "other" (what no part covers) and "gaussians_end". `fused_adam` False: Adam looping over the
+    parameters."""
     import numpy as np  # noqa: PLC0415
     import torch  # noqa: PLC0415
 
@@ -122,7 +123,7 @@ def profile_step(cloud, views, *, steps: int = 20, sh_degree: int = 3, densify_e
     spent = dict.fromkeys(STEP_PARTS, 0.0)
     clock = time.thread_time
     _, extent = scene_extent(views.cameras)
-    model = GaussianModel.fresh(cloud.replace(extra={}), config.learning_rates(extent), extent)
+    model = GaussianModel.fresh(cloud.replace(extra={}), config.learning_rates(extent), extent, fused_adam=fused_adam)
     strategy = DensifyStrategy.for_stage(config, 0, len(cloud))  # at its budget
     state = strategy.initialize_state(model)
     targets = training_targets(views, config.background)
@@ -186,15 +187,11 @@ def main(argv=None) -> int:
                    help="torch's Adam looping over the parameters (what the trainer used before its fused Adam)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    if args.plain_adam:
-        from ..train import model as trainable  # noqa: PLC0415
-
-        trainable.adam = lambda groups: torch.optim.Adam(groups, lr=0.0, eps=1e-15, foreach=False)
     views = read_capture(args.capture).held_out(args.test_every).load("train", args.height)
     cloud = read_ply(args.cloud)
-    profile_step(cloud, views, steps=args.warmup)  # kernels loaded, memory touched
+    profile_step(cloud, views, steps=args.warmup, fused_adam=not args.plain_adam)  # kernels loaded, memory touched
     load = os.getloadavg()[0]
-    out = profile_step(cloud, views, steps=args.steps)
+    out = profile_step(cloud, views, steps=args.steps, fused_adam=not args.plain_adam)
     print(f"{len(cloud)} Gaussians, {len(views)} views of {views.cameras[0].width}x{views.cameras[0].height}, "
           f"{args.steps} steps, 1 thread, {'plain' if args.plain_adam else 'fused'} Adam, load {load:.1f} at start, "
           f"{os.getloadavg()[0]:.1f} at end")

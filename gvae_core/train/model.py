@@ -18,10 +18,12 @@ __all__ = ["GaussianModel", "PARAMS", "adam"]
 PARAMS = ("means", "sh_dc", "sh_rest", "opacities", "scales", "quats")
 
 
-def adam(groups: list[dict]) -> torch.optim.Adam:
+def adam(groups: list[dict], fused: bool = True) -> torch.optim.Adam:
     """The reference's Adam (eps 1e-15) over `groups`, torch's fused kernel where this torch has it
     for the groups' device (the same update, several times faster on the CPU than the loop over
-    parameters)."""
+    parameters); `fused` False: the loop over parameters."""
+    if not fused:
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15, foreach=False)
     try:
         return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
     except (RuntimeError, TypeError, ValueError):  # an older torch, or a device without the fused kernel
@@ -35,10 +37,10 @@ class GaussianModel:
     `lrs`: learning rate per parameter group; `extent`: the scene extent (the scale of positional
     learning rates and of densification's world sizes); `next_id`: the first id a new Gaussian
     gets; `device`: the torch device of every tensor (random draws stay on the CPU generator, so a
-    run is the same on any)."""
+    run is the same on any); `fused_adam` False: Adam looping over the parameters (`adam`)."""
 
     def __init__(self, cloud: GaussianCloud, ids, parents, lrs: dict[str, float], extent: float, next_id: int,
-                 device=None):
+                 device=None, *, fused_adam: bool = True):
         self.device = torch.device(device or "cpu")
         c = cloud.to_torch(device=self.device, dtype=torch.float32)
         self.params = {name: getattr(c, name).detach().clone().requires_grad_(True) for name in PARAMS}
@@ -46,13 +48,14 @@ class GaussianModel:
         self.parents = torch.as_tensor(np.asarray(parents), dtype=torch.int64, device=self.device).clone()
         self.next_id = int(next_id)
         self.extent = float(extent)
-        self.optimizer = adam([{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in PARAMS])
+        self.optimizer = adam([{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in PARAMS], fused_adam)
 
     @classmethod
-    def fresh(cls, cloud: GaussianCloud, lrs: dict[str, float], extent: float, device=None) -> GaussianModel:
+    def fresh(cls, cloud: GaussianCloud, lrs: dict[str, float], extent: float, device=None,
+              **kwargs) -> GaussianModel:
         """`cloud`'s Gaussians with ids 0..n-1 and no parents (a fine-tune's)."""
         n = len(cloud)
-        return cls(cloud, np.arange(n), np.full(n, -1), lrs, extent, n, device)
+        return cls(cloud, np.arange(n), np.full(n, -1), lrs, extent, n, device, **kwargs)
 
     def __len__(self) -> int:
         return int(self.params["means"].shape[0])
