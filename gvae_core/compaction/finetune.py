@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -90,8 +90,6 @@ AVERAGE = 0.99
 #: views, change at 50 / 30% kept) chair -0.14 / -0.24 and tableware -0.03 / -0.08 dB, against -0.14 /
 #: -0.25 and -0.07 / -0.12 ending on the last iterate (docs/benchmarks/compact.md).
 DISTILL_AVERAGE = AVERAGE
-#: Changes to the trainer's configuration (`train.TrainConfig` fields) for compaction's fine-tuning.
-TUNING: dict = {}
 #: A cloud's trainable fields.
 PARAMETERS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 
@@ -169,7 +167,8 @@ class Tuning:
     ("the training images", "the input's own renders"), `check_every` iterations between checks,
     `patience` checks without gain before it stops, `seconds` (None: no limit) a round's fine-tuning
     stops at the first check past (the default distillation's bound on its cost), `average` the
-    decay of the running average of the iterates that is the result (None: the last iterate)."""
+    decay of the running average of the iterates that is the result (None: the last iterate),
+    `train_overrides` changes to the trainer's configuration (`tuning_config`)."""
 
     images: object
     aside: object | None
@@ -180,6 +179,25 @@ class Tuning:
     patience: int = PATIENCE
     seconds: float | None = None
     average: float | None = None
+    train_overrides: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class TuningOptions:
+    """What a study may change in compaction's fine-tuning (the defaults are the product's):
+    `train_overrides` (`train.TrainConfig` fields), the decay of the running average of the iterates
+    a fine-tuning with images (`average`) or against the input's own renders (`distill_average`)
+    ends on (None: the last iterate), and how those renders are drawn (`distill_target`, as
+    DISTILL_TARGET)."""
+
+    train_overrides: dict = field(default_factory=dict)
+    average: float | None = AVERAGE
+    distill_average: float | None = DISTILL_AVERAGE
+    distill_target: str = DISTILL_TARGET
+
+    def __post_init__(self):
+        if self.distill_target not in ("tuned", "auto"):
+            raise ValueError(f"compact: distill_target must be 'tuned' or 'auto', got {self.distill_target!r}")
 
 
 def aside_psnr(cloud: GaussianCloud, aside, config, fit_cameras: Sequence[Camera]) -> float:
@@ -288,13 +306,13 @@ def _with_parameters(tuned: GaussianCloud, params: GaussianCloud, cameras: Seque
     return out.replace(extra={**tuned.extra, key: size_fn(out.means, cameras)})
 
 
-def tuning_config(src: GaussianCloud, settings: RenderSettings, seed: int):
+def tuning_config(src: GaussianCloud, settings: RenderSettings, seed: int, overrides: dict | None = None):
     """The trainer's configuration a compaction fine-tunes with: the cloud's anti-aliasing, the
-    trainer's recipe with TUNING's changes."""
+    trainer's recipe with `overrides` (`train.TrainConfig` fields) changed."""
     from ..train import TrainConfig  # noqa: PLC0415
 
     mode = resolve_antialias(settings.antialias, src)
-    return TrainConfig(antialias="mip" if mode == "mip" else "classic", seed=seed, **TUNING)
+    return TrainConfig(antialias="mip" if mode == "mip" else "classic", seed=seed, **(overrides or {}))
 
 
 def compact_with_images(src: GaussianCloud, target: int, tuning: Tuning, how: dict, seed: int,
@@ -307,7 +325,7 @@ def compact_with_images(src: GaussianCloud, target: int, tuning: Tuning, how: di
     views, those `inside` gives, `views.sight`) sees is dropped as unseen. The summary's PSNR is
     from the `views` (and the other views that see what was removed)."""
     n = len(src)
-    config = tuning_config(src, settings, seed)
+    config = tuning_config(src, settings, seed, tuning.train_overrides)
     cur, groups = src, np.arange(n)
     first = None
     records = []

@@ -15,7 +15,7 @@ import numpy as np
 from ..budget import select_budget
 from ..cloud import GaussianCloud
 from .graph import NEIGHBOURS, merge_owner
-from .moments import moments
+from .moments import COLOUR_WEIGHT, moments
 from .scoring import UNSEEN, merge_weights
 
 #: How Gaussians are removed: merged into neighbours, or dropped.
@@ -78,12 +78,14 @@ def groups_by_pruning(scores: np.ndarray, target: int) -> np.ndarray:
 
 def removal_groups(src: GaussianCloud, scores: np.ndarray, target: int, *, score: str = "hessian",
                    removal: str = "merge", neighbours: int = NEIGHBOURS, prune: float = PRUNE_FRACTION,
-                   seen: np.ndarray | None = None, progress=None) -> np.ndarray:
+                   seen: np.ndarray | None = None, colour_weight: float = COLOUR_WEIGHT,
+                   progress=None) -> np.ndarray:
     """(N,) the output row of each input row (-1: dropped) that brings `src` to `target` rows:
     removal "prune" keeps the `target` highest scores; "merge" drops what no view sees and, for a
     score of the picture ("hessian", "lightgaussian"), the lowest-scoring fraction `prune` of the
     input besides, and merges the rest pairwise (module docstring). `seen`: (N,) bool, what views
-    other than the scoring ones see (`seen_weights`: never dropped as unseen)."""
+    other than the scoring ones see (`seen_weights`: never dropped as unseen); `colour_weight`: of
+    the merge cost (`moments.pair_cost`)."""
     n = len(src)
     if target >= n:
         return np.arange(n)
@@ -96,7 +98,7 @@ def removal_groups(src: GaussianCloud, scores: np.ndarray, target: int, *, score
     if score in PICTURE_SCORES:
         drop = min(int(round(prune * n)), len(kept) - target)
         kept = np.sort(kept[np.argsort(weight[kept], kind="stable")[drop:]])
-    m = moments(src, weight[kept], rows=kept)
+    m = moments(src, weight[kept], rows=kept, colour_weight=colour_weight)
     sub = merge_owner(m, target, neighbours, progress)
     groups = np.full(n, -1, np.int64)
     # output rows in input order of their representatives
