@@ -1,5 +1,5 @@
 """Refine a cloud trained on a real capture and score it on the capture's held-out photos at 2x
-(BENCHMARKS.md, "Refine with the images on a real capture"): the rows of issue 41 beside each other.
+(docs/benchmarks/refine-images.md, "A real capture: the plush"): every row beside each other.
 
 The cloud is the last stage of a `gvae train CAPTURE --test-every N` run (`--run`); its training
 images are the capture's training split at the run's last resolution H; the held-out photos are

@@ -28,11 +28,9 @@ number, or as few as keep the picture within a PSNR tolerance). Stages, one modu
   groups as compiled CPU kernels (Numba) run in threads, where Numba is; the numpy and torch code
   they stand for stays beside them as their reference (and runs where Numba is not).
 
-What was measured (BENCHMARKS.md, "Compaction"): merging keeps the picture far better than any
-pruning score without fine-tuning; the Hessian's weighting of the merges changes PSNR by less than
-0.01 dB against an unweighted merge: its use is choosing what is dropped rather than merged (what
-no view sees, and the lowest-scoring tenth); with fine-tuning, merging then fine-tuning also beats
-pruning then fine-tuning.
+Why this design (docs/benchmarks/compact.md): merging keeps the picture far better than any
+pruning score without fine-tuning; the Hessian's weighting of the merges matters little, its use
+is choosing what is dropped rather than merged (what no view sees, and the lowest-scoring tenth).
 
 Untouched Gaussians keep their values bit for bit, their rows in input order; a merged Gaussian
 takes the row (and the extra properties) of its most massive member, with the anti-aliasing size

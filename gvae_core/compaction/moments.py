@@ -93,11 +93,10 @@ def floor_of(half: float) -> float:
 
 def moments(src: GaussianCloud, weight: np.ndarray, rows: np.ndarray | None = None,
             colour_weight: float = COLOUR_WEIGHT) -> Moments:
-    """The stored Gaussians as they are (their anti-aliasing filter left out: adding it to the
-    covariances, and Mip-Splatting's opacity compensation, lost 0.06-0.10 dB at 50-30% kept on
-    the validation scenes). `rows`: of these rows only (as of `src.select(rows)`, without copying
-    the rest of their fields). `colour_weight`: of the merge cost (`pair_cost`). By
-    `compiled.gaussian_moments` where it runs, else `moments_numpy`."""
+    """The stored Gaussians as they are (their anti-aliasing filter left out: with it, and
+    Mip-Splatting's opacity compensation, the merges drew worse). `rows`: of these rows only (as of
+    `src.select(rows)`, without copying the rest of their fields). `colour_weight`: of the merge cost
+    (`pair_cost`). By `compiled.gaussian_moments` where it runs, else `moments_numpy`."""
     src = src.numpy()
     if not compiled.available():
         return moments_numpy(src if rows is None else src.select(rows), weight, colour_weight)

@@ -23,10 +23,7 @@ REMOVALS = ("merge", "prune")
 #: Scores that measure the picture (zero for a Gaussian the scoring views do not see).
 PICTURE_SCORES = ("hessian", "lightgaussian")
 #: Fraction of the input that `merge` drops (the lowest scores among the seen ones, never more than
-#: the removal) before merging the rest. On the validation and training scenes (6, seed 0), at 50 /
-#: 30 / 10% kept: merging everything -0.44 / -0.84 / -2.19 dB, 0.05 -0.41 / -0.81 / -2.16, 0.1
-#: -0.37 / -0.77 / -2.18 (no scene worse at 50 or 30%), 0.15 -0.35 / -0.78 / -2.18 (one scene
-#: worse), 0.2 -0.39 / -0.82 / -2.20 (BENCHMARKS.md, "Compaction").
+#: the removal) before merging the rest: what the picture can do without is dropped, not merged.
 PRUNE_FRACTION = 0.1
 
 

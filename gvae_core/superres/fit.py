@@ -15,12 +15,12 @@ passes: a fit that draws them more than `tolerance` dB worse than its best is ta
 best and goes on at `slow_down` times its rates (a second fall stops it there); and the fit is
 kept only if it draws them better than the changes it started from (its step 0), else the better
 of the detail model's changes and the input as it was
-(`SuperResFit.kept`). A fit that reproduces its own images better proves nothing: on a real capture
-it reproduced them 2.7 dB better and the photos it did not see no better. The held-out images are at
-the training resolution: what they see of a fit is its changes' side effects there, not the detail
-it adds above it (on the validation objects their figure peaks early or falls while the 2x picture
-keeps improving, BENCHMARKS.md), so they guard against a fit that goes wrong, and do not choose
-the step it stops at: it runs its steps unless they trip the guard.
+(`SuperResFit.kept`). A fit that reproduces its own images better proves nothing (on a real capture
+it did, and drew the photos it did not see no better). The held-out images are at the training
+resolution: what they see of a fit is its changes' side effects there, not the detail it adds above
+it (their figure can peak early or fall while the 2x picture keeps improving), so they guard
+against a fit that goes wrong, and do not choose the step it stops at: it runs its steps unless they
+trip the guard. Where the defaults come from: docs/benchmarks/refine-images.md.
 
 Each step draws `views_per_step` (image, tile) pairs (whole images by default; tiles that cover
 each image with `patch`; every pixel visited once a pass), an octave k, renders at 2^k times the
@@ -61,8 +61,7 @@ from .optim import VisibleAdam
 
 __all__ = ["SuperResConfig", "SuperResFit", "fit_octaves", "holdout_rows", "DEFAULT_FIELDS", "CHILD_GRADIENT"]
 
-#: What the fit changes unless told (BENCHMARKS.md, "Refine with the capture's images": rotations and
-#: SH bands beside the issue's four fields gained 0.36-0.38 dB at 2x on both validation scenes).
+#: What the fit changes unless told: every field, rotations and SH bands included.
 DEFAULT_FIELDS = ("scales", "opacities", "sh_dc", "means", "quats", "sh_rest")
 #: The view-space gradient at which the fit adds children when asked (`SuperResConfig.children`):
 #: the reference 3DGS's densification threshold.
@@ -73,6 +72,8 @@ CHILD_GRADIENT = DensifyStrategy.grad_threshold
 _CHILD_FIELDS = ("scales", "quats", "sh_dc", "sh_rest")
 #: Children whose opacity one octave up ends below this are dropped (the reference's prune level).
 CHILD_MIN_OPACITY = 0.005
+#: The optimisers a fit can run (`SuperResConfig.optimizer`).
+OPTIMIZERS = {"visible": VisibleAdam, "adam": torch.optim.Adam}
 
 
 @dataclass
@@ -97,7 +98,8 @@ class SuperResConfig:
     model's prediction, `gvae_core.refine` makes it) or "zero"; size_change: every Gaussian's
     anti-aliasing size's change per octave of its logarithm (`octaves.SIZE`; default: drawn with
     the anti-aliasing of the rate it is refined to, halved per octave; None: the anti-aliasing it
-    was trained with)."""
+    was trained with); optimizer: "visible" (`optim.VisibleAdam`: only the rows a step saw move) or
+    "adam" (torch's plain Adam, for comparison)."""
 
     epochs: float = 20.0
     max_steps: int = 300
@@ -122,6 +124,7 @@ class SuperResConfig:
     size_change: float | None = REFINED_SIZE_CHANGE
     seed: int = 0
     antialias: str = "auto"
+    optimizer: str = "visible"
 
     def __post_init__(self):
         self.fields = tuple(self.fields)
@@ -129,6 +132,8 @@ class SuperResConfig:
         unknown = [f for f in self.fields if f not in FIELDS]
         if unknown:
             raise ValueError(f"superres: unknown field(s) {', '.join(unknown)}; known: {', '.join(FIELDS)}")
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"superres: optimizer must be one of {', '.join(OPTIMIZERS)}, got {self.optimizer!r}")
         if self.start not in ("detail", "zero"):
             raise ValueError(f"superres: start must be 'detail' or 'zero', got {self.start!r}")
         if (self.steps is not None and int(self.steps) < 0) or int(self.patch) < 0 or not self.epochs >= 0:
@@ -205,7 +210,8 @@ class _Model:
     """What the fit changes: the input rows (fixed) with their changes per octave, and the children
     (their own parameters and changes), with the optimiser over all of them."""
 
-    def __init__(self, src: GaussianCloud, fields: list[str], start: dict | None, lrs: dict[str, float]):
+    def __init__(self, src: GaussianCloud, fields: list[str], start: dict | None, lrs: dict[str, float],
+                 optimizer=VisibleAdam):
         key = FILTER_KEY if FILTER_KEY in src.extra else DILATION_KEY
         self.key = key
         self.base = src.replace(extra={key: src.extra[key]}).to_torch()
@@ -222,11 +228,12 @@ class _Model:
         self.roots = torch.zeros(0, dtype=torch.int64)
         self.means64 = np.ascontiguousarray(self.base.means.double().numpy().T)  # (3, R): the rows' fixed centres
         self.lrs = lrs
+        self.optimizer = optimizer
         self.opt = self._optimizer(1.0)
 
     def _optimizer(self, factor: float) -> VisibleAdam:
         """Adam, no moments yet, on the changes as they are, at `factor` times the rates."""
-        return VisibleAdam([{"params": [p], "lr": self.lrs[f] * factor} for f, p in self.changes.items()]
+        return self.optimizer([{"params": [p], "lr": self.lrs[f] * factor} for f, p in self.changes.items()]
                            + [{"params": [p], "lr": self.lrs[f] * factor} for f, p in self.child.items()], eps=1e-15)
 
     @property
@@ -558,7 +565,7 @@ def _new_model(src: GaussianCloud, views: Views, config: SuperResConfig, start: 
     parameters in its optimiser)."""
     fields = [f for f in config.fields if getattr(src, f).size]
     lrs = {f: ORACLE_LEARNING_RATES[f] * config.lr * (extent if f == "means" else 1.0) for f in FIELDS}
-    model = _Model(src, fields, start, lrs)
+    model = _Model(src, fields, start, lrs, OPTIMIZERS[config.optimizer])
     pose = exposure = None
     if config.pose is not None:
         pose = PoseCorrection(views.cameras, _median_depths(src, views), config.pose)
