@@ -151,7 +151,8 @@ def run(args) -> None:
                   f"of the whole render: largest difference {crop_check(n, views, height):.2g}")
         return
     threads = os.environ.get("OMP_NUM_THREADS") or torch.get_num_threads()
-    print(f"Refine from the capture's images, one octave, the fit {SuperResConfig(**fit)} "
+    config = SuperResConfig(**{**fit, "optimizer": optimizer})
+    print(f"Refine from the capture's images, one octave, the fit {config} "
           f"({'plain Adam' if optimizer == 'adam' else 'VisibleAdam'}), synthetic captures (module docstring), "
           f"torch threads {threads}; each size in a fresh process:")
     print("\n| Gaussians | images | refine s (fit s; steps; s/step) | process CPU s | held-out images, 2x averaged "
