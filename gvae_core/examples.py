@@ -147,85 +147,115 @@ def shape_cloud(kind: str, n: int = 6000, *, seed: int = 0) -> GaussianCloud:
     if kind not in SHAPES:
         raise ValueError(f"shape_cloud: kind must be one of {', '.join(SHAPES)}, got {kind!r}")
     rng = np.random.default_rng(seed)
-    parts = []
     if kind in ("sphere", "head", "box"):
-        shell = int(0.92 * n)
-        if kind == "sphere":
-            p, nrm = _ellipsoid(shell, (1.0, 1.0, 1.0), np.zeros(3), rng)
-            area = 4 * np.pi
-        elif kind == "box":
-            p, nrm = _box(shell, (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), rng)
-            area = 24.0
-        else:  # a head: skull, nose, two ears and a neck below
-            counts = (np.array([0.72, 0.06, 0.06, 0.06, 0.10]) * shell).astype(int)
-            parts_of_head = (((0.75, 0.85, 1.0), (0.0, 0.0, 0.15)), ((0.12, 0.15, 0.25), (0.0, -0.85, 0.05)),
-                             ((0.1, 0.18, 0.28), (-0.78, 0.05, 0.1)), ((0.1, 0.18, 0.28), (0.78, 0.05, 0.1)),
-                             ((0.35, 0.35, 0.45), (0.0, 0.1, -0.85)))
-            ps, ns = [], []
-            for (axes, centre), k in zip(parts_of_head, counts):
-                a, b = _ellipsoid(k, axes, np.array(centre), rng)
-                ps.append(a)
-                ns.append(b)
-            p, nrm = np.concatenate(ps), np.concatenate(ns)
-            area = 10.0
-        parts.append(_discs(p, nrm, _spacing(area, shell), rng))
-        inner = rng.normal(size=(n - shell, 3))
-        parts.append(_blobs(0.35 * inner / np.maximum(np.linalg.norm(inner, axis=1, keepdims=True), 1.0), 0.08, rng))
+        parts = _shell_parts(kind, n, rng)
     elif kind == "underside":
-        top, detail, stem = int(0.25 * n), int(0.6 * n), n - int(0.25 * n) - int(0.6 * n)
-        p, nrm = _box(top, (-1.0, -1.0, 0.25), (1.0, 1.0, 0.3), rng)  # an opaque slab: light passes no face
-        parts.append(_discs(p, nrm, _spacing(8.2, top), rng))
-        bumps = 40
-        rb = 0.85 * np.sqrt(rng.random(bumps))
-        tb = rng.random(bumps) * 2 * np.pi
-        centres = np.stack([rb * np.cos(tb), rb * np.sin(tb), np.full(bumps, 0.25)], 1)
-        d = rng.normal(size=(detail, 3))
-        d[:, 2] = -np.abs(d[:, 2])  # the lower half of each bump
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        which = rng.integers(0, bumps, detail)
-        parts.append(_discs(centres[which] + 0.08 * d, d, _spacing(bumps * 2 * np.pi * 0.08 ** 2, detail), rng))
-        h = rng.random(stem) * 1.2 - 1.0
-        a = rng.random(stem) * 2 * np.pi
-        nrm = np.stack([np.cos(a), np.sin(a), np.zeros(stem)], 1)
-        parts.append(_discs(nrm * 0.12 + np.stack([np.zeros(stem), np.zeros(stem), h], 1), nrm,
-                            _spacing(2 * np.pi * 0.12 * 1.2, stem), rng))
+        parts = _underside_parts(n, rng)
     elif kind == "one-sided":
-        back, relief = int(0.3 * n), n - int(0.3 * n)
-        p, nrm = _box(back, (-1.0, -0.05, -1.0), (1.0, 0.05, 1.0), rng)
-        parts.append(_discs(p, nrm, _spacing(8.4, back), rng))
-        cells = rng.random((relief, 2)) * 2 - 1
-        bump = 0.06 * np.sin(9 * cells[:, 0]) * np.cos(7 * cells[:, 1])  # fine relief on the -y face
-        p = np.stack([cells[:, 0], -0.05 - 0.06 - bump, cells[:, 1]], 1)
-        nrm = np.stack([-0.06 * 9 * np.cos(9 * cells[:, 0]) * np.cos(7 * cells[:, 1]), -np.ones(relief),
-                        0.06 * 7 * np.sin(9 * cells[:, 0]) * np.sin(7 * cells[:, 1])], 1)
-        parts.append(_discs(p, nrm, _spacing(4.0, relief), rng))
+        parts = _one_sided_parts(n, rng)
     elif kind == "room":
-        walls, things = int(0.45 * n), n - int(0.45 * n)
-        for grow in (0.0, 0.1):  # two layers: no light passes the walls
-            p, nrm = _box(walls // 2, (-3.0 - grow, -3.0 - grow, -grow), (3.0 + grow, 3.0 + grow, 3.0 + grow), rng)
-            parts.append(_discs(p, -nrm, _spacing(108.0, walls // 2), rng))  # coarser than the things, facing in
-        pieces = [((-0.8, -0.5, 0.0), (0.8, 0.5, 0.75)), ((-0.4, 0.8, 0.0), (0.1, 1.3, 0.9)),
-                  ((0.3, -1.4, 0.0), (0.8, -0.9, 0.9)), ((1.8, 1.6, 0.0), (2.1, 1.9, 1.7)),
-                  ((-2.6, -1.0, 0.0), (-2.0, 1.0, 0.8))]
-        per = things // len(pieces)
-        for lo, hi in pieces:
-            p, nrm = _box(per, lo, hi, rng, faces=(0, 1, 2, 3, 5))
-            parts.append(_discs(p, nrm, _spacing(4.0, per), rng))
-    else:  # unbounded
-        obj = example_cloud(int(0.4 * n), seed=seed).with_sh_degree(0)
-        parts.append({"means": obj.means.astype(np.float64), "scales": obj.scales.astype(np.float64),
-                      "quats": obj.quats.astype(np.float64), "opacities": obj.opacities.astype(np.float64),
-                      "rgb": np.clip(0.28209479177387814 * obj.sh_dc + 0.5, 0, 1)})
-        k = n - len(obj)
-        d = rng.normal(size=(k, 3))
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        radius = 12.0 * (1.0 + 0.3 * rng.random(k))[:, None]
-        parts.append(_discs(d * radius, -d, _spacing(4 * np.pi * 144.0, k), rng, jitter=3.0))
+        parts = _room_parts(n, rng)
+    else:
+        parts = _unbounded_parts(n, rng, seed)
     cat = {key: np.concatenate([part[key] for part in parts]) for key in parts[0]}
     m = len(cat["means"])
     return GaussianCloud(means=cat["means"].astype(np.float32), scales=cat["scales"].astype(np.float32),
                          quats=cat["quats"].astype(np.float32), opacities=cat["opacities"].astype(np.float32),
                          sh_dc=rgb_to_dc(cat["rgb"]).astype(np.float32), sh_rest=np.zeros((m, 0, 3), np.float32))
+
+
+def _shell_parts(kind: str, n: int, rng) -> list[dict]:
+    """A closed shell (sphere, box or head) and the faint floaters inside it."""
+    shell = int(0.92 * n)
+    if kind == "sphere":
+        p, nrm = _ellipsoid(shell, (1.0, 1.0, 1.0), np.zeros(3), rng)
+        area = 4 * np.pi
+    elif kind == "box":
+        p, nrm = _box(shell, (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), rng)
+        area = 24.0
+    else:  # a head: skull, nose, two ears and a neck below
+        counts = (np.array([0.72, 0.06, 0.06, 0.06, 0.10]) * shell).astype(int)
+        parts_of_head = (((0.75, 0.85, 1.0), (0.0, 0.0, 0.15)), ((0.12, 0.15, 0.25), (0.0, -0.85, 0.05)),
+                         ((0.1, 0.18, 0.28), (-0.78, 0.05, 0.1)), ((0.1, 0.18, 0.28), (0.78, 0.05, 0.1)),
+                         ((0.35, 0.35, 0.45), (0.0, 0.1, -0.85)))
+        ps, ns = [], []
+        for (axes, centre), k in zip(parts_of_head, counts):
+            a, b = _ellipsoid(k, axes, np.array(centre), rng)
+            ps.append(a)
+            ns.append(b)
+        p, nrm = np.concatenate(ps), np.concatenate(ns)
+        area = 10.0
+    parts = [_discs(p, nrm, _spacing(area, shell), rng)]
+    inner = rng.normal(size=(n - shell, 3))
+    parts.append(_blobs(0.35 * inner / np.maximum(np.linalg.norm(inner, axis=1, keepdims=True), 1.0), 0.08, rng))
+    return parts
+
+
+def _underside_parts(n: int, rng) -> list[dict]:
+    """A plate on a stem, its fine detail (small bumps) all on its underside."""
+    top, detail, stem = int(0.25 * n), int(0.6 * n), n - int(0.25 * n) - int(0.6 * n)
+    p, nrm = _box(top, (-1.0, -1.0, 0.25), (1.0, 1.0, 0.3), rng)  # an opaque slab: light passes no face
+    parts = [_discs(p, nrm, _spacing(8.2, top), rng)]
+    bumps = 40
+    rb = 0.85 * np.sqrt(rng.random(bumps))
+    tb = rng.random(bumps) * 2 * np.pi
+    centres = np.stack([rb * np.cos(tb), rb * np.sin(tb), np.full(bumps, 0.25)], 1)
+    d = rng.normal(size=(detail, 3))
+    d[:, 2] = -np.abs(d[:, 2])  # the lower half of each bump
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    which = rng.integers(0, bumps, detail)
+    parts.append(_discs(centres[which] + 0.08 * d, d, _spacing(bumps * 2 * np.pi * 0.08 ** 2, detail), rng))
+    h = rng.random(stem) * 1.2 - 1.0
+    a = rng.random(stem) * 2 * np.pi
+    nrm = np.stack([np.cos(a), np.sin(a), np.zeros(stem)], 1)
+    parts.append(_discs(nrm * 0.12 + np.stack([np.zeros(stem), np.zeros(stem), h], 1), nrm,
+                        _spacing(2 * np.pi * 0.12 * 1.2, stem), rng))
+    return parts
+
+
+def _one_sided_parts(n: int, rng) -> list[dict]:
+    """An upright plaque with fine relief on its -y face only."""
+    back, relief = int(0.3 * n), n - int(0.3 * n)
+    p, nrm = _box(back, (-1.0, -0.05, -1.0), (1.0, 0.05, 1.0), rng)
+    parts = [_discs(p, nrm, _spacing(8.4, back), rng)]
+    cells = rng.random((relief, 2)) * 2 - 1
+    bump = 0.06 * np.sin(9 * cells[:, 0]) * np.cos(7 * cells[:, 1])  # fine relief on the -y face
+    p = np.stack([cells[:, 0], -0.05 - 0.06 - bump, cells[:, 1]], 1)
+    nrm = np.stack([-0.06 * 9 * np.cos(9 * cells[:, 0]) * np.cos(7 * cells[:, 1]), -np.ones(relief),
+                    0.06 * 7 * np.sin(9 * cells[:, 0]) * np.sin(7 * cells[:, 1])], 1)
+    parts.append(_discs(p, nrm, _spacing(4.0, relief), rng))
+    return parts
+
+
+def _room_parts(n: int, rng) -> list[dict]:
+    """A room's two-layer walls, floor and ceiling, facing in, and the furniture standing on its floor."""
+    walls, things = int(0.45 * n), n - int(0.45 * n)
+    parts = []
+    for grow in (0.0, 0.1):  # two layers: no light passes the walls
+        p, nrm = _box(walls // 2, (-3.0 - grow, -3.0 - grow, -grow), (3.0 + grow, 3.0 + grow, 3.0 + grow), rng)
+        parts.append(_discs(p, -nrm, _spacing(108.0, walls // 2), rng))  # coarser than the things, facing in
+    pieces = [((-0.8, -0.5, 0.0), (0.8, 0.5, 0.75)), ((-0.4, 0.8, 0.0), (0.1, 1.3, 0.9)),
+              ((0.3, -1.4, 0.0), (0.8, -0.9, 0.9)), ((1.8, 1.6, 0.0), (2.1, 1.9, 1.7)),
+              ((-2.6, -1.0, 0.0), (-2.0, 1.0, 0.8))]
+    per = things // len(pieces)
+    for lo, hi in pieces:
+        p, nrm = _box(per, lo, hi, rng, faces=(0, 1, 2, 3, 5))
+        parts.append(_discs(p, nrm, _spacing(4.0, per), rng))
+    return parts
+
+
+def _unbounded_parts(n: int, rng, seed: int) -> list[dict]:
+    """The torus of `example_cloud` inside a coarse background shell ten times its size."""
+    obj = example_cloud(int(0.4 * n), seed=seed).with_sh_degree(0)
+    parts = [{"means": obj.means.astype(np.float64), "scales": obj.scales.astype(np.float64),
+              "quats": obj.quats.astype(np.float64), "opacities": obj.opacities.astype(np.float64),
+              "rgb": np.clip(0.28209479177387814 * obj.sh_dc + 0.5, 0, 1)}]
+    k = n - len(obj)
+    d = rng.normal(size=(k, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    radius = 12.0 * (1.0 + 0.3 * rng.random(k))[:, None]
+    parts.append(_discs(d * radius, -d, _spacing(4 * np.pi * 144.0, k), rng, jitter=3.0))
+    return parts
 
 
 def write_example(path, n: int = 4096, *, seed: int = 0) -> Path:

@@ -166,9 +166,8 @@ class Protocol:
         return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
-#: The benchmark protocols pin the start and cap they were first run with (the visual hull, 50k
-#: Gaussians: the trainer's defaults until real captures made them `auto` and what memory allows), so
-#: their runs, cache keys and figures stay what they were.
+#: The benchmark protocols pin their start and cap (the visual hull, a fixed count) whatever the
+#: trainer's defaults, so that their runs, cache keys and figures stay the same.
 PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
     # About 80 minutes on 2 cores from nothing (50 of them the fault rows): the test scenes, three
     # seeds, small renders; the knob on the first two training scenes.

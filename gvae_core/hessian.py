@@ -232,24 +232,37 @@ def _mad(terms):
     return acc
 
 
-def _gaussian_blocks(f: dict, rows: torch.Tensor, mom: torch.Tensor, colors: torch.Tensor, camera: Camera,
-                     degree: int, dt, scale: float, alias: _Antialias) -> torch.Tensor:
-    """(21, M) packed blocks of one view for the Gaussians `rows`, from their central moments
-    `mom` (34, M) and drawn colours (M, 3) (0 where clamped).
+def _dot3(p, q):
+    return p[0] * q[0] + p[1] * q[1] + p[2] * q[2]
 
-    The derivatives of what the rasteriser draws (centre, conic, opacity, colour) with respect to
-    camera-space position and log-scale are written out from the projection of
-    `gvae_core.rendering` in the cloud's anti-aliasing mode (`classic`: the 2D dilation; `matched`:
-    the 3D dilation and what it leaves of the 2D one at the Gaussian's depth; `mip`: the 3D filter
-    and the 2D Mip filter with their opacity compensation), on M-vectors, one component at a time.
-    The derivative of the exponent E = log o - (a du² + 2 b du dv + c dv²) / 2 is a polynomial in
-    the pixel offset (du, dv) from the centre, lam[monomial][theta], so J^T J = lam S lam^T + cross
-    terms with the colour + the colour's own part, S the moments of s by monomial pairs."""
+
+@dataclass
+class _Jacobian:
+    """One view's camera space of the rows: offset from the camera (float64), x/z, y/z, 1/z, 1/z²,
+    the perspective Jacobian's entries (its centre clamped, `fov_limits`) and their derivatives by
+    camera x, y, z (those that are not zero)."""
+
+    rel64: torch.Tensor
+    u: torch.Tensor
+    v: torch.Tensor
+    iz: torch.Tensor
+    iz2: torch.Tensor
+    j00: torch.Tensor
+    j11: torch.Tensor
+    j02: torch.Tensor
+    j12: torch.Tensor
+    dj00_z: torch.Tensor
+    dj11_z: torch.Tensor
+    dj02_x: torch.Tensor
+    dj02_z: torch.Tensor
+    dj12_y: torch.Tensor
+    dj12_z: torch.Tensor
+
+
+def _jacobian(f: dict, rows: torch.Tensor, camera: Camera, dt) -> _Jacobian:
     f64 = torch.float64
-    m = len(rows)
-    rot = camera.rotation
     rel64 = f["means"].index_select(0, rows).to(f64) - torch.as_tensor(camera.center, dtype=f64)
-    x, y, z = (rel64 @ torch.as_tensor(rot.T, dtype=f64)).to(dt).T.contiguous()
+    x, y, z = (rel64 @ torch.as_tensor(camera.rotation.T, dtype=f64)).to(dt).T.contiguous()
     iz = 1.0 / z
     u, v = x * iz, y * iz
     fx, fy = camera.fx, camera.fy
@@ -257,12 +270,16 @@ def _gaussian_blocks(f: dict, rows: torch.Tensor, mom: torch.Tensor, colors: tor
     uc, vc = u.clamp(lo_x, hi_x), v.clamp(lo_y, hi_y)
     free_u, free_v = ((u > lo_x) & (u < hi_x)).to(dt), ((v > lo_y) & (v < hi_y)).to(dt)
     iz2 = iz * iz
-    j00, j11, j02, j12 = fx * iz, fy * iz, -fx * uc * iz, -fy * vc * iz
-    dj00_z, dj11_z = -fx * iz2, -fy * iz2
-    dj02_x, dj02_z = -fx * iz2 * free_u, fx * iz2 * (uc + free_u * u)
-    dj12_y, dj12_z = -fy * iz2 * free_v, fy * iz2 * (vc + free_v * v)
+    return _Jacobian(rel64, u, v, iz, iz2, j00=fx * iz, j11=fy * iz, j02=-fx * uc * iz, j12=-fy * vc * iz,
+                     dj00_z=-fx * iz2, dj11_z=-fy * iz2, dj02_x=-fx * iz2 * free_u, dj02_z=fx * iz2 * (uc + free_u * u),
+                     dj12_y=-fy * iz2 * free_v, dj12_z=fy * iz2 * (vc + free_v * v))
 
-    q_camera = torch.as_tensor(quaternions.from_rotmat(rot), dtype=dt)
+
+def _camera_axes(f: dict, rows: torch.Tensor, camera: Camera, dt, alias: _Antialias):
+    """(m0, m1, m2, gain, size, dlog_o): rows 0, 1, 2 (camera x, y, z) of the Gaussian's axes in
+    camera space (column k of R diag(s_eff)), d log s_eff / d log s (3, M), the 3D size (None
+    without one) and d log(opacity) / d theta so far (the 3D filter's compensation; None: zero)."""
+    q_camera = torch.as_tensor(quaternions.from_rotmat(camera.rotation), dtype=dt)
     qn = quaternions.multiply(q_camera, quaternions.normalize(f["quats"].index_select(0, rows).to(dt)))
     w, qx, qy, qz = qn.T.contiguous()
     ls_raw = f["scales"].index_select(0, rows).to(dt)
@@ -280,80 +297,125 @@ def _gaussian_blocks(f: dict, rows: torch.Tensor, mom: torch.Tensor, colors: tor
         if alias.mode == "mip":  # opacity times prod s / s_eff
             dlog_o[3:] = list(((1.0 - gain) * inside).T)
     s_eff, gain = s_eff.T.contiguous(), gain.T.contiguous()
-    # camera-space axes of the Gaussian (columns k of R diag(s)): rows 0, 1, 2 = camera x, y, z
     r0 = (1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy))
     r1 = (2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx))
     r2 = (2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy))
     m0 = [r0[k] * s_eff[k] for k in range(3)]
     m1 = [r1[k] * s_eff[k] for k in range(3)]
     m2 = [r2[k] * s_eff[k] for k in range(3)]
-    ak = [j00 * m0[k] + j02 * m2[k] for k in range(3)]  # rows a, b of J M (the projected axes)
-    bk = [j11 * m1[k] + j12 * m2[k] for k in range(3)]
+    return m0, m1, m2, gain, size, dlog_o
 
-    def dot(p, q):
-        return p[0] * q[0] + p[1] * q[1] + p[2] * q[2]
 
-    am0, am1, am2, bm0, bm1, bm2 = dot(ak, m0), dot(ak, m1), dot(ak, m2), dot(bk, m0), dot(bk, m1), dot(bk, m2)
-    aa, bb, ab = dot(ak, ak), dot(bk, bk), dot(ak, bk)
+@dataclass
+class _Conic:
+    """The projected axes a, b (rows of J M), a x b, det(t tᵀ) = |a x b|², the 2D dilation d,
+    1 / det Σ2D, the conic (qa, qb, qc) and the derivatives of |a|² + d, |b|² + d and a.b by theta
+    (position in camera space, then log-scale; None: zero)."""
+
+    ak: list
+    bk: list
+    cross: list
+    cc: torch.Tensor
+    d: object
+    inv: torch.Tensor
+    qa: torch.Tensor
+    qb: torch.Tensor
+    qc: torch.Tensor
+    daa: list
+    dbb: list
+    dab: list
+
+
+def _conic(jac: _Jacobian, m0: list, m1: list, m2: list, gain, size, alias: _Antialias, camera: Camera,
+           dt) -> _Conic:
+    ak = [jac.j00 * m0[k] + jac.j02 * m2[k] for k in range(3)]  # rows a, b of J M (the projected axes)
+    bk = [jac.j11 * m1[k] + jac.j12 * m2[k] for k in range(3)]
+    am0, am1, am2 = _dot3(ak, m0), _dot3(ak, m1), _dot3(ak, m2)
+    bm0, bm1, bm2 = _dot3(bk, m0), _dot3(bk, m1), _dot3(bk, m2)
+    aa, bb, ab = _dot3(ak, ak), _dot3(bk, bk), _dot3(ak, bk)
     d = pj.MIP_2D_VARIANCE if alias.mode == "mip" else pj.DILATION
     dd_z = None  # d (2D dilation) / d camera z
     if alias.mode == "matched" and size is not None:  # what the 3D dilation leaves of the classic one
-        rest_2d = pj.DILATION - size * size * (fx * fy) * iz2
+        rest_2d = pj.DILATION - size * size * (camera.fx * camera.fy) * jac.iz2
         d = rest_2d.clamp(min=0.0)
-        dd_z = 2.0 * size * size * (fx * fy) * iz2 * iz * (rest_2d > 0).to(dt)
+        dd_z = 2.0 * size * size * (camera.fx * camera.fy) * jac.iz2 * jac.iz * (rest_2d > 0).to(dt)
     cross = [ak[1] * bk[2] - ak[2] * bk[1], ak[2] * bk[0] - ak[0] * bk[2], ak[0] * bk[1] - ak[1] * bk[0]]
-    cc = dot(cross, cross)
+    cc = _dot3(cross, cross)
     det = cc + d * (aa + bb) + d * d
-    # derivatives by theta = camera x, y, z, log-scale 0, 1, 2 (None: zero)
-    daa = [2 * dj02_x * am2, None, 2 * (dj00_z * am0 + dj02_z * am2)] + [2 * ak[k] * ak[k] * gain[k] for k in range(3)]
-    dbb = [None, 2 * dj12_y * bm2, 2 * (dj11_z * bm1 + dj12_z * bm2)] + [2 * bk[k] * bk[k] * gain[k] for k in range(3)]
+    daa = [2 * jac.dj02_x * am2, None, 2 * (jac.dj00_z * am0 + jac.dj02_z * am2)] + \
+        [2 * ak[k] * ak[k] * gain[k] for k in range(3)]
+    dbb = [None, 2 * jac.dj12_y * bm2, 2 * (jac.dj11_z * bm1 + jac.dj12_z * bm2)] + \
+        [2 * bk[k] * bk[k] * gain[k] for k in range(3)]
     if dd_z is not None:  # the diagonal of Sigma_2D = t t^T + d I moves with d
         daa[2], dbb[2] = daa[2] + dd_z, dbb[2] + dd_z
-    dab = [dj02_x * bm2, dj12_y * am2, dj00_z * bm0 + dj02_z * bm2 + dj11_z * am1 + dj12_z * am2] + \
+    dab = [jac.dj02_x * bm2, jac.dj12_y * am2,
+           jac.dj00_z * bm0 + jac.dj02_z * bm2 + jac.dj11_z * am1 + jac.dj12_z * am2] + \
         [2 * ak[k] * bk[k] * gain[k] for k in range(3)]
     inv = 1.0 / det
-    qa, qb, qc = (bb + d) * inv, -ab * inv, (aa + d) * inv
-    ca = (qa * qa, 2 * qa * qb, qb * qb)
-    cb = (qa * qb, qb * qb + qa * qc, qb * qc)
-    cq = (qb * qb, 2 * qb * qc, qc * qc)
+    return _Conic(ak, bk, cross, cc, d, inv, (bb + d) * inv, -ab * inv, (aa + d) * inv, daa, dbb, dab)
 
-    def conic_derivative(coef):
-        return [_mad([(-coef[0], daa[t]), (-coef[1], dab[t]), (-coef[2], dbb[t])]) for t in range(BLOCK)]
 
-    dqa, dqb, dqc = conic_derivative(ca), conic_derivative(cb), conic_derivative(cq)
-    if alias.mode == "mip":
-        pv = [bk[1] * cross[2] - bk[2] * cross[1], bk[2] * cross[0] - bk[0] * cross[2],
-              bk[0] * cross[1] - bk[1] * cross[0]]  # B x C
-        qv = [cross[1] * ak[2] - cross[2] * ak[1], cross[2] * ak[0] - cross[0] * ak[2],
-              cross[0] * ak[1] - cross[1] * ak[0]]  # C x A
-        dcc = [2 * dj02_x * dot(m2, pv), 2 * dj12_y * dot(m2, qv),
-               2 * (dj00_z * dot(m0, pv) + dj02_z * dot(m2, pv) + dj11_z * dot(m1, qv) + dj12_z * dot(m2, qv))]
-        dcc += [2 * gain[k] * (ak[k] * pv[k] + bk[k] * qv[k]) for k in range(3)]
-        ok = (cc * inv > pj.MIP_2D_RATIO_FLOOR).to(dt)
-        inv_cc = ok / torch.where(cc > 0, cc, torch.ones_like(cc))
-        for t in range(BLOCK):
-            ddet = dcc[t] + d * ((daa[t] if daa[t] is not None else 0.0) + (dbb[t] if dbb[t] is not None else 0.0))
-            term = 0.5 * (dcc[t] * inv_cc - ok * ddet * inv)
-            dlog_o[t] = term if dlog_o[t] is None else dlog_o[t] + term
-    dmx = [fx * iz, None, -fx * u * iz, None, None, None]
-    dmy = [None, fy * iz, -fy * v * iz, None, None, None]
-    # camera x, y, z -> normalised world position: d/dp_j = scale * sum_i d/dcam_i R[i, j]
+def _conic_derivatives(c: _Conic) -> tuple[list, list, list]:
+    """d qa, d qb, d qc by theta (None: zero)."""
+    ca = (c.qa * c.qa, 2 * c.qa * c.qb, c.qb * c.qb)
+    cb = (c.qa * c.qb, c.qb * c.qb + c.qa * c.qc, c.qb * c.qc)
+    cq = (c.qb * c.qb, 2 * c.qb * c.qc, c.qc * c.qc)
+
+    def derivative(coef):
+        return [_mad([(-coef[0], c.daa[t]), (-coef[1], c.dab[t]), (-coef[2], c.dbb[t])]) for t in range(BLOCK)]
+
+    return derivative(ca), derivative(cb), derivative(cq)
+
+
+def _mip_opacity_derivative(jac: _Jacobian, m0: list, m1: list, m2: list, gain, c: _Conic, dt) -> list:
+    """d log(opacity) / d theta of the 2D Mip filter's compensation sqrt(det(t tᵀ) / det Σ2D)
+    (zero where the ratio is held at its floor)."""
+    ak, bk, cross = c.ak, c.bk, c.cross
+    pv = [bk[1] * cross[2] - bk[2] * cross[1], bk[2] * cross[0] - bk[0] * cross[2],
+          bk[0] * cross[1] - bk[1] * cross[0]]  # B x C
+    qv = [cross[1] * ak[2] - cross[2] * ak[1], cross[2] * ak[0] - cross[0] * ak[2],
+          cross[0] * ak[1] - cross[1] * ak[0]]  # C x A
+    dcc = [2 * jac.dj02_x * _dot3(m2, pv), 2 * jac.dj12_y * _dot3(m2, qv),
+           2 * (jac.dj00_z * _dot3(m0, pv) + jac.dj02_z * _dot3(m2, pv) + jac.dj11_z * _dot3(m1, qv)
+                + jac.dj12_z * _dot3(m2, qv))]
+    dcc += [2 * gain[k] * (ak[k] * pv[k] + bk[k] * qv[k]) for k in range(3)]
+    ok = (c.cc * c.inv > pj.MIP_2D_RATIO_FLOOR).to(dt)
+    inv_cc = ok / torch.where(c.cc > 0, c.cc, torch.ones_like(c.cc))
+    out = []
+    for t in range(BLOCK):
+        ddet = dcc[t] + c.d * ((c.daa[t] if c.daa[t] is not None else 0.0) + (c.dbb[t] if c.dbb[t] is not None
+                                                                                else 0.0))
+        out.append(0.5 * (dcc[t] * inv_cc - ok * ddet * c.inv))
+    return out
+
+
+def _monomial_coefficients(jac: _Jacobian, c: _Conic, conic_derivatives: tuple, dlog_o: list, camera: Camera,
+                           scale: float) -> list[list]:
+    """lam[monomial][theta]: the derivative of the exponent E by theta as a polynomial in the pixel
+    offset (monomials 1, du, dv, du², du dv, dv²), the position part carried from camera x, y, z to
+    the normalised world position (d/dp_j = scale * sum_i d/dcam_i R[i, j])."""
+    fx, fy, rot = camera.fx, camera.fy, camera.rotation
+    dmx = [fx * jac.iz, None, -fx * jac.u * jac.iz, None, None, None]
+    dmy = [None, fy * jac.iz, -fy * jac.v * jac.iz, None, None, None]
     to_world = [[float(scale * rot[i, j]) for j in range(3)] for i in range(3)]
 
     def world(g):
-        if all(c is None for c in g[:3]):
+        if all(x is None for x in g[:3]):
             return g
         pos = [_mad([(to_world[i][j], g[i]) for i in range(3)]) for j in range(3)]
         return pos + g[3:]
 
-    dmx, dmy, dqa, dqb, dqc = world(dmx), world(dmy), world(dqa), world(dqb), world(dqc)
-    dlog_o = world(dlog_o)
-    # lam[monomial][theta] by the monomials 1, du, dv, du², du dv, dv²
-    lam = [dlog_o, [_mad([(qa, dmx[t]), (qb, dmy[t])]) for t in range(BLOCK)],
-           [_mad([(qb, dmx[t]), (qc, dmy[t])]) for t in range(BLOCK)],
-           [None if g is None else -0.5 * g for g in dqa], [None if g is None else -g for g in dqb],
-           [None if g is None else -0.5 * g for g in dqc]]
-    mom = mom.to(dt)
+    dqa, dqb, dqc = (world(g) for g in conic_derivatives)
+    dmx, dmy, dlog_o = world(dmx), world(dmy), world(dlog_o)
+    qa, qb, qc = c.qa, c.qb, c.qc
+    return [dlog_o, [_mad([(qa, dmx[t]), (qb, dmy[t])]) for t in range(BLOCK)],
+            [_mad([(qb, dmx[t]), (qc, dmy[t])]) for t in range(BLOCK)],
+            [None if g is None else -0.5 * g for g in dqa], [None if g is None else -g for g in dqb],
+            [None if g is None else -0.5 * g for g in dqc]]
+
+
+def _moment_blocks(lam: list[list], mom: torch.Tensor) -> list[list]:
+    """h[t1][t2] (t1 <= t2; None: zero) = lam S lamᵀ, S the moments of s by monomial pairs."""
     srow = {p: mom[k] for k, p in enumerate(_POWERS)}
     smat = [[srow[(_POWERS[i][0] + _POWERS[j][0], _POWERS[i][1] + _POWERS[j][1])] for j in range(_P2)]
             for i in range(_P2)]
@@ -363,38 +425,77 @@ def _gaussian_blocks(f: dict, rows: torch.Tensor, mom: torch.Tensor, colors: tor
     for t1 in range(BLOCK):
         for t2 in range(t1, BLOCK):
             h[t1][t2] = _mad([(a_mat[t1][j], lam[j][t2]) for j in range(_P2)])
+    return h
+
+
+def _colour_jacobian(rest: torch.Tensor, rel64: torch.Tensor, colors: torch.Tensor, degree: int, dt,
+                     scale: float) -> list[list]:
+    """jc[c][axis]: d colour_c / d normalised world position of the SH bands `rest` (k, 3, M) along
+    the view direction (0 where the colour is clamped)."""
+    k = len(rest)
+    dist = torch.sqrt((rel64 * rel64).sum(-1))
+    dirs = (rel64 / dist[:, None]).to(dt).T.contiguous()
+    inv_dist = (scale / dist).to(dt)
+    grads = _sh_basis_gradient(list(dirs), degree)
+    live = (colors > 0).to(dt).T.contiguous()
+    jc = []  # d colour_c / d world position (normalised), c = r, g, b
+    for c in range(3):
+        g = [_mad([(grads[b][axis], rest[b, c]) for b in range(k)]) for axis in range(3)]
+        g = [torch.zeros_like(inv_dist) if gi is None else gi for gi in g]
+        radial = _dot3(g, dirs)
+        jc.append([(g[axis] - radial * dirs[axis]) * inv_dist * live[c] for axis in range(3)])
+    return jc
+
+
+def _add_colour_terms(h: list[list], lam: list[list], jc: list[list], mom: torch.Tensor, m: int) -> None:
+    """Add to h the cross terms sum_p e_c w (lam mono)_t1 (d colour_c)_t2, both orders, and the
+    colour's own part w² (d colour)(d colour)."""
+    trow = mom[len(_POWERS):-1].reshape(3, _P2, m)
+    wsum = mom[-1]
+    for t1 in range(BLOCK):
+        lt = [_mad([(lam[i][t1], trow[c, i]) for i in range(_P2)]) for c in range(3)]
+        for t2 in range(BLOCK):
+            if t2 < 3:
+                extra = _mad([(lt[c], jc[c][t2]) for c in range(3)])
+                if extra is not None:
+                    if t1 <= t2:
+                        h[t1][t2] = extra if h[t1][t2] is None else h[t1][t2] + extra
+                    if t2 <= t1:
+                        h[t2][t1] = extra if h[t2][t1] is None else h[t2][t1] + extra
+            if t1 < 3 and t1 <= t2 < 3:
+                own = _mad([(jc[c][t1], jc[c][t2]) for c in range(3)]) * wsum
+                h[t1][t2] = own if h[t1][t2] is None else h[t1][t2] + own
+
+
+def _gaussian_blocks(f: dict, rows: torch.Tensor, mom: torch.Tensor, colors: torch.Tensor, camera: Camera,
+                     degree: int, dt, scale: float, alias: _Antialias) -> torch.Tensor:
+    """(21, M) packed blocks of one view for the Gaussians `rows`, from their central moments
+    `mom` (34, M) and drawn colours (M, 3) (0 where clamped).
+
+    The derivatives of what the rasteriser draws (centre, conic, opacity, colour) with respect to
+    camera-space position and log-scale are written out from the projection of
+    `gvae_core.rendering` in the cloud's anti-aliasing mode (`classic`: the 2D dilation; `matched`:
+    the 3D dilation and what it leaves of the 2D one at the Gaussian's depth; `mip`: the 3D filter
+    and the 2D Mip filter with their opacity compensation), on M-vectors, one component at a time.
+    The derivative of the exponent E = log o - (a du² + 2 b du dv + c dv²) / 2 is a polynomial in
+    the pixel offset (du, dv) from the centre, lam[monomial][theta], so J^T J = lam S lam^T + cross
+    terms with the colour + the colour's own part, S the moments of s by monomial pairs."""
+    m = len(rows)
+    jac = _jacobian(f, rows, camera, dt)
+    m0, m1, m2, gain, size, dlog_o = _camera_axes(f, rows, camera, dt, alias)
+    conic = _conic(jac, m0, m1, m2, gain, size, alias, camera, dt)
+    conic_derivatives = _conic_derivatives(conic)
+    if alias.mode == "mip":
+        for t, term in enumerate(_mip_opacity_derivative(jac, m0, m1, m2, gain, conic, dt)):
+            dlog_o[t] = term if dlog_o[t] is None else dlog_o[t] + term
+    lam = _monomial_coefficients(jac, conic, conic_derivatives, dlog_o, camera, scale)
+    mom = mom.to(dt)
+    h = _moment_blocks(lam, mom)
     rest = f["sh_rest"].index_select(0, rows)
     if degree > 0 and rest.shape[1]:
-        k = (degree + 1) ** 2 - 1
-        rest = rest[:, :k].to(dt).permute(1, 2, 0).contiguous()  # (k, 3, M)
-        dist = torch.sqrt((rel64 * rel64).sum(-1))
-        dirs = (rel64 / dist[:, None]).to(dt).T.contiguous()
-        inv_dist = (scale / dist).to(dt)
-        grads = _sh_basis_gradient(list(dirs), degree)
-        live = (colors > 0).to(dt).T.contiguous()
-        jc = []  # d colour_c / d world position (normalised), c = r, g, b
-        for c in range(3):
-            g = [_mad([(grads[b][axis], rest[b, c]) for b in range(k)]) for axis in range(3)]
-            g = [torch.zeros_like(x) if gi is None else gi for gi in g]
-            radial = dot(g, dirs)
-            jc.append([(g[axis] - radial * dirs[axis]) * inv_dist * live[c] for axis in range(3)])
-        trow = mom[len(_POWERS):-1].reshape(3, _P2, m)
-        wsum = mom[-1]
-        for t1 in range(BLOCK):
-            # cross terms sum_p e_c w (lam mono)_t1 (d colour_c)_t2, both orders, and w² (d colour)(d colour)
-            lt = [_mad([(lam[i][t1], trow[c, i]) for i in range(_P2)]) for c in range(3)]
-            for t2 in range(BLOCK):
-                if t2 < 3:
-                    extra = _mad([(lt[c], jc[c][t2]) for c in range(3)])
-                    if extra is not None:
-                        if t1 <= t2:
-                            h[t1][t2] = extra if h[t1][t2] is None else h[t1][t2] + extra
-                        if t2 <= t1:
-                            h[t2][t1] = extra if h[t2][t1] is None else h[t2][t1] + extra
-                if t1 < 3 and t1 <= t2 < 3:
-                    own = _mad([(jc[c][t1], jc[c][t2]) for c in range(3)]) * wsum
-                    h[t1][t2] = own if h[t1][t2] is None else h[t1][t2] + own
-    out = torch.zeros((len(_TRIU[0]), m), dtype=f64)
+        rest = rest[:, :(degree + 1) ** 2 - 1].to(dt).permute(1, 2, 0).contiguous()  # (k, 3, M)
+        _add_colour_terms(h, lam, _colour_jacobian(rest, jac.rel64, colors, degree, dt, scale), mom, m)
+    out = torch.zeros((len(_TRIU[0]), m), dtype=torch.float64)
     for k, (t1, t2) in enumerate(zip(*_TRIU.tolist())):
         if h[t1][t2] is not None:
             out[k] = torch.nan_to_num(h[t1][t2], nan=0.0, posinf=0.0, neginf=0.0)

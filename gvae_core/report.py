@@ -38,7 +38,7 @@ METHOD_NAMES = {BASELINE: "3DGS, unrefined", KNOB: "global scale knob per octave
 METHOD_NAMES.update({FOUR_X[BASELINE]: "3DGS, unrefined", FOUR_X[DEFAULT]: "refine default (detail model)",
                      FOUR_X[IMAGES]: "refine with the images", FOUR_X[FINETUNE]: "the same steps of plain 1x training",
                      FOUR_X[REAL]: "3DGS on the real 4x images"})
-#: Refine with the images: every pair at least this much above the unrefined cloud at 2x (issue 33).
+#: Refine with the images: every pair at least this much above the unrefined cloud at 2x (its goal).
 IMAGES_FLOOR_DB = 0.3
 #: What costs the same as refine's default (no Gaussian added): it must beat each of them.
 SAME_COST = (BASELINE, KNOB, EXTRAPOLATION)

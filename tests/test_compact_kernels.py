@@ -81,6 +81,10 @@ def test_moments_costs_and_merges_are_the_numpy_ones():
     assert fast.floor == slow.floor
     a, b = graph.knn_edges(slow.mu, np.arange(len(rows)), 4)
     _close(moments.pair_cost(fast, a, b), moments.pair_cost_numpy(slow, a, b), 1e-9, "cost")
+    heavy, heavy_numpy = (moments.moments(c, weight[rows], rows=rows, colour_weight=40.0),
+                          moments.moments_numpy(c.select(rows), weight[rows], colour_weight=40.0))
+    _close(moments.pair_cost(heavy, a, b), moments.pair_cost_numpy(heavy_numpy, a, b), 1e-9, "cost, colour weight")
+    assert (moments.pair_cost_numpy(heavy_numpy, a, b) > moments.pair_cost_numpy(slow, a, b)).any()
     pick = graph.matching_numpy(a, b, moments.pair_cost_numpy(slow, a, b), len(rows), 100)
     moments.merge_pairs(fast, a[pick], b[pick])
     moments.merge_pairs_numpy(slow, a[pick], b[pick])

@@ -6,6 +6,7 @@ before the fine-tuning starts, and the default with photos."""
 import math
 
 import numpy as np
+import pytest
 
 import gvae_core.compaction as compaction
 import gvae_core.compaction.finetune as finetune
@@ -13,7 +14,7 @@ import gvae_core.train as train
 from gvae_core import Camera
 from gvae_core.antialias import DILATION_KEY
 from gvae_core.compaction import PHOTOS_PRUNE_FROM, compact, compaction_scores, default_method, set_aside
-from gvae_core.compaction.finetune import Tuning, tune, tuning_config
+from gvae_core.compaction.finetune import Tuning, TuningOptions, tune, tuning_config
 from gvae_core.datasets import Views
 from gvae_core.examples import example_cloud
 from gvae_core.rendering import RenderSettings, render
@@ -92,9 +93,27 @@ def test_distillation_targets_are_drawn_as_the_fine_tuning_draws(monkeypatch):
     monkeypatch.setattr(compaction, "own_renders", own_renders)
     r = compact(cloud, keep=0.5, resolution=24, distill=4)
     assert modes == ["classic"] and len(r.rounds) == 1
-    monkeypatch.setattr(finetune, "DISTILL_TARGET", "auto")
-    compact(cloud, keep=0.5, resolution=24, distill=4)
+    compact(cloud, keep=0.5, resolution=24, distill=4, tuning_options=TuningOptions(distill_target="auto"))
     assert modes[-1] == "auto"
+
+
+def test_tuning_options_reach_the_fine_tuning(monkeypatch):
+    """What a study changes (`TuningOptions`: the trainer's configuration, the averages) is passed
+    down to the fine-tuning of both paths; no module global changes."""
+    cloud = example_cloud(120, seed=6).with_sh_degree(0)
+    images = _views(cloud, 10, size=16)
+    seen = []
+    real = train.fine_tune
+    monkeypatch.setattr(train, "fine_tune", lambda *a, **k: seen.append((k["config"].position_lr_init,
+                                                                          k["average"])) or real(*a, **k))
+    options = TuningOptions(train_overrides={"position_lr_init": 3e-5}, average=None, distill_average=0.9)
+    compact(cloud, keep=0.5, images=images, iterations=2, views=2, resolution=16, tuning_options=options)
+    compact(cloud, keep=0.5, resolution=16, distill=2, tuning_options=options)
+    compact(cloud, keep=0.5, resolution=16, distill=2)
+    assert seen == [(3e-5, None), (3e-5, 0.9), (train.TrainConfig().position_lr_init, finetune.DISTILL_AVERAGE)]
+    assert tuning_config(cloud, RenderSettings(), 0, {"position_lr_init": 3e-5}).position_lr_init == 3e-5
+    with pytest.raises(ValueError, match="distill_target"):
+        TuningOptions(distill_target="matched")
 
 
 def test_with_images_the_default_is_what_the_set_aside_images_chose(monkeypatch):

@@ -3,6 +3,7 @@ higher-resolution picture toward the truth while the training-resolution picture
 children draw nothing at the training rate, the per-image guards do what they say, images that do
 not belong to the cloud are refused before any work, and degenerate Gaussians stay finite."""
 
+import dataclasses
 import json
 import math
 
@@ -341,3 +342,15 @@ def test_several_views_a_step_tiles_and_the_pull_towards_the_start():
     size = {name: sum(float(np.abs(f.changes[k]).sum()) for k in ("scales", "means", "sh_dc")) for name, f in
             (("plain", plain), ("pulled", pulled))}
     assert size["pulled"] < 0.7 * size["plain"], size
+
+
+def test_the_optimizer_is_a_setting_of_the_fit():
+    """`SuperResConfig.optimizer`: the fit's own VisibleAdam by default, torch's plain Adam on
+    request (its momentum moves rows a tile did not see, so the two part), anything else refused."""
+    _, trained, views = _capture(n_views=6, n=200)
+    config = SuperResConfig(steps=4, patch=12, start="zero", holdout=0)
+    visible = fit_octaves(trained, views, 1, config)
+    plain = fit_octaves(trained, views, 1, dataclasses.replace(config, optimizer="adam"))
+    assert not np.array_equal(visible.changes["means"], plain.changes["means"])
+    with pytest.raises(ValueError, match="optimizer"):
+        SuperResConfig(optimizer="sgd")

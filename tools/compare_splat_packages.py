@@ -110,35 +110,28 @@ def show(d: dict) -> str:
     return ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in d.items())
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--n", type=int, default=1_000_000)
-    ap.add_argument("--repeats", type=int, default=3)
-    args = ap.parse_args()
-    warnings.simplefilter("ignore")
-    cloud = random_cloud(args.n)
-    cloud.sh_dc[:] = np.clip(cloud.sh_dc, -1.7, 1.7)  # inside every format's colour range
-    source = arrays_of_cloud(cloud)
-    tmp = Path(tempfile.mkdtemp())
-    gf = gaussforge.GaussForge()
-    print(f"{args.n} Gaussians, SH degree 3, median of {args.repeats}; load average {os.getloadavg()[0]:.2f}")
+def _files(tmp: Path) -> dict[str, Path]:
+    """The files each encoder writes, by key."""
+    return {k: tmp / name for k, name in [("ply", "ref.ply"), ("spz3", "ours3.spz"), ("spz4", "ours4.spz"),
+                                          ("spz3_niantic", "niantic3.spz"), ("spz4_niantic", "niantic4.spz"),
+                                          ("splat", "ours.splat"), ("splat_ply2splat", "ply2splat.splat"),
+                                          ("cply", "ours.compressed.ply"), ("cply_gaussforge", "gf.compressed.ply"),
+                                          ("spz3_gsply", "gsply3.spz")]}
 
-    # -- files, and each encoder's time and error against the source
-    f = {k: tmp / name for k, name in [("ply", "ref.ply"), ("spz3", "ours3.spz"), ("spz4", "ours4.spz"),
-                                        ("spz3_niantic", "niantic3.spz"), ("spz4_niantic", "niantic4.spz"),
-                                        ("splat", "ours.splat"), ("splat_ply2splat", "ply2splat.splat"),
-                                        ("cply", "ours.compressed.ply"), ("cply_gaussforge", "gf.compressed.ply"),
-                                        ("spz3_gsply", "gsply3.spz")]}
+
+def _encode(cloud, f: dict[str, Path], gf, n: int) -> None:
+    """Write every file; print each encoder's time and error against the source cloud."""
+    source = arrays_of_cloud(cloud)
     print("\n| encoder | time (s) | max error against the source cloud |\n|---|---:|---|")
     write_ply(cloud, f["ply"])
     enc = [("gvae_core write_spz v3", lambda: write_spz(cloud, f["spz3"]), "spz3"),
            ("gvae_core write_spz v4", lambda: write_spz(cloud, f["spz4"], version=4), "spz4"),
            ("alspz (Niantic C++) v3", lambda: f["spz3_niantic"].write_bytes(alspz.save_spz(
                cloud.means, cloud.scales, cloud.quats[:, [1, 2, 3, 0]], cloud.opacities, cloud.sh_dc,
-               cloud.sh_rest.reshape(args.n, -1), 3, version=3)), "spz3_niantic"),
+               cloud.sh_rest.reshape(n, -1), 3, version=3)), "spz3_niantic"),
            ("alspz (Niantic C++) v4", lambda: f["spz4_niantic"].write_bytes(alspz.save_spz(
                cloud.means, cloud.scales, cloud.quats[:, [1, 2, 3, 0]], cloud.opacities, cloud.sh_dc,
-               cloud.sh_rest.reshape(args.n, -1), 3, version=4)), "spz4_niantic"),
+               cloud.sh_rest.reshape(n, -1), 3, version=4)), "spz4_niantic"),
            ("gsply write_spz v3", lambda: gsply.write_spz(f["spz3_gsply"], gsply.plyread(f["ply"]), version=3),
             "spz3_gsply"),
            ("gvae_core write_splat", lambda: write_splat(cloud, f["splat"]), "splat"),
@@ -152,10 +145,10 @@ def main() -> int:
         back = arrays_of_cloud(read_splat_file(f[key]))
         print(f"| {name} | {t:.2f} | {show(diff(source, back))} |")
 
-    # -- readers on the same files, against gvae_core's decode of that file
-    print("\n| file | reader | time (s) | x gvae_core | max difference from gvae_core's decode |")
-    print("|---|---|---:|---:|---|")
-    readers = {
+
+def _readers(gf) -> dict[str, list]:
+    """Per format, (name, read) of every reader; gvae_core's first."""
+    return {
         "ply": [("gvae_core read_ply", lambda p: arrays_of_cloud(read_ply(p))),
                 ("gsply plyread", lambda p: from_gsply(gsply.plyread(p))),
                 ("gaussforge read", lambda p: from_gaussforge(gf.read(p.read_bytes(), "ply"), "wxyz"))],
@@ -175,20 +168,29 @@ def main() -> int:
                  ("gaussforge read", lambda p: from_gaussforge(gf.read(p.read_bytes(), "compressed.ply"),
                                                                "wxyz"))],
     }
+
+
+def _read(f: dict[str, Path], gf, repeats: int) -> None:
+    """Print every reader on the same files, against gvae_core's decode of that file."""
+    print("\n| file | reader | time (s) | x gvae_core | max difference from gvae_core's decode |")
+    print("|---|---|---:|---:|---|")
+    readers = _readers(gf)
     files = {"ply": ["ply"], "spz3": ["spz3", "spz3_niantic"], "spz4": ["spz4", "spz4_niantic"],
              "splat": ["splat", "splat_ply2splat"], "cply": ["cply", "cply_gaussforge"]}
     for fmt, keys in files.items():
         for key in keys:
-            ours_t, ours = timed(lambda k=key, r=readers[fmt][0][1]: r(f[k]), args.repeats)
+            ours_t, ours = timed(lambda k=key, r=readers[fmt][0][1]: r(f[k]), repeats)
             for name, fn in readers[fmt]:
                 try:
-                    t, got = timed(lambda k=key, fn=fn: fn(f[k]), args.repeats)
+                    t, got = timed(lambda k=key, fn=fn: fn(f[k]), repeats)
                 except Exception as exc:  # a package that cannot read the file: say so
                     print(f"| {key} | {name} | - | - | fails: {str(exc)[:80]} |")
                     continue
                 print(f"| {key} | {name} | {t:.3f} | {t / ours_t:.2f} | {show(diff(ours, got))} |")
 
-    # -- our .spz payload against Niantic's
+
+def _payloads(cloud, f: dict[str, Path], tmp: Path) -> None:
+    """Print whether our .spz payload (and gzip file at level 6) is Niantic's, byte for byte."""
     ours = gzip.decompress(f["spz3"].read_bytes())
     theirs = gzip.decompress(f["spz3_niantic"].read_bytes())
     same = np.frombuffer(ours, np.uint8) == np.frombuffer(theirs, np.uint8) if len(ours) == len(theirs) else None
@@ -197,6 +199,23 @@ def main() -> int:
     write_spz(cloud, tmp / "level6.spz", compresslevel=6)
     same_file = (tmp / "level6.spz").read_bytes() == f["spz3_niantic"].read_bytes()
     print("gzip file at level 6 identical to Niantic's:", same_file)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--n", type=int, default=1_000_000)
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args()
+    warnings.simplefilter("ignore")
+    cloud = random_cloud(args.n)
+    cloud.sh_dc[:] = np.clip(cloud.sh_dc, -1.7, 1.7)  # inside every format's colour range
+    tmp = Path(tempfile.mkdtemp())
+    gf = gaussforge.GaussForge()
+    print(f"{args.n} Gaussians, SH degree 3, median of {args.repeats}; load average {os.getloadavg()[0]:.2f}")
+    f = _files(tmp)
+    _encode(cloud, f, gf, args.n)
+    _read(f, gf, args.repeats)
+    _payloads(cloud, f, tmp)
     return 0
 
 

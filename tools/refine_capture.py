@@ -1,5 +1,5 @@
 """Refine a cloud trained on a real capture and score it on the capture's held-out photos at 2x
-(BENCHMARKS.md, "Refine with the images on a real capture"): the rows of issue 41 beside each other.
+(docs/benchmarks/refine-images.md, "A real capture: the plush"): every row beside each other.
 
 The cloud is the last stage of a `gvae train CAPTURE --test-every N` run (`--run`); its training
 images are the capture's training split at the run's last resolution H; the held-out photos are
@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +69,7 @@ def _scores(cloud, views_by_height: dict) -> dict:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--run", type=Path, help="a finished `gvae train --test-every` run")
@@ -83,12 +84,45 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--more-steps", type=int, help="iterations of the `more` row (default: the fit's)")
     p.add_argument("--picture", type=Path, help="a PNG of a held-out view with zoomed crops")
     p.add_argument("--threads", type=int, default=2)
-    args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    if args.scene is not None:
-        from gvae_core.experiment import PROTOCOLS, prepare_scene  # noqa: PLC0415
+    return p
 
-        args.run = prepare_scene(args.scene, PROTOCOLS["quick"].fits(), seed=args.seed, threads=args.threads).run_dir
+
+@dataclass
+class _Study:
+    """One run's rows as they are made: its cloud, capture and trainer's configuration, the training
+    images at H, the held-out photos at 2H and H, the fit's configuration, the JSON document (written
+    to `out` after every row) and every row's cloud (for the picture)."""
+
+    cloud: object
+    capture: object
+    config: TrainConfig
+    height: int
+    train: object
+    test: dict
+    fit: SuperResConfig
+    doc: dict
+    out: Path
+    clouds: dict = field(default_factory=dict)
+
+    def record(self, name: str, result, seconds: float, **info) -> None:
+        self.clouds[name] = result
+        self.doc["rows"][name] = {"scores": _scores(result, self.test), "gaussians": len(result),
+                                  "seconds": round(seconds, 1), **info}
+        r, h = self.doc["rows"][name], self.height
+        print(f"{name:>10}: {r['scores'][str(2 * h)]['psnr']:.3f} dB / {r['scores'][str(2 * h)]['ssim']:.4f}"
+              f" at 2x, {r['scores'][str(h)]['psnr']:.3f} dB at 1x, {r['gaussians']} Gaussians, {seconds:.0f} s"
+              + (f"  {info}" if info else ""), flush=True)
+        self.save()
+
+    def save(self) -> None:
+        atomic_write_text(self.out, json.dumps(self.doc, indent=2))
+
+    def start(self) -> dict | None:
+        """Where the fit starts: the detail model's changes, unless it starts from zero."""
+        return _detail_start(self.cloud) if self.fit.start == "detail" else None
+
+
+def _study(args) -> _Study:
     run = RunFolder(args.run).finished()
     config, stage = run.config, run.stages_done - 1
     height = config.resolutions[stage]
@@ -101,68 +135,83 @@ def main(argv: list[str] | None = None) -> int:
           f"{height} px; fit {fit}", flush=True)
     doc = {"run": str(args.run), "cloud": str(args.cloud or ""), "height": height, "gaussians": len(cloud),
            "fit": repr(fit), "rows": {}}
-    clouds = {}
+    return _Study(cloud, capture, config, height, train, test, fit, doc, args.out)
 
-    def record(name: str, result, seconds: float, **info) -> None:
-        clouds[name] = result
-        doc["rows"][name] = {"scores": _scores(result, test), "gaussians": len(result), "seconds": round(seconds, 1),
-                             **info}
-        r = doc["rows"][name]
-        print(f"{name:>10}: {r['scores'][str(2 * height)]['psnr']:.3f} dB / {r['scores'][str(2 * height)]['ssim']:.4f}"
-              f" at 2x, {r['scores'][str(height)]['psnr']:.3f} dB at 1x, {r['gaussians']} Gaussians, {seconds:.0f} s"
-              + (f"  {info}" if info else ""), flush=True)
-        atomic_write_text(args.out, json.dumps(doc, indent=2))
 
+def _images_row(study: _Study, t0: float) -> int:
+    """The `images` row; returns the fit's steps times the views a step sums."""
+    r = refine(study.cloud, images=study.train, fit=study.fit)
+    study.record("images", r.cloud, time.perf_counter() - t0, notes=r.notes, steps=r.fit.steps_run,
+                 kept=r.fit.kept, holdout=[r.fit.holdout_input, r.fit.holdout_start, r.fit.holdout_fit],
+                 own=[r.fit.psnr_before, r.fit.psnr_after], checks=[[s, round(v, 3)] for s, v in r.fit.checks],
+                 fit_seconds=round(r.fit.timings.get("fit", 0.0), 1))
+    return r.fit.steps_run * study.fit.views_per_step
+
+
+def _oracle_row(study: _Study, t0: float) -> None:
+    cloud = study.cloud
+    real = study.capture.load("train", 2 * study.height)
+    start = study.start()
+    f = fit_octaves(cloud, real, 1, study.fit, start=start, background=cloud.background or (1.0, 1.0, 1.0),
+                    images_scale=2)
+    chosen = f.changes if f.kept in ("fit", "begin") else {"start": start or {}, "input": {}}[f.kept]
+    study.record("oracle", with_octaves(cloud, chosen, limit=1.0), time.perf_counter() - t0, kept=f.kept,
+                 steps=f.steps_run, holdout=[f.holdout_input, f.holdout_start, f.holdout_fit],
+                 checks=[[s, round(v, 3)] for s, v in f.checks])
+
+
+def _trace_row(study: _Study, t0: float) -> None:
+    cloud = study.cloud
+    trace = []
+
+    def look(step: int, now) -> None:
+        s = image_scores(now, study.test[2 * study.height], cloud.background, no_reference=False)
+        trace.append([step, round(s.psnr, 4), round(s.ssim, 5)])
+        print(f"  step {step}: held-out photos at 2x {s.psnr:.3f} dB / {s.ssim:.4f}", flush=True)
+
+    f = fit_octaves(cloud, study.train, 1, study.fit, start=study.start(),
+                    background=cloud.background or (1.0, 1.0, 1.0), on_check=look)
+    study.doc["rows"]["trace"] = {"checks": [[s, round(v, 3)] for s, v in f.checks], "photos_2x": trace,
+                                  "kept": f.kept, "holdout": [f.holdout_input, f.holdout_start, f.holdout_fit],
+                                  "seconds": round(time.perf_counter() - t0, 1)}
+    study.save()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    torch.set_num_threads(args.threads)
+    if args.scene is not None:
+        from gvae_core.experiment import PROTOCOLS, prepare_scene  # noqa: PLC0415
+
+        args.run = prepare_scene(args.scene, PROTOCOLS["quick"].fits(), seed=args.seed, threads=args.threads).run_dir
+    study = _study(args)
+    cloud = study.cloud
     steps = args.more_steps
     for name in args.rows:
         t0 = time.perf_counter()
         if name == "unrefined":
-            record(name, cloud, 0.0)
+            study.record(name, cloud, 0.0)
         elif name == "detail":
-            r = refine(cloud, cameras=train.cameras)
-            record(name, r.cloud, time.perf_counter() - t0, notes=r.notes)
+            r = refine(cloud, cameras=study.train.cameras)
+            study.record(name, r.cloud, time.perf_counter() - t0, notes=r.notes)
         elif name == "images":
-            r = refine(cloud, images=train, fit=fit)
-            steps = steps or r.fit.steps_run * fit.views_per_step
-            record(name, r.cloud, time.perf_counter() - t0, notes=r.notes, steps=r.fit.steps_run,
-                   kept=r.fit.kept, holdout=[r.fit.holdout_input, r.fit.holdout_start, r.fit.holdout_fit],
-                   own=[r.fit.psnr_before, r.fit.psnr_after], checks=[[s, round(v, 3)] for s, v in r.fit.checks],
-                   fit_seconds=round(r.fit.timings.get("fit", 0.0), 1))
+            fitted = _images_row(study, t0)
+            steps = steps or fitted
         elif name == "more":
             n = steps or 400
-            record(name, fine_tune(cloud, train, n, config=config, seed=0).replace(background=cloud.background),
-                   time.perf_counter() - t0, iterations=n)
+            study.record(name, fine_tune(cloud, study.train, n, config=study.config, seed=0)
+                         .replace(background=cloud.background), time.perf_counter() - t0, iterations=n)
         elif name == "oracle":
-            real = capture.load("train", 2 * height)
-            start = _detail_start(cloud) if fit.start == "detail" else None
-            f = fit_octaves(cloud, real, 1, fit, start=start, background=cloud.background or (1.0, 1.0, 1.0),
-                            images_scale=2)
-            chosen = f.changes if f.kept in ("fit", "begin") else {"start": start or {}, "input": {}}[f.kept]
-            record(name, with_octaves(cloud, chosen, limit=1.0), time.perf_counter() - t0, kept=f.kept,
-                   steps=f.steps_run, holdout=[f.holdout_input, f.holdout_start, f.holdout_fit],
-                   checks=[[s, round(v, 3)] for s, v in f.checks])
+            _oracle_row(study, t0)
         elif name == "trace":
-            start = _detail_start(cloud) if fit.start == "detail" else None
-            trace = []
-
-            def look(step: int, now, trace=trace) -> None:
-                s = image_scores(now, test[2 * height], cloud.background, no_reference=False)
-                trace.append([step, round(s.psnr, 4), round(s.ssim, 5)])
-                print(f"  step {step}: held-out photos at 2x {s.psnr:.3f} dB / {s.ssim:.4f}", flush=True)
-
-            f = fit_octaves(cloud, train, 1, fit, start=start, background=cloud.background or (1.0, 1.0, 1.0),
-                            on_check=look)
-            doc["rows"][name] = {"checks": [[s, round(v, 3)] for s, v in f.checks], "photos_2x": trace,
-                                 "kept": f.kept, "holdout": [f.holdout_input, f.holdout_start, f.holdout_fit],
-                                 "seconds": round(time.perf_counter() - t0, 1)}
-            atomic_write_text(args.out, json.dumps(doc, indent=2))
+            _trace_row(study, t0)
         elif name == "real":
             if args.real_run is None:
                 raise SystemExit("the real row needs --real-run")
             real_run = json.loads((args.real_run / "run.json").read_text())
-            record(name, read_ply(args.real_run / f"stage_{int(real_run['stages_done']) - 1}.ply"), 0.0)
+            study.record(name, read_ply(args.real_run / f"stage_{int(real_run['stages_done']) - 1}.ply"), 0.0)
     if args.picture is not None:
-        _picture(args.picture, clouds, test[2 * height])
+        _picture(args.picture, study.clouds, study.test[2 * study.height])
     return 0
 
 

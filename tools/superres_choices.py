@@ -4,12 +4,12 @@ detail model alone, as PSNR change at 2x / at 1x against the unrefined cloud, se
 refine and Gaussians added (docs/benchmarks/refine-images.md, "Choices").
 
 The runs are the quick protocol's trained to the training resolution only (`Protocol.fits()`,
-cached), scored on its 8 test views with its `matched` render over white. Two sets of rows: issue
-41's, the fit as it is now beside what was tried for it (the default: whole images judged on every
-8th image held out); and issue 33's, the fit as it was then (`ISSUE33`: 400 steps of 96 px patches,
-no image held out; its patches now tile each image rather than fall at random, so its rows come
-near its figures, not exactly). `--optimizer adam` runs the fit with torch's plain Adam, as it was
-before `superres.optim.VisibleAdam`; `--smoke` runs everything at the smallest size
+cached), scored on its 8 test views with its `matched` render over white. Two sets of rows: the fit
+as it is beside what was tried for it (the default: whole images judged on every 8th image held
+out); and the first patch fit's (`PATCH_FIT`: 400 steps of 96 px patches, no image held out; its
+patches tile each image rather than fall at random, so its rows come near the figures measured
+with it, not exactly). `--optimizer adam` runs the fit with torch's plain Adam instead of
+`superres.optim.VisibleAdam`; `--smoke` runs everything at the smallest size
 (`experiment.SMOKE`: 64 px scenes, 10 fit steps), to show that it runs.
 
 Usage: python tools/superres_choices.py [--scenes chair tableware] [--seed 0] [--variants NAME ...]
@@ -23,7 +23,6 @@ import dataclasses
 import sys
 import time
 
-from gvae_core.benchmarks.superres import optimizer_used
 from gvae_core.capture import load_nerf_synthetic
 from gvae_core.detail import load_detail
 from gvae_core.experiment import PROTOCOLS, SMOKE, Evaluator, image_config, prepare_scene
@@ -34,13 +33,13 @@ from gvae_core.superres import CHILD_GRADIENT, EXPOSURE_WEIGHT, POSE_WEIGHT
 from gvae_core.train import fine_tune
 
 FOUR = ("scales", "opacities", "sh_dc", "means")
-#: The fit as issue 33 chose it: 400 steps of 96 px patches, no image held out (its own judged it).
-ISSUE33 = {"steps": 400, "patch": 96, "holdout": 0}
+#: The first patch fit: 400 steps of 96 px patches, no image held out (its own images judged it).
+PATCH_FIT = {"steps": 400, "patch": 96, "holdout": 0}
 #: name -> (what the table calls it, `SuperResConfig` changes); "plain" and "detail" are not fits.
 VARIANTS = {
     "plain": ("the same steps of plain 1x training (the default fit's)", None),
     "detail": ("the detail model alone (no images)", None),
-    # issue 41: the fit judged on held-out images
+    # the fit judged on held-out images
     "default": ("the default: whole images, every 8th held out, 20 passes up to 300 steps, rates x1", {}),
     "lr0.3": ("every learning rate x0.3", {"lr": 0.3}),
     "tiles96": ("96 px tiles covering each image instead of whole images", {"patch": 96}),
@@ -51,16 +50,16 @@ VARIANTS = {
     "pose": ("pose correction, exact cameras", {"pose": POSE_WEIGHT}),
     "exposure": ("exposure correction, exact exposure", {"exposure": EXPOSURE_WEIGHT}),
     "children": ("children", {"children": CHILD_GRADIENT}),
-    # issue 33: the fit as it was chosen then
-    "four": ("issue 33: four fields (log-scales, opacity, DC colour, positions)", {**ISSUE33, "fields": FOUR}),
-    "four-zero": ("issue 33: four fields, starting from zero", {**ISSUE33, "fields": FOUR, "start": "zero"}),
-    "four-size-kept": ("issue 33: four fields, the anti-aliasing size kept (not halved per octave)",
-                       {**ISSUE33, "fields": FOUR, "size_change": None}),
-    "four-twice": ("issue 33: four fields, twice the steps (800)", {**ISSUE33, "fields": FOUR, "steps": 800}),
-    "four-children": ("issue 33: four fields + children", {**ISSUE33, "fields": FOUR, "children": CHILD_GRADIENT}),
-    "six": ("issue 33: six fields (+ rotations, SH bands): its default", ISSUE33),
-    "six-children": ("issue 33: six fields + children", {**ISSUE33, "children": CHILD_GRADIENT}),
-    "whole-images": ("issue 33: six fields, whole images instead of 96 px patches", {**ISSUE33, "patch": 0}),
+    # the first patch fit and its variants
+    "four": ("patch fit: four fields (log-scales, opacity, DC colour, positions)", {**PATCH_FIT, "fields": FOUR}),
+    "four-zero": ("patch fit: four fields, starting from zero", {**PATCH_FIT, "fields": FOUR, "start": "zero"}),
+    "four-size-kept": ("patch fit: four fields, the anti-aliasing size kept (not halved per octave)",
+                       {**PATCH_FIT, "fields": FOUR, "size_change": None}),
+    "four-twice": ("patch fit: four fields, twice the steps (800)", {**PATCH_FIT, "fields": FOUR, "steps": 800}),
+    "four-children": ("patch fit: four fields + children", {**PATCH_FIT, "fields": FOUR, "children": CHILD_GRADIENT}),
+    "six": ("patch fit: six fields (+ rotations, SH bands): its default", PATCH_FIT),
+    "six-children": ("patch fit: six fields + children", {**PATCH_FIT, "children": CHILD_GRADIENT}),
+    "whole-images": ("patch fit: six fields, whole images instead of 96 px patches", {**PATCH_FIT, "patch": 0}),
 }
 
 
@@ -108,9 +107,8 @@ def main(argv=None) -> int:
                 cloud = refine(base, lineage=lineage, model=detail).cloud
             else:
                 changes = {**VARIANTS[name][1], **({} if steps is None else {"steps": steps})}
-                with optimizer_used(args.optimizer):
-                    r = refine(base, images=views, lineage=lineage, model=detail,
-                               fit=dataclasses.replace(config, **changes))
+                r = refine(base, images=views, lineage=lineage, model=detail,
+                           fit=dataclasses.replace(config, **changes, optimizer=args.optimizer))
                 cloud, added = r.cloud, len(r.added)
                 if name == "default":  # (one image a step)
                     plain_steps = r.fit.steps_run

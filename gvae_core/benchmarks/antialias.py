@@ -1,7 +1,7 @@
-"""Anti-aliasing across resolutions (issue 14): how a cloud trained at H px renders at 1x, 1.5x and
+"""Anti-aliasing across resolutions: how a cloud trained at H px renders at 1x, 1.5x and
 2x H by each anti-aliasing mode, against 3DGS trained on the real 1.5x and 2x images.
 
-Per scene (the six benchmark scenes of issue 14; the stages, iterations, render profile and test
+Per scene (the six benchmark scenes of `SCENES`; the stages, iterations, render profile and test
 views of the experiment's protocols, `gvae_core.experiment.PROTOCOLS`, trained with seed 0 into
 the run cache `<cache>/runs/<protocol>-<hash of the configuration>/<scene>`), PSNR/SSIM against
 the ground-truth test views and the seconds per rendered view, for:
@@ -44,7 +44,7 @@ from ..ply import read_ply
 from ..scenes import cache_dir, make_scene
 from ..train import TrainConfig, train_progressive
 
-#: The scenes of issue 14's measurement.
+#: The scenes of the anti-aliasing measurement.
 SCENES = ("plant", "crate", "materials", "bricks", "chair", "tableware")
 SCALES = ("1x", "1.5x", "2x")
 

@@ -5,13 +5,13 @@ tree. Rows: median time of the repeats and the error of the same runs: for impor
 difference between the object's attributes and the written cloud, and the instance count of
 the evaluated object (one per Gaussian expected); for export, whether every written file was
 byte-identical to the imported one. Blender's own C++ PLY importer (vertices and attributes, no
-splat set-up) is timed on the same file for scale. Goals (issue 7): import <= 1.5 s and export
-<= 1.5 s, instances included. Refine (issue 18) is timed once through the operator as a batch run
+splat set-up) is timed on the same file for scale. Goals: import <= 1.5 s and export
+<= 1.5 s, instances included. Refine is timed once through the operator as a batch run
 calls it, beside the core's refine of the same cloud.
 
 Then (`run_render`) what the user sees and what it costs: a Cycles render of the renderer
 benchmark's 100k scene at 400 px, imported with the default options, with its PSNR and
-silhouette IoU against gvae_core.render of the same camera (issue 17).
+silhouette IoU against gvae_core.render of the same camera.
 """
 
 from __future__ import annotations

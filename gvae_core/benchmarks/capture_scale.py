@@ -1,4 +1,4 @@
-"""The compiled core at capture scale, each row beside its goal (issue 44), in one run:
+"""The compiled core at capture scale, each row beside its goal, in one run:
 - forward + backward of 100k Gaussians at 800x800 (`kernels.renderer_rows`) against the C
   reference's forward pass of the same run; error: the largest gradient difference from the
   torch path, relative to its largest value; and the compositing's time per pixel-Gaussian pair,
@@ -29,7 +29,7 @@ from ..rendering import compiled
 from . import kernels as kernel_rows
 from .render import benchmark_camera, benchmark_scene
 
-#: Issue 44's goals: forward + backward in times the C forward; seconds for the rest.
+#: The goals: forward + backward in times the C forward; seconds for the rest.
 GOALS = {"fwd_bwd": 4.0, "hessian": 3.0, "refine": 8.0, "compact": 10.0}
 
 

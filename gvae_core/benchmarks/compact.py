@@ -126,11 +126,13 @@ def _decimate(command: list[str], cloud, mode: str, count: int, work: Path):
 
 def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, methods=METHODS, images: bool = True,
                    image_methods=IMAGE_METHODS, distill: bool = True, splat: bool = True, say=print,
-                   protocol=None, plateau: bool = True) -> list[dict]:
+                   protocol=None, plateau: bool = True, options: dict | None = None) -> list[dict]:
     """Every method (`methods`) at every fraction on one (scene, seed) of the quick protocol (or
     `protocol`); one row each. `images`: also the rows with fine-tuning (`image_methods`, and the
     input fine-tuned as long); `distill`: also ours fine-tuned against the input's own renders (no
-    images) at DISTILL_FRACTIONS; `splat`: splat-transform's rows."""
+    images) at DISTILL_FRACTIONS; `splat`: splat-transform's rows; `options`: more keyword arguments
+    of every `compact` call (`compact_options`)."""
+    options = options or {}
     p = protocol or PROTOCOLS["quick"]
     run = prepare_scene(name, p, seed=seed, threads=1, say=say)
     k = p.train_stage
@@ -161,11 +163,11 @@ def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, methods=METHODS
             t0 = time.perf_counter()
             r = compact(base, keep=fraction, cameras=train.cameras if m.cameras else None, views=VIEWS, score=m.score,
                         removal=m.removal, seed=seed, prune=m.prune, distill=m.distill, rounds=m.rounds,
-                        plateau=plateau)
+                        plateau=plateau, **options)
             add(m.label, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr, unseen=r.unseen,
                 rounds=[{k: v for k, v in x.items() if k != "checks"} for x in r.rounds])
     if distill:
-        distilled_rows(base, p.iterations[k], seed, add)
+        distilled_rows(base, p.iterations[k], seed, add, options)
     command, note = splat_transform() if splat else (None, None)
     if command is not None:
         with tempfile.TemporaryDirectory() as tmp:
@@ -179,24 +181,24 @@ def evaluate_scene(name: str, seed: int, fractions=FRACTIONS, *, methods=METHODS
     if images:
         iterations = p.iterations[k]
         t0 = time.perf_counter()  # the input itself fine-tuned as long: what compaction is measured against too
-        r = compact(base, keep=1.0, images=train, views=VIEWS, iterations=iterations, seed=seed)
+        r = compact(base, keep=1.0, images=train, views=VIEWS, iterations=iterations, seed=seed, **options)
         add("input + fine-tune", 1.0, r.cloud, time.perf_counter() - t0, iterations=iterations)
         for fraction in IMAGE_FRACTIONS:
             for label, score_name, removal in image_methods:
                 t0 = time.perf_counter()
                 r = compact(base, keep=fraction, images=train, views=VIEWS, score=score_name, removal=removal,
-                            iterations=iterations, seed=seed)
+                            iterations=iterations, seed=seed, **options)
                 add(label, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr,
                     iterations=iterations, rounds=[dict(x) for x in r.rounds])
     return rows
 
 
-def distilled_rows(base, iterations: int, seed: int, add) -> None:
-    """`add` the rows of ours with `compact(distill=iterations, rounds=2)` (views placed around the
-    cloud) at DISTILL_FRACTIONS."""
+def distilled_rows(base, iterations: int, seed: int, add, options: dict | None = None) -> None:
+    """`add` the rows of ours with `compact(distill=iterations, rounds=2, **options)` (views placed
+    around the cloud) at DISTILL_FRACTIONS."""
     for fraction in DISTILL_FRACTIONS:
         t0 = time.perf_counter()
-        r = compact(base, keep=fraction, distill=iterations, rounds=2, seed=seed)
+        r = compact(base, keep=fraction, distill=iterations, rounds=2, seed=seed, **(options or {}))
         add(DISTILLED, fraction, r.cloud, time.perf_counter() - t0, report_psnr=r.psnr, iterations=iterations)
 
 
@@ -220,22 +222,58 @@ CAPTURE_METHODS = (("ours, photos", "hessian", "merge", True, False, "auto"),
 INPUT_TUNED = "input + fine-tune as long"
 
 
-def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0.1), *, methods=CAPTURE_METHODS,
-                 splat: bool = True, input_tuned: bool = True, iterations: int | None = None, rounds: int | None = None,
-                 plateau: bool = True, seed: int = 0, views: int = VIEWS, say=print) -> list[dict]:
-    """A trained capture's cloud (`base_path`, the PLY `gvae train` wrote) compacted to each fraction
-    by every row of `methods` and splat-transform's decimation; each scored on the capture's
-    held-out photos (every `test_every`-th by name, at the height the cloud was trained at:
-    `compaction.fine_tune_height`), PSNR and SSIM, with seconds (wall and process CPU) and peak
-    RSS. The rows with photos fine-tune on the capture's training photos (`compact(images=...)`:
-    every SET_ASIDE_EVERY-th set aside to judge, `plateau`); `input_tuned`: the uncompacted cloud
-    fine-tuned on the same photos for as many iterations as ours with photos ran at each fraction,
-    ending on the average of its iterates as they do (the same cost: what the compaction is measured
-    against beside the input itself)."""
+@dataclass
+class _CaptureBench:
+    """A capture's compaction table as it is made: the trained cloud and the capture's cameras, its
+    training photos and held-out ones at the height the cloud was trained at, the training photos
+    set aside (every row is scored on them too), the rows so far and where they are said."""
+
+    base: object
+    cameras: list
+    height: int
+    photos: object
+    test: object
+    judge: object
+    background: tuple
+    tag: dict
+    say: object
+    rows: list = dataclasses.field(default_factory=list)
+    base_psnr: float = float("nan")
+    base_auto: float = float("nan")
+
+    def score(self, cloud) -> tuple[float, float, float, float]:
+        """Held-out PSNR and SSIM drawn as the cloud was trained (classic: what the trainer's log and
+        other 3DGS viewers show), the PSNR of the default render (auto: matched, its size), and the
+        classic PSNR on the set-aside training photos (what chooses)."""
+        from ..rendering import RenderSettings  # noqa: PLC0415
+        from ..train import evaluate_views  # noqa: PLC0415
+
+        if DILATION_KEY not in cloud.extra:
+            cloud = with_training_cameras(cloud, self.cameras)
+        tc, bg, deg = cloud.to_torch(), self.background, cloud.sh_degree
+        classic = evaluate_views(tc, self.test, bg, deg, None, RenderSettings(antialias="classic"))
+        auto = evaluate_views(tc, self.test, bg, deg, None, RenderSettings(), with_ssim=False)[0]
+        val = evaluate_views(tc, self.judge, bg, deg, None, RenderSettings(antialias="classic"), with_ssim=False)[0]
+        return (*classic, auto, val)
+
+    def add(self, method: str, fraction: float, cloud, seconds: float, cpu: float, peak: float, **info) -> dict:
+        value, ssim_value, auto, val = self.score(cloud)
+        row = {**self.tag, "method": method, "fraction": fraction, "count": len(cloud), "psnr": value,
+               "ssim": ssim_value, "psnr_auto": auto, "val_psnr": val, "drop": self.base_psnr - value,
+               "drop_auto": self.base_auto - auto, "seconds": seconds, "cpu_seconds": cpu, "peak_gib": peak,
+               "load": _loadavg(), **info}
+        self.rows.append(row)
+        self.say(f"  {method:40s} {fraction:4.0%} n={len(cloud):7,d} held-out PSNR {value:6.2f} "
+                 f"({value - self.base_psnr:+.2f}; auto {auto - self.base_auto:+.2f}; set-aside photos {val:.2f}) "
+                 f"SSIM {ssim_value:.4f} {seconds:6.1f} s (CPU {cpu:6.1f} s) {peak:.2f} GiB"
+                 + (f"; {info['note']}" if info.get("note") else ""))
+        return row
+
+
+def _capture_bench(base_path, capture, test_every: int, say) -> _CaptureBench:
+    """The capture's cloud, cameras and photos read, and the input's row."""
     from ..capture import load_cameras, load_capture_images, read_capture  # noqa: PLC0415
     from ..compaction import fine_tune_height, set_aside  # noqa: PLC0415
-    from ..rendering import RenderSettings  # noqa: PLC0415
-    from ..train import evaluate_views, fine_tune  # noqa: PLC0415
 
     base = read_ply(base_path)
     cameras = load_cameras(capture, test_every)
@@ -246,86 +284,103 @@ def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0
     background = tuple(base.background) if base.background is not None else (1.0, 1.0, 1.0)
     tag = {"capture": str(capture), "base": str(base_path), "n_input": len(base), "height": height,
            "test_views": len(test), "train_views": len(photos)}
-
-    def score(cloud) -> tuple[float, float, float, float]:
-        """Held-out PSNR and SSIM drawn as the cloud was trained (classic: what the trainer's log and
-        other 3DGS viewers show), the PSNR of the default render (auto: matched, its size), and the
-        classic PSNR on the set-aside training photos (what chooses)."""
-        if DILATION_KEY not in cloud.extra:
-            cloud = with_training_cameras(cloud, cameras)
-        tc = cloud.to_torch()
-        classic = evaluate_views(tc, test, background, cloud.sh_degree, None, RenderSettings(antialias="classic"))
-        auto = evaluate_views(tc, test, background, cloud.sh_degree, None, RenderSettings(), with_ssim=False)[0]
-        val = evaluate_views(tc, judge, background, cloud.sh_degree, None, RenderSettings(antialias="classic"),
-                             with_ssim=False)[0]
-        return (*classic, auto, val)
-
-    base_psnr, base_ssim, base_auto, base_val = score(base)
-    rows = [{**tag, "method": "input", "fraction": 1.0, "count": len(base), "psnr": base_psnr, "ssim": base_ssim,
-             "psnr_auto": base_auto, "val_psnr": base_val}]
+    bench = _CaptureBench(base, cameras, height, photos, test, judge, background, tag, say)
+    base_psnr, base_ssim, base_auto, base_val = bench.score(base)
+    bench.base_psnr, bench.base_auto = base_psnr, base_auto
+    bench.rows.append({**tag, "method": "input", "fraction": 1.0, "count": len(base), "psnr": base_psnr,
+                       "ssim": base_ssim, "psnr_auto": base_auto, "val_psnr": base_val})
     say(f"{capture}: {len(base):,} Gaussians, {len(photos)} training photos and {len(test)} held out at {height} px; "
         f"held-out PSNR {base_psnr:.2f} dB (auto render {base_auto:.2f}), SSIM {base_ssim:.4f}; set-aside photos "
         f"{base_val:.2f} dB; load {_loadavg()}")
+    return bench
 
-    def add(method: str, fraction: float, cloud, seconds: float, cpu: float, peak: float, **info) -> dict:
-        value, ssim_value, auto, val = score(cloud)
-        row = {**tag, "method": method, "fraction": fraction, "count": len(cloud), "psnr": value, "ssim": ssim_value,
-               "psnr_auto": auto, "val_psnr": val, "drop": base_psnr - value, "drop_auto": base_auto - auto,
-               "seconds": seconds, "cpu_seconds": cpu, "peak_gib": peak, "load": _loadavg(), **info}
-        rows.append(row)
-        say(f"  {method:40s} {fraction:4.0%} n={len(cloud):7,d} held-out PSNR {value:6.2f} ({value - base_psnr:+.2f}; "
-            f"auto {auto - base_auto:+.2f}; set-aside photos {val:.2f}) SSIM {ssim_value:.4f} {seconds:6.1f} s "
-            f"(CPU {cpu:6.1f} s) {peak:.2f} GiB"
-            + (f"; {info['note']}" if info.get("note") else ""))
-        return row
 
-    def timed(fn, *args, **kwargs):
-        reset_peak_rss()
-        t0, c0 = time.perf_counter(), time.process_time()
-        out = fn(*args, **kwargs)
-        return out, time.perf_counter() - t0, time.process_time() - c0, peak_rss_mb() / 1024
+def _timed(fn, *args, **kwargs):
+    """fn(*args, **kwargs), its wall and process CPU seconds and its peak RSS (GiB)."""
+    reset_peak_rss()
+    t0, c0 = time.perf_counter(), time.process_time()
+    out = fn(*args, **kwargs)
+    return out, time.perf_counter() - t0, time.process_time() - c0, peak_rss_mb() / 1024
 
+
+def _rounds_info(r) -> dict:
+    """What a compaction's fine-tuning rounds did, for its row."""
+    its = sum(x["iterations"] for x in r.rounds)
+    return {"iterations": its, "rounds": [dict(x) for x in r.rounds], "aside_psnr": r.rounds[-1]["psnr_after"],
+            "note": "iterations " + " + ".join(f"{x['iterations']} (best {x['best_at']})" for x in r.rounds)
+            + f", set-aside PSNR {r.rounds[0]['psnr_before']:.2f} -> {r.rounds[-1]['psnr_after']:.2f}"}
+
+
+def _capture_compactions(bench: _CaptureBench, fraction: float, methods, *, iterations, rounds, plateau: bool,
+                         seed: int, views: int, options: dict) -> int | None:
+    """Every row of `methods` at `fraction`; returns the fine-tuning iterations of the first row that
+    fine-tuned (None: none did)."""
     def checks(fraction: float, message: str) -> None:  # the estimate and every check of the set-aside photos
         if "s an iteration" in message or "set-aside PSNR" in message:
-            say(f"    {message} [{_loadavg()}]")
+            bench.say(f"    {message} [{_loadavg()}]")
 
-    most = iterations  # (None: compaction's default_iterations for the fraction)
+    tuned_iterations = None
+    for label, score_name, removal, with_photos, with_cameras, distill, *drop in methods:
+        r, seconds, cpu, peak = _timed(
+            compact, bench.base, keep=fraction, images=bench.photos if with_photos else None, score=score_name,
+            removal=removal, cameras=bench.cameras if with_cameras else None, iterations=iterations,
+            distill=distill, rounds=rounds if with_photos else None, plateau=plateau, seed=seed, progress=checks,
+            views=views, prune=drop[0] if drop else PRUNE_FRACTION, **options)
+        info = _rounds_info(r) if r.rounds else {}
+        if r.rounds and tuned_iterations is None:
+            tuned_iterations = info["iterations"]
+        bench.add(label, fraction, r.cloud, seconds, cpu, peak, **info)
+    return tuned_iterations
+
+
+def _input_tuned(bench: _CaptureBench, fraction: float, iterations: int, plateau: bool, seed: int,
+                 tuning: finetune.TuningOptions) -> None:
+    """The row of the uncompacted input fine-tuned for `iterations` on the photos the compactions had."""
+    from ..compaction import set_aside  # noqa: PLC0415
+    from ..rendering import RenderSettings  # noqa: PLC0415
+    from ..train import fine_tune  # noqa: PLC0415
+
+    fit, aside = set_aside(bench.photos) if plateau else (bench.photos, None)
+    config = finetune.tuning_config(bench.base, RenderSettings(), seed, tuning.train_overrides)
+    out, seconds, cpu, peak = _timed(fine_tune, bench.base, fit, iterations, config=config, seed=seed,
+                                     average=tuning.average)
+    bench.add(INPUT_TUNED, fraction, out, seconds, cpu, peak, iterations=iterations,
+              note=f"{iterations} iterations, as ours with photos at {fraction:.0%}")
+
+
+def capture_rows(base_path, capture, test_every: int = 8, fractions=(0.5, 0.3, 0.1), *, methods=CAPTURE_METHODS,
+                 splat: bool = True, input_tuned: bool = True, iterations: int | None = None, rounds: int | None = None,
+                 plateau: bool = True, seed: int = 0, views: int = VIEWS, options: dict | None = None,
+                 say=print) -> list[dict]:
+    """A trained capture's cloud (`base_path`, the PLY `gvae train` wrote) compacted to each fraction
+    by every row of `methods` and splat-transform's decimation; each scored on the capture's
+    held-out photos (every `test_every`-th by name, at the height the cloud was trained at:
+    `compaction.fine_tune_height`), PSNR and SSIM, with seconds (wall and process CPU) and peak
+    RSS. The rows with photos fine-tune on the capture's training photos (`compact(images=...)`:
+    every SET_ASIDE_EVERY-th set aside to judge, `plateau`); `input_tuned`: the uncompacted cloud
+    fine-tuned on the same photos for as many iterations as ours with photos ran at each fraction,
+    ending on the average of its iterates as they do (the same cost: what the compaction is measured
+    against beside the input itself). `options`: more keyword arguments of every `compact` call
+    (`compact_options`)."""
+    options = options or {}
+    bench = _capture_bench(base_path, capture, test_every, say)
     for fraction in fractions:
-        tuned_iterations = None
-        for label, score_name, removal, with_photos, with_cameras, distill, *drop in methods:
-            r, seconds, cpu, peak = timed(
-                compact, base, keep=fraction, images=photos if with_photos else None, score=score_name,
-                removal=removal, cameras=cameras if with_cameras else None, iterations=most, distill=distill,
-                rounds=rounds if with_photos else None, plateau=plateau, seed=seed, progress=checks, views=views,
-                prune=drop[0] if drop else PRUNE_FRACTION)
-            info = {}
-            if r.rounds:
-                its = sum(x["iterations"] for x in r.rounds)
-                info = {"iterations": its, "rounds": [dict(x) for x in r.rounds],
-                        "aside_psnr": r.rounds[-1]["psnr_after"],
-                        "note": "iterations " + " + ".join(f"{x['iterations']} (best {x['best_at']})"
-                                                           for x in r.rounds)
-                        + f", set-aside PSNR {r.rounds[0]['psnr_before']:.2f} -> {r.rounds[-1]['psnr_after']:.2f}"}
-                if tuned_iterations is None:
-                    tuned_iterations = its
-            add(label, fraction, r.cloud, seconds, cpu, peak, **info)
+        tuned_iterations = _capture_compactions(bench, fraction, methods, iterations=iterations, rounds=rounds,
+                                                plateau=plateau, seed=seed, views=views, options=options)
         if input_tuned and tuned_iterations:
-            fit, aside = set_aside(photos) if plateau else (photos, None)
-            config = finetune.tuning_config(base, RenderSettings(), seed)
-            out, seconds, cpu, peak = timed(fine_tune, base, fit, tuned_iterations, config=config, seed=seed,
-                                            average=finetune.AVERAGE)
-            add(INPUT_TUNED, fraction, out, seconds, cpu, peak, iterations=tuned_iterations,
-                note=f"{tuned_iterations} iterations, as ours with photos at {fraction:.0%}")
+            _input_tuned(bench, fraction, tuned_iterations, plateau, seed,
+                         options.get("tuning_options") or finetune.TuningOptions())
     command, note = splat_transform() if splat else (None, None)
     if command is not None:
         with tempfile.TemporaryDirectory() as tmp:
             for fraction in fractions:
-                cloud, seconds = _decimate(command, base, "decimate", max(1, round(fraction * len(base))), Path(tmp))
-                add("splat-transform --decimate", fraction, cloud, seconds, float("nan"), float("nan"),
-                    note="its own process: CPU and memory not measured here")
+                cloud, seconds = _decimate(command, bench.base, "decimate", max(1, round(fraction * len(bench.base))),
+                                           Path(tmp))
+                bench.add("splat-transform --decimate", fraction, cloud, seconds, float("nan"), float("nan"),
+                          note="its own process: CPU and memory not measured here")
     elif splat:
         say(f"  splat-transform skipped: {note}")
-    return rows
+    return bench.rows
 
 
 def capture_table(rows: list[dict]) -> list[str]:
@@ -525,8 +580,7 @@ def run(args) -> None:
         _speed((100_000,) if quick else (100_000, 1_000_000))
 
 
-def main(argv=None) -> int:
-    """`python -m gvae_core.benchmarks.compact`: the benchmark's parts, with options."""
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m gvae_core.benchmarks.compact",
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("--split", choices=list(SPLITS), default="test", help="scenes (default: %(default)s)")
@@ -582,7 +636,7 @@ def main(argv=None) -> int:
                         "a round (default: compact's)")
     parser.add_argument("--tuning", nargs="+", default=[], metavar="FIELD=VALUE",
                         help="changes to the trainer's configuration for compaction's fine-tuning "
-                        "(compaction.finetune.TUNING), e.g. position_lr_init=1.6e-5")
+                        "(compaction.finetune.TuningOptions.train_overrides), e.g. position_lr_init=1.6e-5")
     parser.add_argument("--distill-target", choices=("tuned", "auto"), default=None,
                         help="how the input's own renders are drawn (compaction.finetune.DISTILL_TARGET)")
     parser.add_argument("--no-plateau", dest="plateau", action="store_false",
@@ -592,9 +646,30 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="folder for results_SPLIT.json (default: none)")
     parser.add_argument("--smoke", action="store_true",
                         help="the smallest size (experiment.SMOKE: 64 px scenes), to show that it runs")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def compact_options(args) -> dict:
+    """The keyword arguments of `compact` the options ask for beside each row's own: the merge
+    cost's colour weight and what the fine-tuning changes (`finetune.TuningOptions`)."""
+    options = {}
     if args.colour_weight is not None:
-        moments.COLOUR_WEIGHT = args.colour_weight
+        options["colour_weight"] = args.colour_weight
+    changes = {}
+    if args.tuning:
+        changes["train_overrides"] = {k: float(v) for k, v in (item.split("=", 1) for item in args.tuning)}
+    if args.average is not None:
+        changes["average"] = args.average or None
+    if args.distill_average is not None:
+        changes["distill_average"] = args.distill_average or None
+    if args.distill_target:
+        changes["distill_target"] = args.distill_target
+    if changes:
+        options["tuning_options"] = finetune.TuningOptions(**changes)
+    return options
+
+
+def _scene_methods(args) -> list[Method]:
     methods = list(METHODS[:args.methods]) if args.only is None else [METHODS[k] for k in args.only]
     if args.prune is not None:
         methods = [dataclasses.replace(m, prune=args.prune) if m.removal == "merge" and m.prune else m for m in methods]
@@ -602,31 +677,28 @@ def main(argv=None) -> int:
         distill = args.distill if args.distill in (None, "auto") else int(args.distill)
         methods = [dataclasses.replace(m, distill=m.distill if distill is None else distill, rounds=args.rounds)
                    if m.label in (OURS, PLACED) else m for m in methods]
-    if args.distill_target:
-        finetune.DISTILL_TARGET = args.distill_target
-    if args.tuning:
-        finetune.TUNING = {k: float(v) for k, v in (item.split("=", 1) for item in args.tuning)}
-    if args.average is not None:
-        finetune.AVERAGE = args.average or None
-    if args.distill_average is not None:
-        finetune.DISTILL_AVERAGE = args.distill_average or None
-    if args.capture is not None:
-        if args.base is None:
-            parser.error("--capture needs --base")
-        methods = [CAPTURE_METHODS[k] for k in (range(len(CAPTURE_METHODS)) if args.capture_methods is None
-                                                 else args.capture_methods)]
-        methods += [(f"{score} {removal}, {float(q):g} dropped first + fine-tune", score, removal, True, False, "auto",
-                     float(q)) for score, removal, q in args.capture_row]
-        print(f"compaction of {args.base} (capture {args.capture}); load {_loadavg()}", flush=True)
-        rows = capture_rows(args.base, args.capture, args.test_every, tuple(args.fractions), methods=methods,
-                            splat=not args.no_splat_transform, input_tuned=args.input_tuned,
-                            iterations=args.iterations, rounds=args.rounds, plateau=args.plateau,
-                            views=args.views, seed=args.fine_tune_seed, say=lambda msg: print(msg, flush=True))
-        print("\n".join(["", *capture_table(rows)]))
-        if args.out is not None:
-            args.out.mkdir(parents=True, exist_ok=True)
-            (args.out / f"results_{args.capture.name}.json").write_text(json.dumps(rows, indent=1))
-        return 0
+    return methods
+
+
+def _run_capture(args, options: dict) -> None:
+    methods = [CAPTURE_METHODS[k] for k in (range(len(CAPTURE_METHODS)) if args.capture_methods is None
+                                             else args.capture_methods)]
+    methods += [(f"{score} {removal}, {float(q):g} dropped first + fine-tune", score, removal, True, False, "auto",
+                 float(q)) for score, removal, q in args.capture_row]
+    print(f"compaction of {args.base} (capture {args.capture}); load {_loadavg()}", flush=True)
+    rows = capture_rows(args.base, args.capture, args.test_every, tuple(args.fractions), methods=methods,
+                        splat=not args.no_splat_transform, input_tuned=args.input_tuned,
+                        iterations=args.iterations, rounds=args.rounds, plateau=args.plateau,
+                        views=args.views, seed=args.fine_tune_seed, options=options,
+                        say=lambda msg: print(msg, flush=True))
+    print("\n".join(["", *capture_table(rows)]))
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / f"results_{args.capture.name}.json").write_text(json.dumps(rows, indent=1))
+
+
+def _run_scenes(args, options: dict) -> None:
+    methods = _scene_methods(args)
     protocol = SMOKE if args.smoke else PROTOCOLS["quick"]
     scenes = SPLITS[args.split] if args.scenes is None else args.scenes
     print(f"compaction, {protocol.name} protocol, scenes {', '.join(scenes)}, seeds {args.seeds}; load "
@@ -636,7 +708,7 @@ def main(argv=None) -> int:
         for seed in args.seeds:
             rows += evaluate_scene(name, seed, tuple(args.fractions), methods=tuple(methods), images=args.images,
                                    distill=args.distilled, splat=not args.no_splat_transform, protocol=protocol,
-                                   plateau=args.plateau,
+                                   plateau=args.plateau, options=options,
                                    say=lambda msg: print(msg, flush=True))
     if rows:
         print("\n".join(["", *tables(rows)]))
@@ -647,6 +719,19 @@ def main(argv=None) -> int:
         views_coverage(2000, 128, seeds=(0,)) if args.smoke else views_coverage()
     if args.speed:
         _speed(args.speed, tuple(args.speed_fractions), args.repeats)
+
+
+def main(argv=None) -> int:
+    """`python -m gvae_core.benchmarks.compact`: the benchmark's parts, with options."""
+    parser = _parser()
+    args = parser.parse_args(argv)
+    options = compact_options(args)
+    if args.capture is not None:
+        if args.base is None:
+            parser.error("--capture needs --base")
+        _run_capture(args, options)
+    else:
+        _run_scenes(args, options)
     return 0
 
 

@@ -3,7 +3,7 @@
 The random cloud of the `ply` benchmark (`examples.random_cloud`), written and read as a 3DGS PLY
 (`write_ply`, `read_ply`), a .glb and a .gltf with its .bin (`write_gltf`, `read_splat_file`), the
 formats taking turns within each repeat so that they share the machine's load alike; a new file
-each time. Every row: the median wall time and its ratio to the PLY's (the issue's goal: at most 2x
+each time. Every row: the median wall time and its ratio to the PLY's (the goal: at most 2x
 both ways), the median CPU time of the process and its ratio (steadier than wall time on a shared
 machine), the file size and the largest error of each parameter against the cloud written
 (quaternions normalised, opacity after the sigmoid).

@@ -33,7 +33,7 @@ from ..rendering.reference import render_reference
 SIZES_FULL = tuple((n, h, 1) for n in (10_000, 100_000, 1_000_000) for h in (200, 400, 800)) + (
     (100_000, 800, 2), (1_000_000, 800, 2))
 SIZES_QUICK = ((10_000, 200, 1), (10_000, 400, 1), (100_000, 400, 1), (100_000, 400, 2))
-#: The sizes of the anti-aliasing comparison (issue 14's goal: filtered modes <= 10% over classic).
+#: The sizes of the anti-aliasing comparison (the goal: filtered modes <= 10% over classic).
 SIZES_MODES = ((100_000, 800, 1), (1_000_000, 800, 1))
 MODES = ("classic", "mip", "matched")
 

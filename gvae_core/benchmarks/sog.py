@@ -1,7 +1,6 @@
 """SOG (PlayCanvas) write and read: gvae_core beside splat-transform on a trained cloud, and at 1M.
 
-1. The trained chair of examples/trained (SH 3; 11,130 Gaussians when the figures were taken,
-   10,759 since issue 23), written by `write_sog` and by
+1. The trained chair of examples/trained (SH 3), written by `write_sog` and by
    splat-transform 3.7.0 (its CPU path, `-g cpu`, from the npm cache of
    `benchmarks.splat_transform`; left out, saying why, without node and npm): the RMS and largest
    error of each attribute against the cloud (rows matched by their values: both reorder), time and

@@ -20,7 +20,6 @@ the whole image."""
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
 import os
@@ -42,8 +41,8 @@ from ..rendering import render
 from ..resources import estimate_image_fit_memory
 from ..superres import SuperResConfig
 
-#: The capture sizes the benchmark runs: (Gaussians, images, image height); the first two are issue
-#: 41's speed goals (one octave of 50k Gaussians and 43 photos of 240 px within 2 minutes on 2 cores,
+#: The capture sizes the benchmark runs: (Gaussians, images, image height); the first two are the
+#: speed goals (one octave of 50k Gaussians and 43 photos of 240 px within 2 minutes on 2 cores,
 #: of 100k Gaussians and 100 photos of 500x375 within 5), then 1M measured.
 SIZES = ((50_000, 43, 240), (100_000, 100, 375), (1_000_000, 40, 540))
 
@@ -73,11 +72,10 @@ def one(n: int, views: int, height: int, fit: dict | None = None, optimizer: str
     t0 = time.perf_counter()
     trained, images = synthetic_capture(n, views, height)
     made = time.perf_counter() - t0
-    config = dict(fit or {})
+    config = {**(fit or {}), "optimizer": optimizer}
     c0 = resource.getrusage(resource.RUSAGE_SELF)
     t0 = time.perf_counter()
-    with optimizer_used(optimizer):
-        r = refine(trained, images=images, fit=config)
+    r = refine(trained, images=images, fit=config)
     seconds = time.perf_counter() - t0
     c1 = resource.getrusage(resource.RUSAGE_SELF)
     fit = r.fit
@@ -97,25 +95,6 @@ def one(n: int, views: int, height: int, fit: dict | None = None, optimizer: str
             "holdout": [fit.holdout_input, fit.holdout_start, fit.holdout_begin, fit.holdout_fit],
             "kept": fit.kept, "checks": fit.checks, "added": len(r.added), "kept_1x": kept, "peak": peak,
             "estimate": estimate, "nonfinite": len(r.cloud.nonfinite_rows()), "timings": r.timings}
-
-
-@contextlib.contextmanager
-def optimizer_used(name: str):
-    """The fit's optimiser: "visible" (`superres.optim.VisibleAdam`, the default) or "adam" (torch's
-    plain Adam, what the fit used before it: the earlier rows of BENCHMARKS' capture-scale table)."""
-    if name == "visible":
-        yield
-        return
-    if name != "adam":
-        raise ValueError(f"unknown optimizer {name!r}; choose visible or adam")
-    from ..superres import fit as fit_module  # noqa: PLC0415
-
-    saved = fit_module.VisibleAdam
-    fit_module.VisibleAdam = torch.optim.Adam
-    try:
-        yield
-    finally:
-        fit_module.VisibleAdam = saved
 
 
 def crop_check(n: int, views: int, height: int, patches: int = 8, patch: int = 96, seed: int = 0) -> float:
@@ -172,7 +151,8 @@ def run(args) -> None:
                   f"of the whole render: largest difference {crop_check(n, views, height):.2g}")
         return
     threads = os.environ.get("OMP_NUM_THREADS") or torch.get_num_threads()
-    print(f"Refine from the capture's images, one octave, the fit {SuperResConfig(**fit)} "
+    config = SuperResConfig(**{**fit, "optimizer": optimizer})
+    print(f"Refine from the capture's images, one octave, the fit {config} "
           f"({'plain Adam' if optimizer == 'adam' else 'VisibleAdam'}), synthetic captures (module docstring), "
           f"torch threads {threads}; each size in a fresh process:")
     print("\n| Gaussians | images | refine s (fit s; steps; s/step) | process CPU s | held-out images, 2x averaged "

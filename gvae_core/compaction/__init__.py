@@ -28,11 +28,9 @@ number, or as few as keep the picture within a PSNR tolerance). Stages, one modu
   groups as compiled CPU kernels (Numba) run in threads, where Numba is; the numpy and torch code
   they stand for stays beside them as their reference (and runs where Numba is not).
 
-What was measured (BENCHMARKS.md, "Compaction"): merging keeps the picture far better than any
-pruning score without fine-tuning; the Hessian's weighting of the merges changes PSNR by less than
-0.01 dB against an unweighted merge: its use is choosing what is dropped rather than merged (what
-no view sees, and the lowest-scoring tenth); with fine-tuning, merging then fine-tuning also beats
-pruning then fine-tuning.
+Why this design (docs/benchmarks/compact.md): merging keeps the picture far better than any
+pruning score without fine-tuning; the Hessian's weighting of the merges matters little, its use
+is choosing what is dropped rather than merged (what no view sees, and the lowest-scoring tenth).
 
 Untouched Gaussians keep their values bit for bit, their rows in input order; a merged Gaussian
 takes the row (and the extra properties) of its most massive member, with the anti-aliasing size
@@ -58,8 +56,9 @@ from ..resources import check_compact_memory, reuse_freed_memory
 from . import finetune
 from .finetune import (AUTO_DISTILL, AUTO_DISTILL_MAX, AUTO_DISTILL_SECONDS, CHECK_EVERY, DEFAULT_ITERATIONS,
                        DISTILL_ASIDE, DISTILL_CHECK_EVERY, DISTILL_VIEWS, PHOTOS_PRUNE_FROM, PHOTOS_REMOVAL,
-                       PHOTOS_SCORE, PRUNE_FROM_ITERATIONS, SET_ASIDE_EVERY, Tuning, compact_with_images,
-                       fine_tune_height, fine_tune_images, own_renders, set_aside, still_gaining)
+                       PHOTOS_SCORE, PRUNE_FROM_ITERATIONS, SET_ASIDE_EVERY, Tuning, TuningOptions,
+                       compact_with_images, fine_tune_height, fine_tune_images, own_renders, set_aside,
+                       still_gaining)
 from .graph import NEIGHBOURS, owner_root
 from .merge import merge_groups, merge_groups_reference, ordered
 from .moments import COLOUR_WEIGHT
@@ -72,9 +71,9 @@ from .views import CompactionViews, compaction_views, compare, sight
 __all__ = ["SCORES", "REMOVALS", "CompactResult", "CompactionViews", "compact", "compaction_scores",
            "compaction_views", "default_iterations", "default_method", "distill_iterations", "fine_tune_height",
            "fine_tune_images", "merge_groups", "merge_groups_reference", "own_renders", "owner_root", "pixel_hits",
-           "pixel_hits_reference", "removal_groups", "set_aside", "target_count", "AUTO_DISTILL", "AUTO_DISTILL_MAX",
-           "AUTO_DISTILL_SECONDS", "CHECK_EVERY", "COLOUR_WEIGHT", "DEFAULT_ITERATIONS", "DISTILL_ASIDE",
-           "DISTILL_VIEWS", "NEIGHBOURS", "PHOTOS_PRUNE_FROM", "PHOTOS_REMOVAL", "PHOTOS_SCORE",
+           "pixel_hits_reference", "removal_groups", "set_aside", "target_count", "TuningOptions", "AUTO_DISTILL",
+           "AUTO_DISTILL_MAX", "AUTO_DISTILL_SECONDS", "CHECK_EVERY", "COLOUR_WEIGHT", "DEFAULT_ITERATIONS",
+           "DISTILL_ASIDE", "DISTILL_VIEWS", "NEIGHBOURS", "PHOTOS_PRUNE_FROM", "PHOTOS_REMOVAL", "PHOTOS_SCORE",
            "PRUNE_FROM_ITERATIONS", "PRUNE_FRACTION", "PSNR_CAP", "SET_ASIDE_EVERY", "UNSEEN", "UNSEEN_WARNING"]
 
 
@@ -174,8 +173,8 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
             resolution: int = DEFAULT_RESOLUTION, score: str | None = None, removal: str | None = None,
             images=None, rounds: int | None = None, iterations: int | None = None, distill: int | str = "auto",
             plateau: bool = True, seed: int = 0,
-            neighbours: int = NEIGHBOURS, prune: float = PRUNE_FRACTION,
-            render_settings: RenderSettings | None = None,
+            neighbours: int = NEIGHBOURS, prune: float = PRUNE_FRACTION, colour_weight: float = COLOUR_WEIGHT,
+            render_settings: RenderSettings | None = None, tuning_options: TuningOptions | None = None,
             progress: Callable[[float, str], None] | None = None, check_memory: bool = True) -> CompactResult:
     """`cloud` with fewer Gaussians: `keep` a fraction in (0, 1], a `count`, or the fewest whose
     render from the scoring views, at the training sampling rate, stays at or above `tolerance`
@@ -187,7 +186,8 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     "prune"; by default the Hessian's merge, with `images` keeping PHOTOS_PRUNE_FROM or more
     LightGaussian's prune (`default_method`: what the images set aside chose); `prune`: the fraction of
     the input that merging drops first, the lowest scores (`removal_groups`; 0: merge all that is seen);
-    `neighbours`: of each Gaussian in the merge graph. `images`: the capture's training images
+    `neighbours`: of each Gaussian in the merge graph; `colour_weight`: of the colour difference in the
+    merge cost (`moments.pair_cost`). `images`: the capture's training images
     (`datasets.Views`, in the cloud's frame, at the resolution to fine-tune at): `rounds` rounds
     (default 1) of removal and at most `iterations` (None: `default_iterations`) of fine-tuning each
     (`train.fine_tune`), the scores
@@ -199,7 +199,8 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     sampling rate; with `plateau`, DISTILL_ASIDE more set aside to judge); "auto" (the default): at most
     AUTO_DISTILL iterations, stopped after AUTO_DISTILL_SECONDS, for a cloud of up to AUTO_DISTILL_MAX
     Gaussians, none for a larger one (`distill_iterations`); 0: score, drop and merge only. `seed`: the
-    random score and the fine-tuning.
+    random score and the fine-tuning; `tuning_options`: what a study changes in the fine-tuning
+    (`finetune.TuningOptions`; default: the product's).
     `progress(fraction, message)` as the work goes on (an exception it raises stops the work:
     how the Blender job cancels). `check_memory`: refuse a cloud whose estimated peak memory
     exceeds what is free (`resources.NotEnoughMemoryError`). Every check on the arguments and the
@@ -207,9 +208,9 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     t_start = time.perf_counter()
     say = progress or (lambda fraction, message: None)
     src = cloud.numpy()
-    score, removal = default_method(images, keep, count, len(src), score, removal)
-    _check_input(src, score, removal, prune)
     n = len(src)
+    score, removal = default_method(images, keep, count, n, score, removal)
+    _check_input(src, score, removal, prune)
     auto = isinstance(distill, str)
     distill = distill_iterations(distill, n, images, tolerance)
     iterations = default_iterations(keep, count, n) if iterations is None else iterations
@@ -220,25 +221,14 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
                              resolution=resolution, neighbours=neighbours)
     settings = scoring_settings(render_settings)
     timings: dict[str, float] = {}
-    how = {"score": score, "removal": removal, "neighbours": neighbours, "prune": prune}  # removal_groups'
+    how = {"score": score, "removal": removal, "neighbours": neighbours, "prune": prune,  # removal_groups'
+           "colour_weight": colour_weight}
     with reuse_freed_memory():
         t0 = time.perf_counter()
         looks = None if images is not None else compaction_views(src, cameras, views, resolution)
         timings["views"] = time.perf_counter() - t0
-        tuning = None
-        if distill:
-            say(0.0, "rendering the input for the fine-tuning")
-            aside = DISTILL_ASIDE if plateau else 0
-            drawn = settings if finetune.DISTILL_TARGET == "auto" else \
-                replace(settings, antialias=finetune.tuning_config(src, settings, seed).antialias)
-            renders = own_renders(src, cameras, resolution, drawn, DISTILL_VIEWS + aside)
-            fit, judge = set_aside(renders, (DISTILL_VIEWS + aside) // aside) if aside else (renders, None)
-            tuning = Tuning(fit, judge, distill, 1 if rounds is None else rounds, "the input's own renders",
-                            DISTILL_CHECK_EVERY, seconds=AUTO_DISTILL_SECONDS if auto else None,
-                            average=finetune.DISTILL_AVERAGE)
-        elif images is not None:
-            fit, judge = set_aside(images) if plateau else (images, None)
-            tuning = Tuning(fit, judge, iterations, 1 if rounds is None else rounds, average=finetune.AVERAGE)
+        tuning = _tuning(src, images, cameras, distill, auto, 1 if rounds is None else rounds, iterations, plateau,
+                         resolution, settings, seed, tuning_options or TuningOptions(), say)
         if tuning is not None:  # (distilled: every capture camera, or a placed scene's extra views, also looks)
             extra = [] if looks is None else looks.others if looks.placed else looks.scoring + looks.others
             result = compact_with_images(src, target, tuning, how, seed, views, resolution, settings, say, timings,
@@ -253,6 +243,28 @@ def compact(cloud: GaussianCloud, *, keep: float | None = None, count: int | Non
     timings["total"] = time.perf_counter() - t_start
     say(1.0, result.summary())
     return result
+
+
+def _tuning(src: GaussianCloud, images, cameras, distill: int, auto: bool, rounds: int, iterations: int,
+            plateau: bool, resolution: int, settings: RenderSettings, seed: int, options: TuningOptions,
+            say) -> Tuning | None:
+    """How the fine-tuning goes (None: there is none): against the input's own renders with
+    `distill` iterations, else with the capture's `images`; with `plateau`, views set aside judge it."""
+    if distill:
+        say(0.0, "rendering the input for the fine-tuning")
+        aside = DISTILL_ASIDE if plateau else 0
+        drawn = settings if options.distill_target == "auto" else \
+            replace(settings, antialias=finetune.tuning_config(src, settings, seed, options.train_overrides).antialias)
+        renders = own_renders(src, cameras, resolution, drawn, DISTILL_VIEWS + aside)
+        fit, judge = set_aside(renders, (DISTILL_VIEWS + aside) // aside) if aside else (renders, None)
+        return Tuning(fit, judge, distill, rounds, "the input's own renders", DISTILL_CHECK_EVERY,
+                      seconds=AUTO_DISTILL_SECONDS if auto else None, average=options.distill_average,
+                      train_overrides=options.train_overrides)
+    if images is not None:
+        fit, judge = set_aside(images) if plateau else (images, None)
+        return Tuning(fit, judge, iterations, rounds, average=options.average,
+                      train_overrides=options.train_overrides)
+    return None
 
 
 def _compact(src: GaussianCloud, target: int | None, tolerance, cameras, looks: CompactionViews, how: dict, seed: int,

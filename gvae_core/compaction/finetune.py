@@ -6,7 +6,8 @@ own renders (`own_renders`).
 Judged on views it does not train on: a share of the training images (or of the own renders) is
 set aside (`set_aside`); the fine-tuning checks their PSNR every CHECK_EVERY iterations and stops
 when it has stopped rising (`gvae_core.plateau.Plateau`, the trainer's rule too), keeping the best
-state it saw. The capture's held-out (test) images are never used here.
+state it saw. The capture's held-out (test) images are never used here. Where the defaults below
+come from: docs/benchmarks/compact.md.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -36,22 +37,14 @@ from .scoring import compaction_scores
 from .views import compare, sight
 
 #: The most fine-tuning iterations a round with images (PUP 3D-GS fine-tunes 5,000 after each
-#: pruning); the plateau rule ends a round sooner where the set-aside images stop improving. The
-#: position learning rate decays over this many, so it also sets how fast the rate falls ...
+#: pruning); the plateau rule ends a round sooner. The position learning rate decays over this many.
 DEFAULT_ITERATIONS = 3000
-#: ... and keeping PHOTOS_PRUNE_FROM or more, at most this many (`default_iterations`): the plateau
-#: stopped those after 600-1000 iterations anyway, and with the rate decaying over 1,000 instead of
-#: 3,000 the images set aside ended higher on all three plush clouds at 50 and 30% (by 0.05-0.10 and
-#: 0.00-0.02 dB; the held-out photos by +0.04 to +0.17 at half, −0.04 to +0.17 at 30%). At 10% the
-#: fine-tuning kept gaining to 2,700 iterations (docs/benchmarks/compact.md).
+#: The same keeping PHOTOS_PRUNE_FROM or more (`default_iterations`): a shorter decay where the
+#: plateau stops the fine-tuning early anyway.
 PRUNE_FROM_ITERATIONS = 1000
 #: With the capture's images and neither a score nor a removal asked for: keeping PHOTOS_PRUNE_FROM
 #: or more of the Gaussians, LightGaussian's global significance, pruned (then fine-tuned); fewer,
-#: the Hessian's merge. The images set aside chose so on the plush (both its trained clouds,
-#: issue 52): their PSNR after fine-tuning was higher with LightGaussian's prune at 50 and 30% kept
-#: (29.52 against 29.17 and 29.14 against 28.97 dB on the converged cloud; 26.92 / 26.87 and
-#: 27.14 / 27.05 on the earlier one) and with the merge at 10% (28.17 / 27.56; 26.20 / 25.97).
-#: Between 10 and 30% nothing was measured (docs/benchmarks/compact.md).
+#: the Hessian's merge (what the images set aside preferred).
 PHOTOS_SCORE, PHOTOS_REMOVAL, PHOTOS_PRUNE_FROM = "lightgaussian", "prune", 0.3
 #: Every SET_ASIDE_EVERY-th training image (by name) is set aside to judge the fine-tuning.
 SET_ASIDE_EVERY = 8
@@ -72,27 +65,17 @@ DISTILL_TARGET = "tuned"
 DISTILL_CHECK_EVERY = 25
 #: `compact(distill="auto")`, the default: clouds of up to AUTO_DISTILL_MAX Gaussians are
 #: fine-tuned against their own renders for at most AUTO_DISTILL iterations in one round, until the
-#: set-aside renders stop improving; larger ones are not (its cost grows with the count). On the
-#: validation scenes (chair / tableware, placed views, change at 50 / 30% kept; issue 52): the
-#: earlier 100 iterations against renders drawn matched -0.51 / -0.73, -0.12 / -0.19; drawn as the
-#: fine-tuning draws (`DISTILL_TARGET`) -0.31 / -0.53, -0.08 / -0.15; and up to 1000 with the
-#: plateau (250-575 ran) -0.19 / -0.32, -0.06 / -0.12 (docs/benchmarks/compact.md).
+#: set-aside renders stop improving; larger ones are not (its cost grows with the count).
 AUTO_DISTILL = 1000
 AUTO_DISTILL_MAX = 50_000
 #: The default distillation stops at its first check after this many seconds (the best state kept).
 AUTO_DISTILL_SECONDS = 180.0
 #: With images, the fine-tuning's result, and what the set-aside images judge, is the running
 #: average of its iterates over about the last 1 / (1 - AVERAGE) = 100 steps (`train.ParameterAverage`)
-#: instead of the last one: a step trains on one image, and the set-aside PSNR of successive checks
-#: moved by up to 0.3 dB. On the plush's three clouds the set-aside photos rose on all six rows (50
-#: and 30% kept: mean 29.74 -> 29.83 and 29.19 -> 29.24 dB; docs/benchmarks/compact.md).
+#: instead of the last one: a step trains on one image, so successive iterates jitter.
 AVERAGE = 0.99
-#: The same for the fine-tuning against the input's own renders: on the validation scenes (placed
-#: views, change at 50 / 30% kept) chair -0.14 / -0.24 and tableware -0.03 / -0.08 dB, against -0.14 /
-#: -0.25 and -0.07 / -0.12 ending on the last iterate (docs/benchmarks/compact.md).
+#: The same for the fine-tuning against the input's own renders.
 DISTILL_AVERAGE = AVERAGE
-#: Changes to the trainer's configuration (`train.TrainConfig` fields) for compaction's fine-tuning.
-TUNING: dict = {}
 #: A cloud's trainable fields.
 PARAMETERS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 
@@ -134,7 +117,7 @@ def own_renders(cloud: GaussianCloud, cameras=None, resolution: int = DEFAULT_RE
     src = cloud.numpy()
     cams = (scoring_views(cameras, views, 1 << 30, src) if cameras is not None
             else placed_views(src, views, resolution).scoring)
-    # one height for all: the lowest view's (the median lost 0.1-0.25 dB on the validation scenes)
+    # one height for all: the lowest view's (sharper targets than the median's)
     height = int(min(c.height for c in training_rate(src, cameras, cams)))
     cams = [c.scaled(height) for c in cams]
     names = [f"own_{i:03d}" for i in range(len(cams))]
@@ -161,7 +144,8 @@ class Tuning:
     ("the training images", "the input's own renders"), `check_every` iterations between checks,
     `patience` checks without gain before it stops, `seconds` (None: no limit) a round's fine-tuning
     stops at the first check past (the default distillation's bound on its cost), `average` the
-    decay of the running average of the iterates that is the result (None: the last iterate)."""
+    decay of the running average of the iterates that is the result (None: the last iterate),
+    `train_overrides` changes to the trainer's configuration (`tuning_config`)."""
 
     images: object
     aside: object | None
@@ -172,6 +156,25 @@ class Tuning:
     patience: int = PATIENCE
     seconds: float | None = None
     average: float | None = None
+    train_overrides: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class TuningOptions:
+    """What a study may change in compaction's fine-tuning (the defaults are the product's):
+    `train_overrides` (`train.TrainConfig` fields), the decay of the running average of the iterates
+    a fine-tuning with images (`average`) or against the input's own renders (`distill_average`)
+    ends on (None: the last iterate), and how those renders are drawn (`distill_target`, as
+    DISTILL_TARGET)."""
+
+    train_overrides: dict = field(default_factory=dict)
+    average: float | None = AVERAGE
+    distill_average: float | None = DISTILL_AVERAGE
+    distill_target: str = DISTILL_TARGET
+
+    def __post_init__(self):
+        if self.distill_target not in ("tuned", "auto"):
+            raise ValueError(f"compact: distill_target must be 'tuned' or 'auto', got {self.distill_target!r}")
 
 
 def aside_psnr(cloud: GaussianCloud, aside, config, fit_cameras: Sequence[Camera]) -> float:
@@ -280,13 +283,13 @@ def _with_parameters(tuned: GaussianCloud, params: GaussianCloud, cameras: Seque
     return out.replace(extra={**tuned.extra, key: size_fn(out.means, cameras)})
 
 
-def tuning_config(src: GaussianCloud, settings: RenderSettings, seed: int):
+def tuning_config(src: GaussianCloud, settings: RenderSettings, seed: int, overrides: dict | None = None):
     """The trainer's configuration a compaction fine-tunes with: the cloud's anti-aliasing, the
-    trainer's recipe with TUNING's changes."""
+    trainer's recipe with `overrides` (`train.TrainConfig` fields) changed."""
     from ..train import TrainConfig  # noqa: PLC0415
 
     mode = resolve_antialias(settings.antialias, src)
-    return TrainConfig(antialias="mip" if mode == "mip" else "classic", seed=seed, **TUNING)
+    return TrainConfig(antialias="mip" if mode == "mip" else "classic", seed=seed, **(overrides or {}))
 
 
 def compact_with_images(src: GaussianCloud, target: int, tuning: Tuning, how: dict, seed: int,
@@ -299,7 +302,7 @@ def compact_with_images(src: GaussianCloud, target: int, tuning: Tuning, how: di
     views, those `inside` gives, `views.sight`) sees is dropped as unseen. The summary's PSNR is
     from the `views` (and the other views that see what was removed)."""
     n = len(src)
-    config = tuning_config(src, settings, seed)
+    config = tuning_config(src, settings, seed, tuning.train_overrides)
     cur, groups = src, np.arange(n)
     first = None
     records = []

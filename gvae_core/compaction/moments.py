@@ -32,7 +32,8 @@ DIAG = np.array([0, 3, 5])
 @dataclass
 class Moments:
     """Per Gaussian (float64): mass m, centre mu (relative to `origin`), covariance sigma (packed,
-    `floor` on its diagonal), its log det, the DC colour and the merge weight."""
+    `floor` on its diagonal), its log det, the DC colour and the merge weight; the weight of the
+    colour difference in a pair's cost (`pair_cost`)."""
 
     mass: np.ndarray
     mu: np.ndarray
@@ -42,6 +43,7 @@ class Moments:
     colour: np.ndarray
     weight: np.ndarray
     origin: np.ndarray
+    colour_weight: float = COLOUR_WEIGHT
 
 
 def unpack(s: np.ndarray) -> np.ndarray:
@@ -89,14 +91,15 @@ def floor_of(half: float) -> float:
     return (2.5e-4 * half) ** 2
 
 
-def moments(src: GaussianCloud, weight: np.ndarray, rows: np.ndarray | None = None) -> Moments:
-    """The stored Gaussians as they are (their anti-aliasing filter left out: adding it to the
-    covariances, and Mip-Splatting's opacity compensation, lost 0.06-0.10 dB at 50-30% kept on
-    the validation scenes). `rows`: of these rows only (as of `src.select(rows)`, without copying
-    the rest of their fields). By `compiled.gaussian_moments` where it runs, else `moments_numpy`."""
+def moments(src: GaussianCloud, weight: np.ndarray, rows: np.ndarray | None = None,
+            colour_weight: float = COLOUR_WEIGHT) -> Moments:
+    """The stored Gaussians as they are (their anti-aliasing filter left out: with it, and
+    Mip-Splatting's opacity compensation, the merges drew worse). `rows`: of these rows only (as of
+    `src.select(rows)`, without copying the rest of their fields). `colour_weight`: of the merge cost
+    (`pair_cost`). By `compiled.gaussian_moments` where it runs, else `moments_numpy`."""
     src = src.numpy()
     if not compiled.available():
-        return moments_numpy(src if rows is None else src.select(rows), weight)
+        return moments_numpy(src if rows is None else src.select(rows), weight, colour_weight)
     rows = np.arange(len(src)) if rows is None else np.asarray(rows, np.int64)
     center, half = normalization_of(src.means[rows])
     floor = floor_of(half)
@@ -104,10 +107,10 @@ def moments(src: GaussianCloud, weight: np.ndarray, rows: np.ndarray | None = No
     mu, sigma, mass, ld = compiled.gaussian_moments(rows, src.means, src.scales, src.quats, opacity, center, floor)
     return Moments(mass=mass, mu=mu, sigma=sigma, log_det=ld, floor=floor,
                    colour=SH_C0 * src.sh_dc[rows].astype(np.float64), weight=np.array(weight, np.float64),
-                   origin=center)
+                   origin=center, colour_weight=float(colour_weight))
 
 
-def moments_numpy(src: GaussianCloud, weight: np.ndarray) -> Moments:
+def moments_numpy(src: GaussianCloud, weight: np.ndarray, colour_weight: float = COLOUR_WEIGHT) -> Moments:
     """`moments` in numpy (float64): the reference of the compiled path."""
     center, half = src.normalization()
     floor = floor_of(half)
@@ -116,7 +119,7 @@ def moments_numpy(src: GaussianCloud, weight: np.ndarray) -> Moments:
     mass = activate_opacities(src.opacities.astype(np.float64)) * np.sqrt(np.maximum(minors(sigma), 0.0))
     return Moments(mass=mass, mu=src.means.astype(np.float64) - center, sigma=sigma, log_det=log_det(sigma),
                    floor=floor, colour=SH_C0 * src.sh_dc.astype(np.float64), weight=np.asarray(weight, np.float64),
-                   origin=center)
+                   origin=center, colour_weight=float(colour_weight))
 
 
 def pair(m: Moments, a: np.ndarray, b: np.ndarray):
@@ -132,18 +135,18 @@ def pair(m: Moments, a: np.ndarray, b: np.ndarray):
 def pair_cost(m: Moments, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """`pair_cost_numpy` by `compiled.pair_costs` where it runs."""
     if compiled.available():
-        return compiled.pair_costs(m, a, b, COLOUR_WEIGHT)
+        return compiled.pair_costs(m, a, b, m.colour_weight)
     return pair_cost_numpy(m, a, b)
 
 
 def pair_cost_numpy(m: Moments, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Cost of merging each pair (a[i], b[i]): (weight_a + weight_b) x (mass_a + mass_b) x (the
     mass-weighted KL divergence of the two from their moment match, 1/2 (log det S - w_a log det
-    S_a - w_b log det S_b), plus COLOUR_WEIGHT x w_a w_b |colour_a - colour_b|²)."""
+    S_a - w_b log det S_b), plus `m.colour_weight` x w_a w_b |colour_a - colour_b|²)."""
     wa, wb, total, s = pair(m, a, b)
     shape = 0.5 * (log_det(s) - wa * m.log_det[a] - wb * m.log_det[b])
     colour = wa * wb * np.square(m.colour[a] - m.colour[b]).sum(1)
-    return (m.weight[a] + m.weight[b]) * total * (np.maximum(shape, 0.0) + COLOUR_WEIGHT * colour)
+    return (m.weight[a] + m.weight[b]) * total * (np.maximum(shape, 0.0) + m.colour_weight * colour)
 
 
 def merge_pairs(m: Moments, a: np.ndarray, b: np.ndarray) -> None:

@@ -15,7 +15,7 @@ import numpy as np
 from ..budget import select_budget
 from ..cloud import GaussianCloud
 from .graph import NEIGHBOURS, merge_owner
-from .moments import moments
+from .moments import COLOUR_WEIGHT, moments
 from .scoring import UNSEEN, merge_weights
 
 #: How Gaussians are removed: merged into neighbours, or dropped.
@@ -23,10 +23,7 @@ REMOVALS = ("merge", "prune")
 #: Scores that measure the picture (zero for a Gaussian the scoring views do not see).
 PICTURE_SCORES = ("hessian", "lightgaussian")
 #: Fraction of the input that `merge` drops (the lowest scores among the seen ones, never more than
-#: the removal) before merging the rest. On the validation and training scenes (6, seed 0), at 50 /
-#: 30 / 10% kept: merging everything -0.44 / -0.84 / -2.19 dB, 0.05 -0.41 / -0.81 / -2.16, 0.1
-#: -0.37 / -0.77 / -2.18 (no scene worse at 50 or 30%), 0.15 -0.35 / -0.78 / -2.18 (one scene
-#: worse), 0.2 -0.39 / -0.82 / -2.20 (BENCHMARKS.md, "Compaction").
+#: the removal) before merging the rest: what the picture can do without is dropped, not merged.
 PRUNE_FRACTION = 0.1
 
 
@@ -78,12 +75,14 @@ def groups_by_pruning(scores: np.ndarray, target: int) -> np.ndarray:
 
 def removal_groups(src: GaussianCloud, scores: np.ndarray, target: int, *, score: str = "hessian",
                    removal: str = "merge", neighbours: int = NEIGHBOURS, prune: float = PRUNE_FRACTION,
-                   seen: np.ndarray | None = None, progress=None) -> np.ndarray:
+                   seen: np.ndarray | None = None, colour_weight: float = COLOUR_WEIGHT,
+                   progress=None) -> np.ndarray:
     """(N,) the output row of each input row (-1: dropped) that brings `src` to `target` rows:
     removal "prune" keeps the `target` highest scores; "merge" drops what no view sees and, for a
     score of the picture ("hessian", "lightgaussian"), the lowest-scoring fraction `prune` of the
     input besides, and merges the rest pairwise (module docstring). `seen`: (N,) bool, what views
-    other than the scoring ones see (`seen_weights`: never dropped as unseen)."""
+    other than the scoring ones see (`seen_weights`: never dropped as unseen); `colour_weight`: of
+    the merge cost (`moments.pair_cost`)."""
     n = len(src)
     if target >= n:
         return np.arange(n)
@@ -96,7 +95,7 @@ def removal_groups(src: GaussianCloud, scores: np.ndarray, target: int, *, score
     if score in PICTURE_SCORES:
         drop = min(int(round(prune * n)), len(kept) - target)
         kept = np.sort(kept[np.argsort(weight[kept], kind="stable")[drop:]])
-    m = moments(src, weight[kept], rows=kept)
+    m = moments(src, weight[kept], rows=kept, colour_weight=colour_weight)
     sub = merge_owner(m, target, neighbours, progress)
     groups = np.full(n, -1, np.int64)
     # output rows in input order of their representatives

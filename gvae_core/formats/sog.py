@@ -40,14 +40,9 @@ and the SH palette by `_quantize.kmeans` (M = 1024 * min(64, 2**floor(log2(N / 1
 splat-transform; seeded: the same cloud gives the same file). Bounds: position (|x| + 1) times
 half a step, (max - min) / 131070, of its axis; rotation 1/255/sqrt 2 ~ 0.0028 for the three smaller
 components, three times that for the largest (derived from them); opacity 0.5/255 after the
-sigmoid; log-scale and f_dc the nearest codebook entry. Measured on the trained chair of
-examples/trained as it was before issue 23 (11,130 Gaussians trained with the 3D filter, SH 3;
-`python -m gvae_core.benchmarks sog`), RMS / largest
-error, splat-transform 3.7.0's on the same cloud in brackets: position 6.3e-6 / 2.0e-5 (1.3e-5 /
-4.1e-5), rotation 0.0014 / 0.0028 (0.0028 / 0.0055), log-scale 0.0034 / 0.017 (0.0033 / 0.016),
-opacity 0.0012 / 0.0020 (0.0022 / 0.0039), f_dc 0.0030 / 0.017 (0.0029 / 0.015), f_rest 0.00089 /
-0.013 (0.00085 / 0.013): half its error where it truncates, 3-5% more where its codebooks (a
-histogram dynamic program) and its one-level k-means do better.
+sigmoid; log-scale and f_dc the nearest codebook entry. Against splat-transform on the same cloud:
+half its error where it truncates, a little more where its codebooks and k-means do better
+(docs/benchmarks/formats.md).
 Extra properties are not stored (a warning says so); non-finite rows are refused.
 
 The WebP images go through a `WebpCodec`: Pillow's by default (`pillow_webp`; lossless, keeping

@@ -73,8 +73,8 @@ FLAG_ANTIALIASED, FLAG_EXTENSIONS = 0x1, 0x2
 #: The version `write_spz` writes unless told otherwise.
 WRITE_VERSION = 3
 DEFAULT_SH1_BITS, DEFAULT_SH_REST_BITS = 5, 4
-#: Compression levels `write_spz` uses (Niantic's library: gzip 6, zstd 12, which make files about 5% and
-#: 2% smaller and take 5-10x longer on 1M Gaussians; see BENCHMARKS.md).
+#: Compression levels `write_spz` uses (Niantic's library uses gzip 6, zstd 12: slightly smaller files
+#: for several times the time; docs/benchmarks/formats.md).
 GZIP_LEVEL, ZSTD_LEVEL = 1, 3
 #: SH rest coefficients per channel for SH degree 0..4.
 SH_DIM = (0, 3, 8, 15, 24)

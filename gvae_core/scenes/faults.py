@@ -1,4 +1,4 @@
-"""A benchmark scene's training images as a real capture could have them (issue 33's fault rows):
+"""A benchmark scene's training images as a real capture could have them (the report's fault rows):
 the cameras a little off (`pose_px`: every training camera turned by a random rotation that moves
 its image by that many pixels at the training resolution), the exposure changing from image to
 image (`exposure`: each image's colour times a factor drawn from 1 +- that share), or the images

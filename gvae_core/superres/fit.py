@@ -15,12 +15,12 @@ passes: a fit that draws them more than `tolerance` dB worse than its best is ta
 best and goes on at `slow_down` times its rates (a second fall stops it there); and the fit is
 kept only if it draws them better than the changes it started from (its step 0), else the better
 of the detail model's changes and the input as it was
-(`SuperResFit.kept`). A fit that reproduces its own images better proves nothing: on a real capture
-it reproduced them 2.7 dB better and the photos it did not see no better. The held-out images are at
-the training resolution: what they see of a fit is its changes' side effects there, not the detail
-it adds above it (on the validation objects their figure peaks early or falls while the 2x picture
-keeps improving, BENCHMARKS.md), so they guard against a fit that goes wrong, and do not choose
-the step it stops at: it runs its steps unless they trip the guard.
+(`SuperResFit.kept`). A fit that reproduces its own images better proves nothing (on a real capture
+it did, and drew the photos it did not see no better). The held-out images are at the training
+resolution: what they see of a fit is its changes' side effects there, not the detail it adds above
+it (their figure can peak early or fall while the 2x picture keeps improving), so they guard
+against a fit that goes wrong, and do not choose the step it stops at: it runs its steps unless they
+trip the guard. Where the defaults come from: docs/benchmarks/refine-images.md.
 
 Each step draws `views_per_step` (image, tile) pairs (whole images by default; tiles that cover
 each image with `patch`; every pixel visited once a pass), an octave k, renders at 2^k times the
@@ -61,8 +61,7 @@ from .optim import VisibleAdam
 
 __all__ = ["SuperResConfig", "SuperResFit", "fit_octaves", "holdout_rows", "DEFAULT_FIELDS", "CHILD_GRADIENT"]
 
-#: What the fit changes unless told (BENCHMARKS.md, "Refine with the capture's images": rotations and
-#: SH bands beside the issue's four fields gained 0.36-0.38 dB at 2x on both validation scenes).
+#: What the fit changes unless told: every field, rotations and SH bands included.
 DEFAULT_FIELDS = ("scales", "opacities", "sh_dc", "means", "quats", "sh_rest")
 #: The view-space gradient at which the fit adds children when asked (`SuperResConfig.children`):
 #: the reference 3DGS's densification threshold.
@@ -73,6 +72,8 @@ CHILD_GRADIENT = DensifyStrategy.grad_threshold
 _CHILD_FIELDS = ("scales", "quats", "sh_dc", "sh_rest")
 #: Children whose opacity one octave up ends below this are dropped (the reference's prune level).
 CHILD_MIN_OPACITY = 0.005
+#: The optimisers a fit can run (`SuperResConfig.optimizer`).
+OPTIMIZERS = {"visible": VisibleAdam, "adam": torch.optim.Adam}
 
 
 @dataclass
@@ -97,7 +98,8 @@ class SuperResConfig:
     model's prediction, `gvae_core.refine` makes it) or "zero"; size_change: every Gaussian's
     anti-aliasing size's change per octave of its logarithm (`octaves.SIZE`; default: drawn with
     the anti-aliasing of the rate it is refined to, halved per octave; None: the anti-aliasing it
-    was trained with)."""
+    was trained with); optimizer: "visible" (`optim.VisibleAdam`: only the rows a step saw move) or
+    "adam" (torch's plain Adam, for comparison)."""
 
     epochs: float = 20.0
     max_steps: int = 300
@@ -122,6 +124,7 @@ class SuperResConfig:
     size_change: float | None = REFINED_SIZE_CHANGE
     seed: int = 0
     antialias: str = "auto"
+    optimizer: str = "visible"
 
     def __post_init__(self):
         self.fields = tuple(self.fields)
@@ -129,6 +132,8 @@ class SuperResConfig:
         unknown = [f for f in self.fields if f not in FIELDS]
         if unknown:
             raise ValueError(f"superres: unknown field(s) {', '.join(unknown)}; known: {', '.join(FIELDS)}")
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"superres: optimizer must be one of {', '.join(OPTIMIZERS)}, got {self.optimizer!r}")
         if self.start not in ("detail", "zero"):
             raise ValueError(f"superres: start must be 'detail' or 'zero', got {self.start!r}")
         if (self.steps is not None and int(self.steps) < 0) or int(self.patch) < 0 or not self.epochs >= 0:
@@ -205,7 +210,8 @@ class _Model:
     """What the fit changes: the input rows (fixed) with their changes per octave, and the children
     (their own parameters and changes), with the optimiser over all of them."""
 
-    def __init__(self, src: GaussianCloud, fields: list[str], start: dict | None, lrs: dict[str, float]):
+    def __init__(self, src: GaussianCloud, fields: list[str], start: dict | None, lrs: dict[str, float],
+                 optimizer=VisibleAdam):
         key = FILTER_KEY if FILTER_KEY in src.extra else DILATION_KEY
         self.key = key
         self.base = src.replace(extra={key: src.extra[key]}).to_torch()
@@ -222,11 +228,12 @@ class _Model:
         self.roots = torch.zeros(0, dtype=torch.int64)
         self.means64 = np.ascontiguousarray(self.base.means.double().numpy().T)  # (3, R): the rows' fixed centres
         self.lrs = lrs
+        self.optimizer = optimizer
         self.opt = self._optimizer(1.0)
 
     def _optimizer(self, factor: float) -> VisibleAdam:
         """Adam, no moments yet, on the changes as they are, at `factor` times the rates."""
-        return VisibleAdam([{"params": [p], "lr": self.lrs[f] * factor} for f, p in self.changes.items()]
+        return self.optimizer([{"params": [p], "lr": self.lrs[f] * factor} for f, p in self.changes.items()]
                            + [{"params": [p], "lr": self.lrs[f] * factor} for f, p in self.child.items()], eps=1e-15)
 
     @property
@@ -443,6 +450,260 @@ def _tiles(width: int, height: int, patch: int) -> list[tuple[int, int, int, int
     return [(x, y, min(patch, width), min(patch, height)) for y in ys for x in xs]
 
 
+@dataclass
+class _Images:
+    """The images a fit reads and how it draws them: the targets over the background, which rows it
+    fits, which judge it (`held`) and which say how well it draws its own (`checked`), and the
+    factor the judges draw at (`first`: octave 1, or the images' own resolution)."""
+
+    views: Views
+    targets: torch.Tensor
+    background: tuple
+    bg: torch.Tensor
+    settings: RenderSettings
+    held: np.ndarray
+    fitted: np.ndarray
+    checked: np.ndarray
+    first: int
+
+    def judge(self, cloud: GaussianCloud, rows) -> float:
+        """Mean PSNR of `cloud` on the images `rows` (NaN without any)."""
+        if not len(rows):
+            return math.nan
+        return training_psnr(cloud, self.views, self.targets, self.background, self.first, self.settings, rows)
+
+
+def _images(views: Views, config: SuperResConfig, background, images_scale: int, check_views: int) -> _Images:
+    held = holdout_rows(views.names, int(config.holdout))
+    fitted = np.setdiff1d(np.arange(len(views)), held)
+    checked = fitted[np.linspace(0, len(fitted) - 1, min(check_views, len(fitted))).round().astype(int)]
+    return _Images(views, torch.from_numpy(views.composite(background)), background,
+                   torch.as_tensor(background, dtype=torch.float32), RenderSettings(antialias=config.antialias),
+                   held, fitted, checked, max(2 // images_scale, 1))
+
+
+@dataclass
+class _Schedule:
+    """The fit's steps: the octaves they take in turn, the (image, tile) pairs a pass visits, how
+    many a step sums, the steps in all, the steps between checks and those after which it densifies."""
+
+    octaves: list[int]
+    units: list[tuple[int, tuple[int, int, int, int]]]
+    per_step: int
+    total: int
+    check_interval: int
+    densify_steps: set[int]
+    images_scale: int
+    image_size: tuple[int, int]  # (width, height)
+
+
+def _schedule(config: SuperResConfig, images: _Images, octaves: int, images_scale: int) -> _Schedule:
+    height, width = images.views.cameras[0].height, images.views.cameras[0].width
+    octave_list = [k for k in range(1, octaves + 1) if 2 ** k >= images_scale]
+    units = [(int(v), tile) for v in images.fitted for tile in _tiles(width, height, int(config.patch))]
+    per_step = int(config.views_per_step)
+    per_octave = (config.steps if config.steps is not None
+                  else min(int(config.max_steps), math.ceil(config.epochs * len(units) / per_step)))
+    total = int(per_octave) * len(octave_list)
+    check_interval = max(1, math.ceil(config.check_every * len(units) / per_step) * len(octave_list))
+    densify_steps = {int(round(f * total)) for f in config.densify_at} if config.children is not None else set()
+    return _Schedule(octave_list, units, per_step, total, check_interval, densify_steps, images_scale,
+                     (width, height))
+
+
+@dataclass
+class _Baseline:
+    """What the fit is measured against, taken before its first step: PSNR of the checked fitted
+    images at step 0 (`before`) and with the detail model's changes (`start`), and on the held-out
+    images of the input as it was and of the detail model's changes."""
+
+    before: float
+    start: float
+    holdout_input: float
+    holdout_start: float
+
+
+@dataclass
+class _FitState:
+    """What the fit carries from step to step: the model and per-image guards, where the changes
+    started (`origin`, for the pull), the random streams, the rates the schedule decays from, the
+    best check on the held-out images and its state, the state of step 0, and the record."""
+
+    model: _Model
+    origin: dict[str, torch.Tensor]
+    pose: PoseCorrection | None
+    exposure: ExposureCorrection | None
+    rng: np.random.Generator
+    gen: torch.Generator
+    begin: float
+    best: float
+    best_state: dict
+    initial_state: dict
+    rates: list[float] = field(default_factory=list)
+    best_step: int = 0
+    stopped: bool = False
+    slowed: int = 0
+    checking: float = 0.0
+    losses: list[float] = field(default_factory=list)
+    checks: list[tuple[int, float]] = field(default_factory=list)
+    order: list = field(default_factory=list)
+    grad_sum: torch.Tensor | None = None
+    grad_count: torch.Tensor | None = None
+
+
+def _check_scale(octaves, images_scale: int) -> int:
+    octaves = int(octaves)
+    if octaves < 1:
+        raise ValueError(f"superres: octaves must be >= 1, got {octaves}")
+    if images_scale < 1 or images_scale & (images_scale - 1) or images_scale > 2 ** octaves:
+        raise ValueError(f"superres: images_scale must be a power of 2 up to 2^octaves, got {images_scale}")
+    return octaves
+
+
+def _new_model(src: GaussianCloud, views: Views, config: SuperResConfig, start: dict, extent: float
+               ) -> tuple[_Model, PoseCorrection | None, ExposureCorrection | None]:
+    """The model of the changes at the configured rates, and the per-image guards asked for (their
+    parameters in its optimiser)."""
+    fields = [f for f in config.fields if getattr(src, f).size]
+    lrs = {f: ORACLE_LEARNING_RATES[f] * config.lr * (extent if f == "means" else 1.0) for f in FIELDS}
+    model = _Model(src, fields, start, lrs, OPTIMIZERS[config.optimizer])
+    pose = exposure = None
+    if config.pose is not None:
+        pose = PoseCorrection(views.cameras, _median_depths(src, views), config.pose)
+        model.opt.add_param_group({"params": [pose.params], "lr": 0.01})
+    if config.exposure is not None:
+        exposure = ExposureCorrection(len(views), config.exposure)
+        model.opt.add_param_group({"params": [exposure.params], "lr": 0.005})
+    return model, pose, exposure
+
+
+def _baseline(model: _Model, src: GaussianCloud, start: dict, images: _Images, limit: float
+              ) -> tuple[_Baseline, float]:
+    """The figures before the first step, and the held-out PSNR of the fit's own start (the
+    changes and the anti-aliasing of the rate they are refined to)."""
+    given = with_octaves(src, {f: v for f, v in start.items() if f != SIZE}, limit=limit)
+    before, start_psnr = images.judge(model.cloud(limit)[0], images.checked), images.judge(given, images.checked)
+    holdout_input, holdout_start = images.judge(src, images.held), images.judge(given, images.held)
+    begin = images.judge(model.cloud(limit)[0], images.held)
+    return _Baseline(before, start_psnr, holdout_input, holdout_start), begin
+
+
+def _fit_view(state: _FitState, scale: int, plan: _Schedule, images: _Images, config: SuperResConfig,
+              limit: float, seen: torch.Tensor) -> float:
+    """Draw the next (image, tile) pair at `scale` times the image's resolution, back-propagate
+    its loss (a share of the step's), mark the rows it saw in `seen` and sum their view-space
+    gradients when the fit densifies; returns its share of the step's loss."""
+    model, pose, exposure = state.model, state.pose, state.exposure
+    if not state.order:
+        state.order = [plan.units[i] for i in state.rng.permutation(len(plan.units))]
+    v, (x0, y0, w, h) = state.order.pop()
+    cam = images.views.cameras[v]
+    big = cam.scaled(cam.height * scale)
+    full_size = (big.width, big.height)
+    target = images.targets[v]
+    if (w, h) != plan.image_size:  # a tile
+        big = crop(big, x0 * scale, y0 * scale, w * scale, h * scale)
+        target = target[y0:y0 + h, x0:x0 + w]
+    cloud_now, subset = model.cloud(limit, big if pose is None else None)
+    drawn, out = _draw(cloud_now, big, scale, images.bg, images.settings, pose, exposure, v)
+    if plan.densify_steps:
+        out.means2d.retain_grad()
+    loss = photometric_loss(drawn, target, config.lambda_dssim)
+    total_loss = loss / plan.per_step
+    if pose is not None:
+        total_loss = total_loss + pose.penalty() / plan.per_step
+    if exposure is not None:
+        total_loss = total_loss + exposure.penalty() / plan.per_step
+    total_loss.backward()
+    visible = out.visible.detach()
+    if subset is None:
+        seen |= visible
+    else:
+        seen[subset[visible]] = True
+    if plan.densify_steps and out.means2d.grad is not None:
+        _add_gradients(state, out, visible, subset, full_size)
+    return float(loss.detach()) / plan.per_step
+
+
+def _add_gradients(state: _FitState, out: RenderOutput, visible: torch.Tensor, subset, full_size) -> None:
+    """Sum the view-space gradient of every row the view saw (the densification rule's, in NDC)."""
+    n = state.model.n + state.model.m
+    if state.grad_sum is None or len(state.grad_sum) != n:
+        state.grad_sum, state.grad_count = torch.zeros(n), torch.zeros(n)
+    g = (out.means2d.grad.detach()[:, :2] * g_scale(*full_size)).norm(dim=-1)
+    index = subset if subset is not None else slice(None)
+    state.grad_sum[index] += g * visible.float()
+    state.grad_count[index] += visible.float()
+
+
+def _fit_step(state: _FitState, step: int, plan: _Schedule, images: _Images, config: SuperResConfig,
+              limit: float, extent: float) -> None:
+    """One optimiser step: its rates, `plan.per_step` views of one octave, the pull towards the
+    start and, at a densification step, the children."""
+    model = state.model
+    if config.lr_final != 1.0:
+        decay = config.lr_final ** (step / max(plan.total - 1, 1))
+        for g, lr in zip(model.opt.param_groups, state.rates):
+            g["lr"] = lr * decay
+    octave = plan.octaves[step % len(plan.octaves)]
+    scale = 2 ** octave // plan.images_scale  # render size over image size
+    seen = torch.zeros(model.n + model.m, dtype=torch.bool)
+    step_loss = 0.0
+    for _ in range(plan.per_step):
+        step_loss += _fit_view(state, scale, plan, images, config, limit, seen)
+    model.opt.step()
+    model.opt.zero_grad(set_to_none=True)
+    if config.pull:
+        model.pull(state.origin, config.pull, seen)
+    state.losses.append(step_loss)
+    if step + 1 in plan.densify_steps and state.grad_sum is not None:
+        room = int(config.max_children * model.n) - model.m
+        model.grow(state.grad_sum / state.grad_count.clamp(min=1.0), config.children, room, extent, state.gen)
+        state.grad_sum = state.grad_count = None
+        state.origin = {f: torch.cat([state.origin[f], torch.zeros_like(p[len(state.origin[f]):])])
+                        if len(p) > len(state.origin[f]) else state.origin[f] for f, p in model.changes.items()}
+
+
+def _check(state: _FitState, step: int, images: _Images, config: SuperResConfig, limit: float,
+           on_check) -> bool:
+    """Judge the fit on the held-out images after `step`: keep its best state; a fall of more than
+    the tolerance takes it back there, on at a fraction of the rates once, and stops it the second
+    time (returns True to stop)."""
+    model = state.model
+    t1 = time.perf_counter()
+    now = images.judge(model.cloud(limit)[0], images.held)
+    state.checking += time.perf_counter() - t1
+    state.checks.append((step + 1, now))
+    if on_check is not None:
+        on_check(step + 1, model.cloud(limit)[0].detach())
+    if now > state.best:
+        state.best, state.best_state, state.best_step = now, model.snapshot(), step + 1
+    elif now < state.best - config.tolerance:
+        if state.slowed or not config.slow_down:
+            state.stopped = True
+            return True
+        state.slowed = step + 1  # back to its best, on at a fraction of the rates
+        model.restore(state.best_state, config.slow_down)
+        state.rates = [g["lr"] for g in model.opt.param_groups]
+    return False
+
+
+def _kept(state: _FitState, baseline: _Baseline, images: _Images, fit_step: int, fit_psnr: float,
+          after: float) -> str:
+    """Which state the fit ends in (`SuperResFit.kept`); the model is put back to step 0 when that
+    one is kept."""
+    if not len(images.held):
+        return "fit" if after > baseline.start else "start"
+    if fit_step and fit_psnr > state.begin:
+        return "fit"
+    # not fitted: the best of where it began, the detail model's changes and the input
+    others = {"begin": state.begin, "start": baseline.holdout_start, "input": baseline.holdout_input}
+    kept = max(others, key=others.get)
+    if kept == "begin":
+        state.model.restore(state.initial_state)
+    return kept
+
+
 def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: SuperResConfig | None = None, *,
                 start: dict | None = None, background=(1.0, 1.0, 1.0), images_scale: int = 1,
                 progress: Callable[[float, str], None] | None = None, check_views: int = 4,
@@ -457,168 +718,57 @@ def fit_octaves(cloud: GaussianCloud, views: Views, octaves: int = 1, config: Su
     they are then) for whoever wants to look at it too (a study of how the fit goes)."""
     config = config or SuperResConfig()
     t_start = time.perf_counter()
-    octaves = int(octaves)
-    if octaves < 1:
-        raise ValueError(f"superres: octaves must be >= 1, got {octaves}")
-    if images_scale < 1 or images_scale & (images_scale - 1) or images_scale > 2 ** octaves:
-        raise ValueError(f"superres: images_scale must be a power of 2 up to 2^octaves, got {images_scale}")
+    octaves = _check_scale(octaves, images_scale)
     limit = float(octaves)
     src = cloud.numpy()
-    fields = [f for f in config.fields if getattr(src, f).size]
     extent = scene_extent(views.cameras)[1]
-    lrs = {f: ORACLE_LEARNING_RATES[f] * config.lr * (extent if f == "means" else 1.0) for f in FIELDS}
     start = dict(start or {})
     if config.size_change is not None:
         start[SIZE] = np.full(len(src), config.size_change, np.float32)
-    model = _Model(src, fields, start, lrs)
+    model, pose, exposure = _new_model(src, views, config, start, extent)
     origin = {f: p.detach().clone() for f, p in model.changes.items()}
-    pose = exposure = None
-    if config.pose is not None:
-        pose = PoseCorrection(views.cameras, _median_depths(src, views), config.pose)
-        model.opt.add_param_group({"params": [pose.params], "lr": 0.01})
-    if config.exposure is not None:
-        exposure = ExposureCorrection(len(views), config.exposure)
-        model.opt.add_param_group({"params": [exposure.params], "lr": 0.005})
-    settings = RenderSettings(antialias=config.antialias)
-    bg = torch.as_tensor(background, dtype=torch.float32)
-    targets = torch.from_numpy(views.composite(background))
+    images = _images(views, config, background, images_scale, check_views)
     rng = np.random.default_rng(config.seed)
     gen = torch.Generator().manual_seed(int(config.seed))
-    held = holdout_rows(views.names, int(config.holdout))
-    fitted_rows = np.setdiff1d(np.arange(len(views)), held)
-    check_rows = fitted_rows[np.linspace(0, len(fitted_rows) - 1, min(check_views, len(fitted_rows))).round()
-                             .astype(int)]
-    first = max(2 // images_scale, 1)  # octave 1 (or the images' own resolution)
-
-    def judge(cloud_now: GaussianCloud, rows) -> float:
-        return training_psnr(cloud_now, views, targets, background, first, settings, rows) if len(rows) else math.nan
 
     t0 = time.perf_counter()
-    given = with_octaves(src, {f: v for f, v in start.items() if f != SIZE}, limit=limit)
-    before, start_psnr = judge(model.cloud(limit)[0], check_rows), judge(given, check_rows)
-    holdout = {"input": judge(src, held), "start": judge(given, held)}
-    best = judge(model.cloud(limit)[0], held)  # the fit's own start: the changes and the halved anti-aliasing
-    begin, best_state, best_step, stopped = best, model.snapshot(), 0, False
-    initial_state = best_state
-    checks = [(0, best)] if len(held) else []
+    baseline, begin = _baseline(model, src, start, images, limit)
+    snapshot = model.snapshot()
+    state = _FitState(model, origin, pose, exposure, rng, gen, begin=begin, best=begin, best_state=snapshot,
+                      initial_state=snapshot, checks=[(0, begin)] if len(images.held) else [])
     if on_check is not None:
         on_check(0, model.cloud(limit)[0].detach())
     timings = {"check": time.perf_counter() - t0}
-    losses: list[float] = []
-    height, width = views.cameras[0].height, views.cameras[0].width
-    octave_list = [k for k in range(1, octaves + 1) if 2 ** k >= images_scale]
-    units = [(int(v), tile) for v in fitted_rows for tile in _tiles(width, height, int(config.patch))]
-    per_step = int(config.views_per_step)
-    per_octave = (config.steps if config.steps is not None
-                  else min(int(config.max_steps), math.ceil(config.epochs * len(units) / per_step)))
-    total = int(per_octave) * len(octave_list)
-    check_interval = max(1, math.ceil(config.check_every * len(units) / per_step) * len(octave_list))
-    densify_steps = {int(round(f * total)) for f in config.densify_at} if config.children is not None else set()
-    grad_sum = grad_count = None
-    order: list[tuple[int, tuple]] = []
-    t0, checking, slowed = time.perf_counter(), 0.0, 0
-    initial = [g["lr"] for g in model.opt.param_groups]
-    step = 0
-    for step in range(total):
-        if config.lr_final != 1.0:
-            decay = config.lr_final ** (step / max(total - 1, 1))
-            for g, lr in zip(model.opt.param_groups, initial):
-                g["lr"] = lr * decay
-        octave = octave_list[step % len(octave_list)]
-        scale = 2 ** octave // images_scale  # render size over image size
-        seen = torch.zeros(model.n + model.m, dtype=torch.bool)
-        step_loss = 0.0
-        for _ in range(per_step):
-            if not order:
-                order = [units[i] for i in rng.permutation(len(units))]
-            v, (x0, y0, w, h) = order.pop()
-            cam = views.cameras[v]
-            big = cam.scaled(cam.height * scale)
-            full_size = (big.width, big.height)
-            target = targets[v]
-            if (w, h) != (width, height):  # a tile
-                big = crop(big, x0 * scale, y0 * scale, w * scale, h * scale)
-                target = target[y0:y0 + h, x0:x0 + w]
-            cloud_now, subset = model.cloud(limit, big if pose is None else None)
-            drawn, out = _draw(cloud_now, big, scale, bg, settings, pose, exposure, v)
-            if densify_steps:
-                out.means2d.retain_grad()
-            loss = photometric_loss(drawn, target, config.lambda_dssim)
-            total_loss = loss / per_step
-            if pose is not None:
-                total_loss = total_loss + pose.penalty() / per_step
-            if exposure is not None:
-                total_loss = total_loss + exposure.penalty() / per_step
-            total_loss.backward()
-            step_loss += float(loss.detach()) / per_step
-            visible = out.visible.detach()
-            if subset is None:
-                seen |= visible
-            else:
-                seen[subset[visible]] = True
-            if densify_steps and out.means2d.grad is not None:
-                if grad_sum is None or len(grad_sum) != model.n + model.m:
-                    grad_sum, grad_count = torch.zeros(model.n + model.m), torch.zeros(model.n + model.m)
-                g = (out.means2d.grad.detach()[:, :2] * g_scale(*full_size)).norm(dim=-1)
-                index = subset if subset is not None else slice(None)
-                grad_sum[index] += g * visible.float()
-                grad_count[index] += visible.float()
-        model.opt.step()
-        model.opt.zero_grad(set_to_none=True)
-        if config.pull:
-            model.pull(origin, config.pull, seen)
-        losses.append(step_loss)
-        if step + 1 in densify_steps and grad_sum is not None:
-            room = int(config.max_children * model.n) - model.m
-            model.grow(grad_sum / grad_count.clamp(min=1.0), config.children, room, extent, gen)
-            grad_sum = grad_count = None
-            origin = {f: torch.cat([origin[f], torch.zeros_like(p[len(origin[f]):])]) if len(p) > len(origin[f])
-                      else origin[f] for f, p in model.changes.items()}
-        if progress is not None:  # every step: a step of a large capture takes seconds, and cancel acts here
-            progress((step + 1) / max(total, 1), f"fitting to the images: step {step + 1}/{total}, "
-                     f"loss {np.mean(losses[-20:]):.4f}" + (f", held-out {best:.2f} dB" if len(held) else ""))
-        if len(held) and ((step + 1) % check_interval == 0 or step == total - 1):
-            t1 = time.perf_counter()
-            now = judge(model.cloud(limit)[0], held)
-            checking += time.perf_counter() - t1
-            checks.append((step + 1, now))
-            if on_check is not None:
-                on_check(step + 1, model.cloud(limit)[0].detach())
-            if now > best:
-                best, best_state, best_step = now, model.snapshot(), step + 1
-            elif now < best - config.tolerance:
-                if slowed or not config.slow_down:
-                    stopped = True
-                    break
-                slowed = step + 1  # back to its best, on at a fraction of the rates
-                model.restore(best_state, config.slow_down)
-                initial = [g["lr"] for g in model.opt.param_groups]
-    steps_run = step + 1 if total else 0
-    timings["fit"] = time.perf_counter() - t0 - checking
+    plan = _schedule(config, images, octaves, images_scale)
     t0 = time.perf_counter()
-    fit_step, fit_psnr = steps_run, checks[-1][1] if checks else math.nan
-    if stopped:
-        model.restore(best_state)
-        fit_step, fit_psnr = best_step, best
-    after = judge(model.cloud(limit)[0], check_rows)
-    timings["check"] += checking + time.perf_counter() - t0
-    if len(held):
-        if fit_step and fit_psnr > begin:
-            kept = "fit"
-        else:  # not fitted: the best of where it began, the detail model's changes and the input
-            others = {"begin": begin, "start": holdout["start"], "input": holdout["input"]}
-            kept = max(others, key=others.get)
-            if kept == "begin":
-                model.restore(initial_state)
-    else:
-        kept = "fit" if after > start_psnr else "start"
+    state.rates = [g["lr"] for g in model.opt.param_groups]
+    step = 0
+    for step in range(plan.total):
+        _fit_step(state, step, plan, images, config, limit, extent)
+        if progress is not None:  # every step: a step of a large capture takes seconds, and cancel acts here
+            progress((step + 1) / max(plan.total, 1), f"fitting to the images: step {step + 1}/{plan.total}, "
+                     f"loss {np.mean(state.losses[-20:]):.4f}"
+                     + (f", held-out {state.best:.2f} dB" if len(images.held) else ""))
+        if len(images.held) and ((step + 1) % plan.check_interval == 0 or step == plan.total - 1):
+            if _check(state, step, images, config, limit, on_check):
+                break
+    steps_run = step + 1 if plan.total else 0
+    timings["fit"] = time.perf_counter() - t0 - state.checking
+    t0 = time.perf_counter()
+    fit_step, fit_psnr = steps_run, state.checks[-1][1] if state.checks else math.nan
+    if state.stopped:
+        model.restore(state.best_state)
+        fit_step, fit_psnr = state.best_step, state.best
+    after = images.judge(model.cloud(limit)[0], images.checked)
+    timings["check"] += state.checking + time.perf_counter() - t0
+    kept = _kept(state, baseline, images, fit_step, fit_psnr, after)
     changes, children, roots = model.result(limit)
-    return SuperResFit(changes=changes, losses=losses, psnr_before=before, psnr_after=after, psnr_start=start_psnr,
-                       psnr_views=len(check_rows), images=len(fitted_rows), holdout_views=len(held),
-                       holdout_input=holdout["input"], holdout_start=holdout["start"], holdout_begin=begin,
-                       holdout_fit=fit_psnr, kept=kept, fit_step=fit_step,
-                       steps_run=steps_run, slowed_at=slowed, checks=checks,
-                       steps_planned=total, children=children, child_roots=roots,
+    return SuperResFit(changes=changes, losses=state.losses, psnr_before=baseline.before, psnr_after=after,
+                       psnr_start=baseline.start, psnr_views=len(images.checked), images=len(images.fitted),
+                       holdout_views=len(images.held), holdout_input=baseline.holdout_input,
+                       holdout_start=baseline.holdout_start, holdout_begin=state.begin, holdout_fit=fit_psnr,
+                       kept=kept, fit_step=fit_step, steps_run=steps_run, slowed_at=state.slowed,
+                       checks=state.checks, steps_planned=plan.total, children=children, child_roots=roots,
                        pose_pixels=None if pose is None else pose.pixels(),
                        exposure_gains=None if exposure is None else exposure.gains(),
                        seconds=time.perf_counter() - t_start, timings=timings)

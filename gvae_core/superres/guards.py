@@ -16,8 +16,7 @@ from ..quaternions import multiply
 
 __all__ = ["PoseCorrection", "ExposureCorrection", "POSE_WEIGHT", "EXPOSURE_WEIGHT"]
 
-#: The guards' penalty weights when on (`SuperResConfig.pose`, `.exposure`; BENCHMARKS.md, "Refine
-#: with the capture's images": chosen on the validation scenes with simulated faults).
+#: The guards' penalty weights when on (`SuperResConfig.pose`, `.exposure`).
 POSE_WEIGHT = 0.01
 EXPOSURE_WEIGHT = 0.1
 

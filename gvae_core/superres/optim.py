@@ -1,10 +1,10 @@
 """Adam that moves only the rows a step saw: the fit draws one patch of one image a step, so on a
 large capture most Gaussians get no gradient in most steps. Plain Adam still moves every row that
 ever had one, by its decaying momentum (a row seen once travels about 30 learning-rate steps after
-it), which on a 1M-Gaussian capture made the fit reproduce its own images 15 dB worse than it
-started. Here a row's moments and value change only in steps where its gradient is non-zero (the
-"selective" or "visible" Adam of the 3DGS literature); the bias correction counts the optimiser's
-steps, as Adam's does. On a small object, where a patch sees nearly every Gaussian, it is Adam.
+it), which on a large capture made the fit end far below where it started. Here a row's moments
+and value change only in steps where its gradient is non-zero (the "selective" or "visible" Adam of
+the 3DGS literature); the bias correction counts the optimiser's steps, as Adam's does. On a small
+object, where a patch sees nearly every Gaussian, it is Adam.
 
 It keeps torch's optimiser interface (`param_groups`, `state`, `add_param_group`, `step`,
 `zero_grad`) without deriving from `torch.optim.Optimizer`, whose constructor imports torch's
