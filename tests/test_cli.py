@@ -241,3 +241,28 @@ def test_train_refine_and_compact_warn_nothing_from_the_project(tmp_path, capsys
         assert main(["compact", str(stage), str(tmp_path / "c.ply"), "--keep", "0.5", "--distill", "5"]) == 0
     out = capsys.readouterr()
     assert "Warning" not in out.err, out.err
+
+
+def test_a_warning_is_one_line_without_the_source(tmp_path, capsys):
+    ply = write_ply(example_cloud(50), tmp_path / "c.ply")  # SH degree 3: a .splat keeps none of it
+    shown = warnings.showwarning
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        assert main(["convert", str(ply), str(tmp_path / "c.splat")]) == 0
+    err = capsys.readouterr().err
+    (line,) = err.splitlines()
+    assert line.startswith("warning: ") and ".splat holds no view-dependent colour" in line
+    assert "UserWarning" not in err and ".py:" not in err
+    assert warnings.showwarning is shown  # put back after the call
+
+
+def test_running_out_of_memory_midway_is_an_error_line(tmp_path, capsys, monkeypatch):
+    from gvae_core.cli import info  # noqa: PLC0415
+
+    def exhausted(args):
+        raise MemoryError("Unable to allocate 9.31 GiB for an array")
+
+    monkeypatch.setattr(info, "run", exhausted)
+    assert main(["info", str(tmp_path / "any.ply")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("gvae info: error: out of memory (Unable to allocate 9.31 GiB") and "Traceback" not in err
