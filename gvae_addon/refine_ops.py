@@ -38,9 +38,6 @@ class JobCancelled(Exception):
     """Raised inside the worker (from its progress report) when the job is cancelled."""
 
 
-RefineCancelled = JobCancelled  # (the name the Refine job's callers knew first)
-
-
 class BackgroundJob:
     """Work in a worker thread that Blender's main thread follows (the modal operator, `execute` and
     the tests drive it the same way, without a window):
