@@ -68,25 +68,23 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """`warnings.showwarning` of the command line: the message alone, on one line."""
-    text = " ".join(str(message).split())
-    try:
-        print(f"warning: {text}", file=sys.stderr if file is None else file, flush=True)
-    except OSError:  # stderr gone: the warning is lost, as Python's own would be
-        pass
+def _format_warning(message, category, filename, lineno, line=None) -> str:
+    """`warnings.formatwarning` of the command line: the message alone, on one line."""
+    return "warning: " + " ".join(str(message).split()) + "\n"
 
 
 @contextlib.contextmanager
 def warnings_as_lines() -> Iterator[None]:
-    """Within: every warning shown is one `warning: MESSAGE` line on stderr (which warnings show
-    is left to the filters); the previous `warnings.showwarning` is put back after."""
-    saved = warnings.showwarning
-    warnings.showwarning = _show_warning
+    """Within: every warning shown is one `warning: MESSAGE` line on stderr, without the file,
+    line number and source line (which warnings show is left to the filters; one recorded, as
+    by `warnings.catch_warnings(record=True)`, stays recorded); the previous
+    `warnings.formatwarning` is put back after."""
+    saved = warnings.formatwarning
+    warnings.formatwarning = _format_warning
     try:
         yield
     finally:
-        warnings.showwarning = saved
+        warnings.formatwarning = saved
 
 
 def main(argv: list[str] | None = None) -> int:
