@@ -139,7 +139,7 @@ class CoreJob(BackgroundJob):
     Subclasses set `label` and define `_load()` (the core function, imported on the main thread),
     `_run(function, cloud, progress)` (in the worker) and `_write(obj)` / `_info()` (main thread).
     Only the worker thread runs torch: once the main thread has run torch's parallel loops, their
-    idle OpenMP threads make the worker's twice as slow (measured on two cores).
+    idle OpenMP threads slow the worker's down.
     """
 
     unchanged = "the object is unchanged"
@@ -515,7 +515,7 @@ REMOVAL_ITEMS = (("AUTO", "Auto", "Merge; with Photos, what the photos set aside
                  ("PRUNE", "Prune", "Drop the Gaussians with the lowest scores"))
 COMPACT_IMAGES_DESCRIPTION = ("The capture's photos (a COLMAP capture, a transforms.json with its images, a "
                               "NeRF-Synthetic folder): remove, then fine-tune on them until the photos set aside stop "
-                              "improving (1-3 minutes for 50,000 Gaussians), as gvae compact --images; empty: without")
+                              "improving (minutes), as gvae compact --images; empty: without")
 CAMERAS_DESCRIPTION = ("The capture's cameras to score from (a COLMAP capture folder, a transforms.json, the reference "
                        "3DGS's cameras.json); empty: the training cameras found beside the imported file, else views "
                        "placed around the object")
