@@ -111,82 +111,98 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         src = Path(tmp) / "bench.ply"
         write_ply(cloud, src)
-        raw = src.read_bytes()
-        t_imp, t_inst, counts = [], [], []
-        for _ in range(repeats):
-            _clear()
-            t0 = time.perf_counter()
-            bpy.ops.import_scene.gaussian_splat(filepath=str(src))
-            t1 = time.perf_counter()
-            counts.append(_instances(bpy.context.active_object))
-            t2 = time.perf_counter()
-            t_imp.append(t1 - t0)
-            t_inst.append(t2 - t0)
-        obj = bpy.context.active_object
-        t_eval = []
-        for _ in range(repeats):  # the operator's own call already evaluated the instances once
-            obj.update_tag()
-            t0 = time.perf_counter()
-            bpy.context.evaluated_depsgraph_get().update()
-            t_eval.append(time.perf_counter() - t0)
-        out["reevaluate_s"] = statistics.median(t_eval)
-        out["camera_move_s"] = _camera_moves(obj, repeats)
-        out["import_s"] = statistics.median(t_imp)
-        out["import_instances_s"] = statistics.median(t_inst)
-        out["instances"] = min(counts)
+        obj = _time_import(src, repeats, out)
         out["attribute_error"] = _attribute_error(obj, cloud)
-
-        t_exp, same = [], True
-        for r in range(repeats):
-            dst = Path(tmp) / f"out{r}.ply"
-            t0 = time.perf_counter()
-            bpy.ops.export_scene.gaussian_splat(filepath=str(dst))
-            t_exp.append(time.perf_counter() - t0)
-            same &= dst.read_bytes() == raw
-            dst.unlink()
-        out["export_s"] = statistics.median(t_exp)
-        out["export_identical"] = bool(same)
-
-        # Refine as a batch run or script calls it (the operator's execute: the object read, refined
-        # by gvae_core.refine in the job's worker thread, written back; the first Refine of a session
-        # also imports torch and loads the model), then the core's refine of the same cloud on this
-        # thread. In that order: once this thread has run torch's parallel loops, their OpenMP
-        # threads slow a worker thread's own (measured: twice the time).
-        before = len(obj.data.vertices)
-        t0 = time.perf_counter()
-        status = bpy.ops.gvae.refine()
-        out["refine_s"] = time.perf_counter() - t0
-        out["refine_status"] = sorted(status)
-        out["refine_added"] = len(bpy.context.active_object.data.vertices) - before
-        from gvae_core.refinement import refine  # noqa: PLC0415 - imported by the operator above
-        t0 = time.perf_counter()
-        core = refine(read_ply(src))
-        out["refine_core_s"] = time.perf_counter() - t0
-        out["refine_core_added"] = len(core.added)
-
-        # Context: the add-on's own parts, and Blender's C++ PLY importer (no splat set-up).
-
-        t_read, t_mesh = [], []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            c = read_ply(src)
-            t1 = time.perf_counter()
-            me = convert.mesh_from_cloud(c, "bench")
-            t_mesh.append(time.perf_counter() - t1)
-            t_read.append(t1 - t0)
-            bpy.data.meshes.remove(me)
-        out["read_ply_s"] = statistics.median(t_read)
-        out["mesh_from_cloud_s"] = statistics.median(t_mesh)
-        t_native = []
-        for _ in range(repeats):
-            _clear()
-            t0 = time.perf_counter()
-            bpy.ops.wm.ply_import(filepath=str(src))
-            t_native.append(time.perf_counter() - t0)
-        out["native_ply_import_s"] = statistics.median(t_native)
-        out["native_vertices"] = len(bpy.context.active_object.data.vertices)
+        _time_export(Path(tmp), src.read_bytes(), repeats, out)
+        _time_refine(obj, src, out)
+        _time_parts(src, repeats, out)
     print("RESULT " + json.dumps(out))
     return 0
+
+
+def _time_import(src: Path, repeats: int, out: dict):
+    """Import (the operator, and with the instances evaluated), then the instances re-evaluated and
+    the camera moved; the imported object."""
+    t_imp, t_inst, counts = [], [], []
+    for _ in range(repeats):
+        _clear()
+        t0 = time.perf_counter()
+        bpy.ops.import_scene.gaussian_splat(filepath=str(src))
+        t1 = time.perf_counter()
+        counts.append(_instances(bpy.context.active_object))
+        t2 = time.perf_counter()
+        t_imp.append(t1 - t0)
+        t_inst.append(t2 - t0)
+    obj = bpy.context.active_object
+    t_eval = []
+    for _ in range(repeats):  # the operator's own call already evaluated the instances once
+        obj.update_tag()
+        t0 = time.perf_counter()
+        bpy.context.evaluated_depsgraph_get().update()
+        t_eval.append(time.perf_counter() - t0)
+    out["reevaluate_s"] = statistics.median(t_eval)
+    out["camera_move_s"] = _camera_moves(obj, repeats)
+    out["import_s"] = statistics.median(t_imp)
+    out["import_instances_s"] = statistics.median(t_inst)
+    out["instances"] = min(counts)
+    return obj
+
+
+def _time_export(tmp: Path, raw: bytes, repeats: int, out: dict) -> None:
+    """Export of the imported object, and whether it wrote the imported file's bytes."""
+    t_exp, same = [], True
+    for r in range(repeats):
+        dst = tmp / f"out{r}.ply"
+        t0 = time.perf_counter()
+        bpy.ops.export_scene.gaussian_splat(filepath=str(dst))
+        t_exp.append(time.perf_counter() - t0)
+        same &= dst.read_bytes() == raw
+        dst.unlink()
+    out["export_s"] = statistics.median(t_exp)
+    out["export_identical"] = bool(same)
+
+
+def _time_refine(obj, src: Path, out: dict) -> None:
+    """Refine as a batch run or script calls it (the operator's execute: the object read, refined
+    by gvae_core.refine in the job's worker thread, written back; the first Refine of a session
+    also imports torch and loads the model), then the core's refine of the same cloud on this
+    thread. In that order: once this thread has run torch's parallel loops, their OpenMP threads
+    slow a worker thread's own."""
+    before = len(obj.data.vertices)
+    t0 = time.perf_counter()
+    status = bpy.ops.gvae.refine()
+    out["refine_s"] = time.perf_counter() - t0
+    out["refine_status"] = sorted(status)
+    out["refine_added"] = len(bpy.context.active_object.data.vertices) - before
+    from gvae_core.refinement import refine  # noqa: PLC0415 - imported by the operator above
+    t0 = time.perf_counter()
+    core = refine(read_ply(src))
+    out["refine_core_s"] = time.perf_counter() - t0
+    out["refine_core_added"] = len(core.added)
+
+
+def _time_parts(src: Path, repeats: int, out: dict) -> None:
+    """Context: the add-on's own parts (reading the PLY, making the mesh), and Blender's C++ PLY
+    importer (no splat set-up)."""
+    t_read, t_mesh = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        c = read_ply(src)
+        t1 = time.perf_counter()
+        me = convert.mesh_from_cloud(c, "bench")
+        t_mesh.append(time.perf_counter() - t1)
+        t_read.append(t1 - t0)
+        bpy.data.meshes.remove(me)
+    out["read_ply_s"] = statistics.median(t_read)
+    out["mesh_from_cloud_s"] = statistics.median(t_mesh)
+    t_native = []
+    for _ in range(repeats):
+        _clear()
+        t0 = time.perf_counter()
+        bpy.ops.wm.ply_import(filepath=str(src))
+        t_native.append(time.perf_counter() - t0)
+    out["native_ply_import_s"] = statistics.median(t_native)
+    out["native_vertices"] = len(bpy.context.active_object.data.vertices)
 
 
 #: Cycles settings of the render benchmark: "converged" samples each pixel once at its centre

@@ -422,10 +422,33 @@ def _drawn(b: _Builder, gin: dict, raw: _Raw, *, factor=None, filters=None, refi
     input, off: none), the opacity with their compensations, and the refined DC colour and SH
     coefficients (`dc`: three values, `rest[j]`: three values). `factor`: multiplies the std-devs."""
     m = b.math
+    octaves, centre, view_dir, screen_var = _seen_from_camera(b, gin, refine)
+    # Rotation from the w,x,y,z quaternion (normalised by the node).
+    q = b.node("FunctionNodeQuaternionToRotation")
+    for comp, value, change in zip("WXYZ", raw.quat, field_keys("quats", 4)):
+        b.link(_plus(b, value, change, octaves), inp(q, comp, "VALUE"))
+    rotation = outp(q, "Rotation", "ROTATION")
+    u, std_tot, ratio_3d, comp_2d = _filtered(b, gin, raw, octaves, view_dir, rotation, screen_var, factor, filters)
+    logit = _clamp(b, _plus(b, raw.logit, field_keys("opacities", 1)[0], octaves), OPACITY_LOGIT_RANGE)
+    sigmoid = m("DIVIDE", 1.0, m("ADD", m("EXPONENT", m("MULTIPLY", logit, -1.0)), 1.0))
+    opacity = b.product([sigmoid, b.product(ratio_3d), comp_2d])
+    # A refined cloud's changes per octave of the DC colour and of each SH coefficient (`sh_rest`
+    # (K, 3) flattened: column 3 j + c).
+    dc = [_plus(b, value, change, octaves) for value, change in zip(raw.dc, field_keys("sh_dc", 3))]
+    rest_changes = field_keys("sh_rest", 3 * len(raw.rest))
+    rest = [[_plus(b, value, rest_changes[3 * j + c], octaves) for c, value in enumerate(coeff)]
+            for j, coeff in enumerate(raw.rest)]
+    return _Drawn(octaves=octaves, centre=centre, view_dir=view_dir, u=u, rotation=rotation, std=std_tot,
+                  opacity=opacity, dc=dc, rest=rest)
+
+
+def _seen_from_camera(b: _Builder, gin: dict, refine):
+    """(octaves t, centre as drawn, view direction camera -> centre, screen-filter variance in world
+    units). A refined cloud is drawn at the octaves above its training rate that the camera sees
+    its stored (unchanged) centre at; every other quantity comes from the centre as drawn."""
+    m = b.math
     cam_at, forward = _camera(b)
     base = outp(b.node("GeometryNodeInputPosition"), "Position", "VECTOR")
-    # A refined cloud: the octaves above its training rate at which the camera draws each Gaussian,
-    # from its stored (unchanged) centre; every other quantity from the centre as drawn.
     octaves = _octaves_seen(b, m("ABSOLUTE", b.vmath("DOT_PRODUCT", b.vmath("SUBTRACT", base, cam_at), forward)),
                             gin["Focal Length (px)"])
     if refine is not None:
@@ -438,19 +461,18 @@ def _drawn(b: _Builder, gin: dict, raw: _Raw, *, factor=None, filters=None, refi
     # variance (px²) x (depth / focal length in px)²; 0 while the focal length is unknown (0).
     pixel = m("DIVIDE", depth, gin["Focal Length (px)"])
     screen_var = m("MULTIPLY", gin["Screen Filter"], m("MULTIPLY", pixel, pixel))
+    return octaves, centre, view_dir, screen_var
 
-    # Rotation from the w,x,y,z quaternion (normalised by the node).
-    q = b.node("FunctionNodeQuaternionToRotation")
-    for comp, value, change in zip("WXYZ", raw.quat, field_keys("quats", 4)):
-        b.link(_plus(b, value, change, octaves), inp(q, comp, "VALUE"))
-    rotation = outp(q, "Rotation", "ROTATION")
 
-    # Variances: s² (std-devs exp(clamp(log-scale)) x factor); with the 3D filter f:
-    # s² + f²; with the screen filter v: + v. Opacity compensations, each exactly 1 when its
-    # filter is 0: 3D filter prod s / sqrt(s² + f²) (the reference's rule); screen filter (only
-    # with Compensate, the Mip 2D filter) sqrt(det Σ2D / det(Σ2D + v I)), with the 2D
-    # covariance of the projection along the view direction u (in the Gaussian's frame):
-    # det Σ2D = det Σ · uᵀ Σ⁻¹ u.
+def _filtered(b: _Builder, gin: dict, raw: _Raw, octaves, view_dir, rotation, screen_var, factor, filters):
+    """(u, std-devs, 3D-filter opacity ratios, screen-filter compensation) of each Gaussian with
+    the anti-aliasing filters. Variances: s² (std-devs exp(clamp(log-scale)) x factor); with the
+    3D filter f: s² + f²; with the screen filter v: + v. Opacity compensations, each exactly 1
+    when its filter is 0: 3D filter prod s / sqrt(s² + f²) (the reference's rule); screen filter
+    (only with Compensate, the Mip 2D filter) sqrt(det Σ2D / det(Σ2D + v I)), with the 2D
+    covariance of the projection along the view direction u (in the Gaussian's frame):
+    det Σ2D = det Σ · uᵀ Σ⁻¹ u."""
+    m = b.math
     # A refined cloud's anti-aliasing size (either one) times e^min(t x its change per octave, 0).
     shrink = m("EXPONENT", m("MINIMUM", m("MULTIPLY", octaves, _named(b, field_keys(SIZE, 1)[0])), 0.0))
     if filters is not None:  # filters off: no size, no screen variance
@@ -483,19 +505,7 @@ def _drawn(b: _Builder, gin: dict, raw: _Raw, *, factor=None, filters=None, refi
         quad_tot.append(m("DIVIDE", uu[i], var_tot))
     det_ratio = m("MULTIPLY", b.product(ratio_det), m("DIVIDE", b.total(quad_eff), b.total(quad_tot)))
     comp_2d = b.switch("FLOAT", gin["Compensate Screen Filter"], 1.0, m("SQRT", det_ratio))
-
-    logit = _clamp(b, _plus(b, raw.logit, field_keys("opacities", 1)[0], octaves), OPACITY_LOGIT_RANGE)
-    sigmoid = m("DIVIDE", 1.0, m("ADD", m("EXPONENT", m("MULTIPLY", logit, -1.0)), 1.0))
-    opacity = b.product([sigmoid, b.product(ratio_3d), comp_2d])
-
-    # A refined cloud's changes per octave of the DC colour and of each SH coefficient (`sh_rest`
-    # (K, 3) flattened: column 3 j + c).
-    dc = [_plus(b, value, change, octaves) for value, change in zip(raw.dc, field_keys("sh_dc", 3))]
-    rest_changes = field_keys("sh_rest", 3 * len(raw.rest))
-    rest = [[_plus(b, value, rest_changes[3 * j + c], octaves) for c, value in enumerate(coeff)]
-            for j, coeff in enumerate(raw.rest)]
-    return _Drawn(octaves=octaves, centre=centre, view_dir=view_dir, u=u, rotation=rotation, std=std_tot,
-                  opacity=opacity, dc=dc, rest=rest)
+    return u, std_tot, ratio_3d, comp_2d
 
 
 def _new_interface(ng, inputs) -> None:
@@ -526,27 +536,47 @@ def _build_group(ng, degree: int) -> None:
     _new_interface(ng, INPUTS + HIDDEN_INPUTS)
     b = _Builder(ng)
     gin, gout = _group_io(b, INPUTS + HIDDEN_INPUTS)
-    m = b.math
     g = _drawn(b, gin, _mesh_raw(b, degree), factor=gin["Scale Factor"])
-    opacity, std_tot, rotation, centre, u = g.opacity, g.std, g.rotation, g.centre, g.u
+    scale = _instance_scale(b, g)
+    select, points_only, is_viewport = _selection(b, gin, g.opacity)
+    linear = _colour(b, gin, g, degree)
+    geo, got = _captured(b, gin, g, scale, select, linear)
+    instances = _ellipsoids(b, gin, geo, got, is_viewport)
+    points = _points_only(b, gin, geo, got)
+    shown = b.switch("GEOMETRY", points_only, instances, points)
+    b.link(shown, inp(gout, "Geometry", "GEOMETRY"))
+    b.arrange()
+    ng["gvae_nodes_version"] = NODES_VERSION
+    ng["gvae_sh_degree"] = degree
 
-    # Radius of the visible part: sqrt(2 ln(255 o)) std-devs; the icosphere encloses that ellipsoid.
-    radius = m("SQRT", m("MAXIMUM", m("MULTIPLY", m("LOGARITHM", m("MULTIPLY", opacity, 1.0 / ALPHA_MIN), math.e),
+
+def _instance_scale(b: _Builder, g):
+    """The instance scale: the std-devs times the radius of the visible part, sqrt(2 ln(255 o))
+    std-devs (the icosphere encloses that ellipsoid)."""
+    m = b.math
+    radius = m("SQRT", m("MAXIMUM", m("MULTIPLY", m("LOGARITHM", m("MULTIPLY", g.opacity, 1.0 / ALPHA_MIN), math.e),
                                         2.0), 0.0))
-    scale = b.vmath("SCALE", b.combine(std_tot), scale=radius)
+    return b.vmath("SCALE", b.combine(g.std), scale=radius)
 
-    # Selection: a fixed random subset of the given fraction; visible (o >= 1/255); o >= Min Opacity.
+
+def _selection(b: _Builder, gin, opacity):
+    """(shown, points only, is viewport): a fixed random subset of the Display Fraction, visible
+    (o >= 1/255) and o >= Min Opacity; Display Fraction and Points Only act where "display"
+    applies: always, or in the viewport only."""
     rand = b.node("FunctionNodeRandomValue", data_type="FLOAT")
     inp(rand, "Seed", "INT").default_value = 0
-    # Display Fraction and Points Only act where "display" applies: always, or in the viewport only.
     is_viewport = outp(b.node("GeometryNodeIsViewport"), "Is Viewport", "BOOLEAN")
     display = b.boolean("OR", is_viewport, b.boolean("NOT", gin["Viewport Only"]))  # viewport, or not viewport-only
     fraction = b.switch("FLOAT", display, 1.0, gin["Display Fraction"])
     points_only = b.boolean("AND", gin["Points Only"], display)
-    select = b.boolean("AND", _compare(b, "GREATER_EQUAL", opacity, m("MAXIMUM", gin["Min Opacity"], ALPHA_MIN)),
+    select = b.boolean("AND", _compare(b, "GREATER_EQUAL", opacity, b.math("MAXIMUM", gin["Min Opacity"], ALPHA_MIN)),
                        _compare(b, "LESS_THAN", outp(rand, "Value", "VALUE"), fraction))
+    return select, points_only, is_viewport
 
-    # Colour: SH_C0 * f_dc + 0.5 (+ the SH bands seen from the active camera), clamped at 0.
+
+def _colour(b: _Builder, gin, g, degree: int):
+    """The linear colour: SH_C0 * f_dc + 0.5 (+ the SH bands seen from the active camera, with
+    View-Dependent Colour), clamped at 0, from sRGB."""
     colour = b.vmath("MULTIPLY_ADD", b.combine(g.dc), SH_C0, 0.5)
     if g.rest:
         rest = None
@@ -556,16 +586,19 @@ def _build_group(ng, degree: int) -> None:
                     else b.vmath("MULTIPLY_ADD", coeff, basis, rest))
         colour = b.vmath("ADD", colour, b.switch("VECTOR", gin["View-Dependent Colour"], 0.0, rest))
     colour = b.vmath("MAXIMUM", colour, 0.0)
-    linear = b.combine([_srgb_to_linear(b, ch) for ch in b.separate(colour)])
+    return b.combine([_srgb_to_linear(b, ch) for ch in b.separate(colour)])
 
-    # Evaluate everything on the full points, then drop every named attribute (SH, scales, extras:
-    # none is copied per instance) and store only what the material reads.
+
+def _captured(b: _Builder, gin, g, scale, select, linear):
+    """(the points, what each instance needs by name): everything evaluated on the full points,
+    then every named attribute dropped (SH, scales, extras: none is copied per instance), only
+    what the material reads stored, the points moved to the centres as drawn (a refined cloud's)."""
     # ("Shown", not "Selection": Capture Attribute has a Selection input of its own from 5.2.)
     cap = b.node("GeometryNodeCaptureAttribute", domain="POINT")
-    captured = (("Rotation", "ROTATION", rotation), ("Scale", "VECTOR", scale), ("Shown", "BOOLEAN", select),
-                ("Colour", "VECTOR", linear), ("Opacity", "FLOAT", opacity), ("Std", "VECTOR", b.combine(std_tot)),
-                ("Facing", "VECTOR", b.vmath("DIVIDE", b.vmath("SCALE", u, scale=-1.0), b.combine(std_tot))),
-                ("Centre", "VECTOR", centre))
+    captured = (("Rotation", "ROTATION", g.rotation), ("Scale", "VECTOR", scale), ("Shown", "BOOLEAN", select),
+                ("Colour", "VECTOR", linear), ("Opacity", "FLOAT", g.opacity), ("Std", "VECTOR", b.combine(g.std)),
+                ("Facing", "VECTOR", b.vmath("DIVIDE", b.vmath("SCALE", g.u, scale=-1.0), b.combine(g.std))),
+                ("Centre", "VECTOR", g.centre))
     for name, kind, _ in captured:
         cap.capture_items.new(kind, name)
     b.link(gin["Geometry"], inp(cap, "Geometry", "GEOMETRY"))
@@ -575,16 +608,19 @@ def _build_group(ng, degree: int) -> None:
     geo = _remove_attributes(b, outp(cap, "Geometry", "GEOMETRY"), "*")
     geo = _store(b, geo, COLOR_ATTR, got["Colour"], "FLOAT_VECTOR")
     geo = _store(b, geo, ALPHA_ATTR, got["Opacity"], "FLOAT")
-    moved = b.node("GeometryNodeSetPosition")  # a refined cloud's centres as drawn
+    moved = b.node("GeometryNodeSetPosition")
     b.link(geo, inp(moved, "Geometry", "GEOMETRY"))
     b.link(got["Centre"], inp(moved, "Position", "VECTOR"))
-    geo = outp(moved, "Geometry", "GEOMETRY")
+    return outp(moved, "Geometry", "GEOMETRY"), got
 
-    # Ellipsoids: an icosphere enclosing the unit sphere, instanced per point with the Gaussian's
-    # rotation and scale (instance space = its whitened frame). Renders (Camera-Facing): a disc
-    # instead, turned within that frame to face the scene camera, so that a ray meets each
-    # Gaussian once, where it crosses the plane through the centre; the material's closest
-    # approach does not depend on the primitive's shape or turn.
+
+def _ellipsoids(b: _Builder, gin, geo, got: dict, is_viewport):
+    """The shown points as ellipsoids: an icosphere enclosing the unit sphere, instanced per point
+    with the Gaussian's rotation and scale (instance space = its whitened frame). Renders
+    (Camera-Facing): a disc instead, turned within that frame to face the scene camera, so that a
+    ray meets each Gaussian once, where it crosses the plane through the centre; the material's
+    closest approach does not depend on the primitive's shape or turn."""
+    m = b.math
     radius_ico = m("MULTIPLY_ADD", m("POWER", _ICO_ENCLOSE[1], m("SUBTRACT", 1.0, gin["Detail"])),
                    _ICO_ENCLOSE[0], 1.0)
     ico = b.node("GeometryNodeMeshIcoSphere")
@@ -615,20 +651,17 @@ def _build_group(ng, degree: int) -> None:
     b.link(outp(inst, "Instances", "GEOMETRY"), inp(rotate, "Instances", "GEOMETRY"))
     b.link(facing, inp(rotate, "Selection", "BOOLEAN"))
     b.link(outp(turned, "Matrix", "MATRIX"), inp(rotate, "Transform", "MATRIX"))
+    return outp(rotate, "Instances", "GEOMETRY")
 
-    # Points only: a point cloud; radius sqrt(2) x the mean std-dev (a disc of that radius holds
-    # the Gaussian's integrated opacity), constant alpha.
+
+def _points_only(b: _Builder, gin, geo, got: dict):
+    """The shown points as a point cloud: radius sqrt(2) x the mean std-dev (a disc of that radius
+    holds the Gaussian's integrated opacity), constant alpha."""
     pts = b.node("GeometryNodeMeshToPoints")
     b.link(geo, inp(pts, "Mesh", "GEOMETRY"))
     b.link(got["Shown"], inp(pts, "Selection", "BOOLEAN"))
-    b.link(m("MULTIPLY", b.vmath("LENGTH", got["Std"]), math.sqrt(2.0 / 3.0)), inp(pts, "Radius", "VALUE"))
-    points = _set_material(b, outp(pts, "Points", "GEOMETRY"), gin["Material"])
-
-    shown = b.switch("GEOMETRY", points_only, outp(rotate, "Instances", "GEOMETRY"), points)
-    b.link(shown, inp(gout, "Geometry", "GEOMETRY"))
-    b.arrange()
-    ng["gvae_nodes_version"] = NODES_VERSION
-    ng["gvae_sh_degree"] = degree
+    b.link(b.math("MULTIPLY", b.vmath("LENGTH", got["Std"]), math.sqrt(2.0 / 3.0)), inp(pts, "Radius", "VALUE"))
+    return _set_material(b, outp(pts, "Points", "GEOMETRY"), gin["Material"])
 
 
 # ------------------------------------------------------------------ Blender's own Gaussian splats (5.3+)

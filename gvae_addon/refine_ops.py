@@ -38,9 +38,6 @@ class JobCancelled(Exception):
     """Raised inside the worker (from its progress report) when the job is cancelled."""
 
 
-RefineCancelled = JobCancelled  # (the name the Refine job's callers knew first)
-
-
 class BackgroundJob:
     """Work in a worker thread that Blender's main thread follows (the modal operator, `execute` and
     the tests drive it the same way, without a window):
@@ -142,7 +139,7 @@ class CoreJob(BackgroundJob):
     Subclasses set `label` and define `_load()` (the core function, imported on the main thread),
     `_run(function, cloud, progress)` (in the worker) and `_write(obj)` / `_info()` (main thread).
     Only the worker thread runs torch: once the main thread has run torch's parallel loops, their
-    idle OpenMP threads make the worker's twice as slow (measured on two cores).
+    idle OpenMP threads slow the worker's down.
     """
 
     unchanged = "the object is unchanged"
@@ -269,10 +266,10 @@ class RefineJob(CoreJob):
 class CompactJob(CoreJob):
     """`gvae_core.compaction.compact` on a splat object (`keep` a fraction or `count` Gaussians):
     with the capture's photos at `images` (any capture `gvae train` reads) fine-tuned on them, as
-    `gvae compact --images`; else scored from
-    the capture's cameras: those at `cameras` (a capture, a transforms.json, the reference 3DGS's
-    cameras.json) when given, else with `found_cameras` those its training left beside the file it
-    was imported from (`capture.training_cameras`), else views placed around it. Each remaining
+    `gvae compact --images`; else scored from the capture's cameras: those at `cameras` (a capture,
+    a transforms.json, the reference 3DGS's cameras.json) when given, else with `found_cameras`
+    those its training left beside the file it was imported from, else views placed around it
+    (`compaction.compaction_inputs` decides, as for `gvae compact`). Each remaining
     Gaussian keeps the `gvae_step` of the input row it stands for. `removal` None: the core's
     default (`compaction.default_method`). Paths are resolved (`//`) here, on the main thread.
     `compact`: a stand-in for the core function (tests)."""
@@ -294,24 +291,17 @@ class CompactJob(CoreJob):
 
     def _run(self, compact, cloud, progress):
         # (in the worker: reading a capture's photos takes seconds)
-        from gvae_core.capture import load_cameras, training_cameras  # noqa: PLC0415
-        from gvae_core.compaction import fine_tune_images  # noqa: PLC0415
+        from gvae_core.compaction import compaction_inputs  # noqa: PLC0415
 
         if self.images_path:
             progress(0.0, f"reading the photos of {self.images_path}")
-            images = fine_tune_images(cloud, self.images_path)
-            self.notes.append(f"fine-tuned on {len(images)} photos of {self.images_path} at {images.cameras[0].height} "
-                              "px")
-            return compact(cloud, keep=self.keep, count=self.count, removal=self.removal, seed=self.seed,
-                           images=images, progress=progress)
-        cameras = None
-        if self.cameras_path:
-            cameras = load_cameras(self.cameras_path)
-            self.notes.append(f"scoring from {len(cameras)} cameras of {self.cameras_path}")
-        elif self.source:
-            cameras, self.notes = training_cameras(self.source, cloud)
-        return compact(cloud, keep=self.keep, count=self.count, removal=self.removal, distill=self.distill,
-                       seed=self.seed, cameras=cameras, progress=progress)
+        given = compaction_inputs(cloud, source=self.source or None, images=self.images_path or None,
+                                  cameras=None if self.images_path else self.cameras_path or None)
+        self.notes = given.notes
+        return compact(cloud, keep=self.keep, count=self.count, removal=self.removal, seed=self.seed,
+                       cameras=given.cameras, images=given.images,
+                       distill=self.distill if given.images is None else "auto",  # (photos: their fine-tuning)
+                       progress=progress)
 
     def _write(self, obj) -> None:
         r = self.result
@@ -525,7 +515,7 @@ REMOVAL_ITEMS = (("AUTO", "Auto", "Merge; with Photos, what the photos set aside
                  ("PRUNE", "Prune", "Drop the Gaussians with the lowest scores"))
 COMPACT_IMAGES_DESCRIPTION = ("The capture's photos (a COLMAP capture, a transforms.json with its images, a "
                               "NeRF-Synthetic folder): remove, then fine-tune on them until the photos set aside stop "
-                              "improving (1-3 minutes for 50,000 Gaussians), as gvae compact --images; empty: without")
+                              "improving (minutes), as gvae compact --images; empty: without")
 CAMERAS_DESCRIPTION = ("The capture's cameras to score from (a COLMAP capture folder, a transforms.json, the reference "
                        "3DGS's cameras.json); empty: the training cameras found beside the imported file, else views "
                        "placed around the object")

@@ -32,9 +32,8 @@ from . import nodes
 
 #: The view transform that shows display-referred colours as they are.
 VIEW_TRANSFORM = "Standard"
-#: Cycles' transparent bounce limit set on import: 256 Gaussians along one ray in a render.
-#: Measured on the trained chair of tests/blender/test_display.py against gvae_core.render: 8
-#: (Cycles' default) -> 12.9 dB, 64 -> 23.2 dB, 128 -> 37.8 dB, 256 -> 47.5 dB.
+#: Cycles' transparent bounce limit set on import: 256 Gaussians along one ray in a render (Cycles'
+#: default of 8 stops a ray long before a splat's Gaussians are all met; docs/benchmarks/blender.md).
 TRANSPARENT_BOUNCES = 256
 FOCAL_INPUT = "Focal Length (px)"
 

@@ -132,25 +132,24 @@ def _stamp(folder: str):
     return tuple(stamps)
 
 
+#: What New from Photos calls the work of `gvae_core.capture.sfm.pending_work` (its progress says it).
+PYCOLMAP_WORK = {"structure from motion": "structure from motion", "triangulation": "points for the photos' poses"}
+
+
 @functools.lru_cache(maxsize=16)
 def _pycolmap_work(folder: str, stamp) -> str | None:
-    from gvae_core.capture import read_capture  # noqa: PLC0415 - numpy only
-    from gvae_core.capture.sfm import needs_sfm  # noqa: PLC0415 - pycolmap is imported only when SfM runs
+    from gvae_core.capture.sfm import pending_work  # noqa: PLC0415 - pycolmap is imported only when SfM runs
 
-    if needs_sfm(folder):
-        return "structure from motion"
     try:
-        capture = read_capture(folder)
+        work = pending_work(folder, points=True)
     except (ValueError, OSError):
         return None  # (not a capture: the job says what is wrong)
-    if capture.points is None and capture.kind != "nerf-synthetic" and capture.opaque():
-        return "points for the photos' poses"
-    return None
+    return PYCOLMAP_WORK.get(work)
 
 
 def pycolmap_work(folder: str) -> str | None:
     """What New from Photos needs pycolmap for in `folder`, as `gvae train` does it first
-    (`gvae_core.capture.sfm.ensure_capture`): "structure from motion" for photos without cameras,
+    (`gvae_core.capture.sfm.pending_work`): "structure from motion" for photos without cameras,
     "points for the photos' poses" (triangulation) for a capture of photos with poses and no points, or
     None. Remembered per folder until its contents change (the panel asks at every redraw)."""
     return _pycolmap_work(folder, _stamp(folder)) if folder and os.path.isdir(folder) else None

@@ -156,22 +156,21 @@ NATIVE_NOTE = (
     "adds the anti-aliasing and a refinement for",
     "the scene camera. Not as the add-on's splat:",
     "Cycles blends overlapping Gaussians in its own",
-    "order (chair: 38.1 dB to gvae render, the",
-    "add-on's splat 44.8); no Scale Factor, Display",
+    "order (further from gvae render than the",
+    "add-on's splat); no Scale Factor, Display",
     "Fraction, Points Only or Min Opacity.",
 )
 
 
-#: What Refine does and does not do (README, "What to expect"), under its button.
+#: What Refine does and does not do (docs/refine.md), under its button.
 REFINE_NOTE = (
     "Resizes each Gaussian for viewing above its",
     "training resolution, from how it changed while",
     "training; the training-resolution picture stays.",
-    "Held-out scenes: +0.22 dB at 2x, every scene",
-    "up; aimed at +0.5 (README: What to expect).",
+    "What it gains: docs/refine.md.",
 )
 
-#: What Compact does (README, "Compaction"), under its button.
+#: What Compact does (docs/compact.md), under its button.
 COMPACT_NOTE = (
     "Drops what no view sees and the tenth the",
     "picture needs least (by the Hessian), merges",
@@ -184,7 +183,7 @@ COMPACT_NOTE = (
     "Photos: fine-tuned on the capture's photos",
     "instead, as gvae compact --images. Warns",
     "when the views miss part of it",
-    "(README: Compaction).",
+    "(docs/compact.md).",
 )
 
 

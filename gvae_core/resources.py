@@ -1,36 +1,38 @@
-"""Will a refine fit in memory? An estimate of its peak from the cloud's size, and the memory free.
+"""Will a job fit in memory? An estimate of its peak from its sizes, and the memory free.
 
-`refine` calls `check_refine_memory` before any work, so a cloud too large for the machine is
-refused at once with the estimate in the message, instead of being killed (or swapping the
-machine to a halt) minutes later. The estimate is linear in the counts it depends on, with the
-coefficients measured by `python -m gvae_core.benchmarks refine` (which prints the estimate
-beside the measured peak), rounded up. numpy only.
+`refine`, `compact`, `gvae render` and training call a `check_*_memory` before any work, so a
+job too large for the machine is refused at once, with the estimate and what would fit in the
+message, instead of being killed by the system (or swapping the machine to a halt) minutes later.
+Each estimate is linear in the counts it depends on, with coefficients fitted to measured peaks
+and rounded up (the measurements: "Where the code's defaults come from" at the end of the job's
+page in docs/benchmarks/). numpy only.
 
 `reuse_freed_memory` is the other half of working at capture scale: a scope in which the memory
 of freed arrays is kept for the next ones instead of being handed back to the system and faulted
 in again page by page.
-
-`in_threads` is the CPU's share: numpy work over rows split into ranges run in threads (numpy's
-large operations and the compiled kernels release the GIL), so that it uses every core torch
-uses and works on pieces that stay in cache.
 """
 
 from __future__ import annotations
 
 import contextlib
 import ctypes
+import math
 import os
 import sys
 import threading
 from collections.abc import Iterator
 
+from . import parallel
 from .conventions import SH_REST_COUNTS
 
 __all__ = ["NotEnoughMemoryError", "available_memory", "estimate_refine_memory", "check_refine_memory",
            "estimate_compact_memory", "check_compact_memory", "estimate_image_fit_memory", "check_image_fit_memory",
-           "estimate_train_memory", "train_cap", "reuse_freed_memory"]
+           "estimate_render_memory", "check_render_memory", "estimate_train_memory", "check_train_memory",
+           "train_cap", "reuse_freed_memory"]
 
-#: Bytes of the Python process with torch and the models loaded, before any cloud.
+#: A refine: bytes of the Python process with torch and the models loaded, before any cloud; the
+#: coefficients below are fitted to the peaks `python -m gvae_core.benchmarks refine` prints beside
+#: the estimate (docs/benchmarks/refine.md).
 BASE_BYTES = 600 << 20
 #: Bytes per Gaussian, per float32 value it holds (14 + 3 K for SH rest K, plus its extra
 #: properties): the input, its checked copy and the output cloud.
@@ -45,11 +47,6 @@ MODEL_PER_LINEAGE = 4000
 #: Bytes per Gaussian given to the detail model (inputs, neighbours, activations in batches, the
 #: changes per octave of the output).
 DETAIL_PER_GAUSSIAN = 1000
-#: Measured (`python -m gvae_core.benchmarks refine`, example clouds, SH degree 3, budget auto,
-#: three refines in one process, fidelity check on): peaks of 0.61 GiB at 100k Gaussians, 2.44 GiB
-#: at 1M, 5.6 GiB at 3M; with the counts the budget selected these give 0.82, 2.67 and 6.8 GiB
-#: (3.1 GiB for 1M before scoring, when half the cloud is the most 'auto' can select).
-
 
 #: Bytes per Gaussian of a compaction's merging, per neighbour in its graph (edge ends, costs and
 #: the per-edge 3x3 temporaries of the cost), and per Gaussian (moments: mass, centre, covariance).
@@ -62,10 +59,8 @@ MERGE_PER_GAUSSIAN = 400
 #: cloud as torch tensors, its changes per octave with their gradients and Adam's two moments, the
 #: copies each step draws from and the render's per-Gaussian state; per image pixel: the images and
 #: their composites (float32 RGB); per pixel a step draws (at 2^octave times the images' size): the
-#: render's per-pixel state kept for the backward pass. Fitted to the peaks of `python -m
-#: gvae_core.benchmarks superres` (whole images, one a step, 300 steps): 50k Gaussians on 43 images
-#: of 320x240 0.86 GiB, 100k on 100 of 500x375 1.71 GiB, 1M on 40 of 720x540 7.45 GiB; these give
-#: 0.90, 1.79 and 7.49 GiB (1-5% above each).
+#: render's per-pixel state kept for the backward pass. Fitted to `python -m gvae_core.benchmarks
+#: superres` peaks (docs/benchmarks/refine-images.md).
 IMAGE_FIT_BASE_BYTES = 400 << 20
 IMAGE_FIT_PER_VALUE = 98
 IMAGE_FIT_PER_PIXEL = 28
@@ -75,17 +70,34 @@ IMAGE_FIT_PER_DRAWN_PIXEL = 440
 #: Training (`gvae_core.train`): bytes per Gaussian per value it holds (the parameters, their
 #: gradients and Adam's two moments, the densification statistics and the renderer's per-Gaussian
 #: buffers of a step), and per pixel of the stage's training images (the images, their composites
-#: and one view's render buffers, spread over the views). Calibrated against the peaks of
-#: `gvae train` runs (BENCHMARKS.md, "Training on a real capture").
+#: and one view's render buffers, spread over the views). Fitted to `gvae train` peaks
+#: (docs/benchmarks/training.md).
 TRAIN_PER_VALUE = 56
 TRAIN_PER_PIXEL = 40
 #: The share of the available memory a run may fill with Gaussians (`train_cap`).
 TRAIN_MEMORY_SHARE = 0.7
 
 
+#: One render of a view (`gvae render`): the process with torch and the compiled kernels loaded;
+#: bytes per Gaussian (its projection, tile footprint and sort keys; the torch renderer's, when the
+#: compiled kernels are missing, are larger), plus a copy of its values (a refined cloud's fields as
+#: drawn); per pixel (the accumulated features in tiles, the image, alpha and depth, their float
+#: and 8-bit copies for the PNG); per pixel and thread (the compiled binning's per-thread tile
+#: histograms); per Gaussian-tile pair (its id; the torch renderer also keeps the pair's table row
+#: and sort). The pairs a view makes depend on the cloud: RENDER_PAIRS_PER_PIXEL is a dense one's
+#: (one pair per Gaussian at least), callers that measure the cloud's pass what they found.
+#: Fitted to peaks of renders by both renderers (docs/benchmarks/kernels.md).
+RENDER_BASE_BYTES = 512 << 20
+RENDER_PER_GAUSSIAN = {"compiled": 256, "torch": 512}
+RENDER_PER_PIXEL = 64
+RENDER_PER_PIXEL_PER_THREAD = 2
+RENDER_PER_PAIR = {"compiled": 8, "torch": 56}
+RENDER_PAIRS_PER_PIXEL = 16.0
+
+
 class NotEnoughMemoryError(ValueError):
-    """A refine or compaction that would need more memory than the machine has free (the message
-    says how much)."""
+    """A job that would need more memory than the machine has free (the message says how much,
+    and what would fit)."""
 
 
 def reset_peak_rss() -> bool:
@@ -191,10 +203,12 @@ def check_refine_memory(n: int, sh_degree: int = 3, **kwargs) -> int:
                   "Hessian views")
 
 
-def _check(need: int, what: str, advice: str) -> int:
-    """`need` bytes, or NotEnoughMemoryError when that is more than is available now."""
+def _check(need: int, what: str, advice) -> int:
+    """`need` bytes, or NotEnoughMemoryError when that is more than is available now. `advice`:
+    what to do instead, or a function of the bytes available that says it."""
     free = available_memory()
     if free is not None and need > free:
+        advice = advice(free) if callable(advice) else advice
         raise NotEnoughMemoryError(f"{what} needs about {_gib(need)} of memory, but only {_gib(free)} is available; "
                                    f"{advice}, or close other programs")
     return need
@@ -250,6 +264,68 @@ def estimate_train_memory(n: int, views: int, height: int, width: int, sh_degree
     `views` images of `height` x `width` pixels."""
     values = 14 + 3 * SH_REST_COUNTS[min(int(sh_degree), 3)]
     return int(BASE_BYTES + n * values * TRAIN_PER_VALUE + int(views) * int(height) * int(width) * TRAIN_PER_PIXEL)
+
+
+def check_train_memory(n: int, views: int, height: int, width: int, sh_degree: int = 3) -> int:
+    """The estimate of `estimate_train_memory`; raises NotEnoughMemoryError when it exceeds the
+    memory available now (skipped where that cannot be told), saying the largest image height at
+    which `n` Gaussians fit and the most Gaussians that fit at this height."""
+    values = 14 + 3 * SH_REST_COUNTS[min(int(sh_degree), 3)]
+
+    def advice(free: int) -> str:
+        per_height2 = int(views) * TRAIN_PER_PIXEL * int(width) / max(int(height), 1)  # bytes per height²
+        fitting_height = _root(free - BASE_BYTES - n * values * TRAIN_PER_VALUE, per_height2)
+        fitting_count = (free - estimate_train_memory(0, views, height, width, sh_degree)) // (values * TRAIN_PER_VALUE)
+        parts = ([f"train at --image-height {fitting_height} or lower"] if fitting_height >= 8 else []) + (
+            [f"grow to at most {fitting_count:,} Gaussians (--max-gaussians)"] if fitting_count >= 1000 else [])
+        return ", ".join(parts) or "train on fewer or smaller images"
+
+    return _check(estimate_train_memory(n, views, height, width, sh_degree),
+                  f"training {n:,} Gaussians (SH degree {sh_degree}) on {views} images of {width}x{height} px", advice)
+
+
+def _root(room: float, per_height2: float) -> int:
+    """The largest whole height h with h² per_height2 <= room (0 when none)."""
+    return int(math.sqrt(room / per_height2)) if room > 0 and per_height2 > 0 else 0
+
+
+def estimate_render_memory(n: int, height: int, width: int, sh_degree: int = 3, *, extra_values: int = 0,
+                           pairs_per_pixel: float | None = None, compiled: bool = True,
+                           threads: int | None = None) -> int:
+    """Estimated peak bytes of rendering `n` Gaussians of SH degree `sh_degree` into one image of
+    `height` x `width` pixels and writing it as a PNG, with the compiled kernels (`compiled`) or
+    the torch renderer, in `threads` threads (default: `parallel.count()`). `pairs_per_pixel`:
+    Gaussian-tile pairs per pixel (default RENDER_PAIRS_PER_PIXEL, a dense cloud's)."""
+    per_pixel, fixed = _render_terms(n, sh_degree, extra_values, pairs_per_pixel, compiled, threads)
+    return int(fixed + per_pixel * int(height) * int(width))
+
+
+def _render_terms(n: int, sh_degree: int, extra_values: int, pairs_per_pixel: float | None, compiled: bool,
+                  threads: int | None) -> tuple[float, float]:
+    """(bytes per pixel, bytes besides) of `estimate_render_memory`."""
+    kind = "compiled" if compiled else "torch"
+    values = 14 + 3 * SH_REST_COUNTS[min(int(sh_degree), 3)] + int(extra_values)
+    threads = parallel.count() if threads is None else max(1, int(threads))
+    density = RENDER_PAIRS_PER_PIXEL if pairs_per_pixel is None else max(float(pairs_per_pixel), 0.0)
+    per_pixel = RENDER_PER_PIXEL + RENDER_PER_PIXEL_PER_THREAD * threads + RENDER_PER_PAIR[kind] * density
+    fixed = RENDER_BASE_BYTES + n * (RENDER_PER_GAUSSIAN[kind] + 4 * values + RENDER_PER_PAIR[kind])
+    return per_pixel, fixed
+
+
+def check_render_memory(n: int, height: int, width: int, sh_degree: int = 3, **kwargs) -> int:
+    """The estimate of `estimate_render_memory` (same arguments); raises NotEnoughMemoryError when
+    it exceeds the memory available now (skipped where that cannot be told), saying the largest
+    height (the width in proportion) that would fit."""
+    def advice(free: int) -> str:
+        per_pixel, fixed = _render_terms(n, sh_degree, kwargs.get("extra_values", 0), kwargs.get("pairs_per_pixel"),
+                                         kwargs.get("compiled", True), kwargs.get("threads"))
+        fitting = _root(free - fixed, per_pixel * int(width) / max(int(height), 1))
+        if fitting < 16:
+            return "render a smaller part of the cloud"
+        return f"render at most {fitting} px high (--height {fitting})"
+
+    return _check(estimate_render_memory(n, height, width, sh_degree, **kwargs),
+                  f"rendering {n:,} Gaussians at {width}x{height} px", advice)
 
 
 def train_cap(views: int, height: int, width: int, sh_degree: int = 3, available: int | None = None) -> int:
@@ -318,7 +394,7 @@ class _AllocatorScope:
 #: Within: arrays freed by the C allocator stay in the process for the next ones (no separate
 #: mapping per large block, no trimming), so a sequence of large temporaries -- per-view tile
 #: pairs, tables and images of a million Gaussians -- faults its pages in once instead of every
-#: time (measured on the 1M-Gaussian refine: BENCHMARKS.md, "Refinement at capture scale"). When
+#: time (docs/benchmarks/refine.md has the 1M-Gaussian refine with and without it). When
 #: the outermost scope ends, the allocator is set to what its adaptive thresholds grow to anyway
 #: and the unused memory is handed back (`malloc_trim`), so nothing stays held. The context value
 #: says whether it could act (glibc only; elsewhere the scope does nothing). Process-wide: other

@@ -257,3 +257,38 @@ def test_train_refine_and_compact_warn_nothing_from_the_project(tmp_path, capsys
         assert main(["compact", str(stage), str(tmp_path / "c.ply"), "--keep", "0.5", "--distill", "5"]) == 0
     out = capsys.readouterr()
     assert "Warning" not in out.err, out.err
+
+
+def test_a_warning_is_one_line_without_the_source(tmp_path):
+    """As a user runs it: Python shows the warning (no test harness records it)."""
+    ply = write_ply(example_cloud(50), tmp_path / "c.ply")  # SH degree 3: a .splat keeps none of it
+    code = ("import sys, warnings\n"
+            "from gvae_core.cli import main\n"
+            "shown = warnings.formatwarning\n"
+            f"code = main(['convert', {str(ply)!r}, {str(tmp_path / 'c.splat')!r}])\n"
+            "warnings.warn('after the call')\n"
+            "sys.exit(code if warnings.formatwarning is shown else 3)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    first, *rest = proc.stderr.splitlines()
+    assert first.startswith("warning: ") and ".splat holds no view-dependent colour" in first
+    assert "UserWarning" not in first and ".py:" not in first
+    assert rest and "UserWarning: after the call" in rest[0]  # Python's own format again after the call
+
+
+def test_warnings_under_main_can_still_be_recorded(tmp_path):
+    ply = write_ply(example_cloud(50), tmp_path / "c.ply")
+    with pytest.warns(UserWarning, match="holds no view-dependent colour"):
+        assert main(["convert", str(ply), str(tmp_path / "c.splat")]) == 0
+
+
+def test_running_out_of_memory_midway_is_an_error_line(tmp_path, capsys, monkeypatch):
+    from gvae_core.cli import info  # noqa: PLC0415
+
+    def exhausted(args):
+        raise MemoryError("Unable to allocate 9.31 GiB for an array")
+
+    monkeypatch.setattr(info, "run", exhausted)
+    assert main(["info", str(tmp_path / "any.ply")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("gvae info: error: out of memory (Unable to allocate 9.31 GiB") and "Traceback" not in err

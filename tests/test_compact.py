@@ -356,7 +356,8 @@ def test_cli_fine_tunes_with_the_captures_images(tmp_path, capsys):
     assert main(["compact", str(src), str(out), "--keep", "0.5", "--images", str(folder), "--iterations", "2",
                  "--rounds", "1", "--views", "2", "--resolution", "16"]) == 0
     text = capsys.readouterr().out
-    assert "3 images at 16 px" in text and "round 1: 30 Gaussians" in text and len(read_ply(out)) == 30
+    assert f"fine-tuning on 3 photos of {folder} at 16 px" in text and "round 1: 30 Gaussians" in text
+    assert len(read_ply(out)) == 30
 
 
 def test_cli_scores_from_the_training_cameras_found_beside_the_file(tmp_path, capsys):
@@ -385,3 +386,40 @@ def test_cli_scores_from_the_training_cameras_found_beside_the_file(tmp_path, ca
     assert main(["compact", str(src), str(tmp_path / "moved.ply"), *args]) == 0
     out = capsys.readouterr().out
     assert "but they see 0% of" in out and "views placed around it instead" in out and "scoring from" not in out
+
+
+def test_one_function_says_where_the_cameras_and_photos_come_from(tmp_path):
+    """`compaction_inputs`, what `gvae compact` and Blender's Compact both call: the cameras asked
+    for, else those found beside the file unless views are to be placed, the photos when asked."""
+    import json  # noqa: PLC0415
+
+    from PIL import Image  # noqa: PLC0415
+
+    from gvae_core.capture.gs_cameras import write_gs_cameras  # noqa: PLC0415
+    from gvae_core.compaction import compaction_inputs  # noqa: PLC0415
+
+    cloud, front, back = _walled()
+    model = tmp_path / "model"
+    (model / "point_cloud" / "iteration_7").mkdir(parents=True)
+    write_gs_cameras([front, back], ["front", "back"], model / "cameras.json")
+    src = write_ply(cloud, model / "point_cloud" / "iteration_7" / "point_cloud.ply")
+    given = compaction_inputs(cloud, source=src, cameras=model / "cameras.json")
+    assert len(given.cameras) == 2 and given.images is None and not given.found
+    assert given.notes == [f"scoring from 2 cameras of {model / 'cameras.json'}"]
+    found = compaction_inputs(cloud, source=src)
+    assert found.found and len(found.cameras) == 2 and found.notes[-1].startswith("scoring from 2 training cameras")
+    np.testing.assert_array_equal(found.cameras[1].world_to_cam, given.cameras[1].world_to_cam)
+    for placed in (compaction_inputs(cloud, source=src, placed_views=True), compaction_inputs(cloud)):
+        assert placed.cameras is None and placed.images is None and placed.notes == [] and not placed.found
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    frames = []
+    for i, cam in enumerate((front, back, front)):
+        Image.new("RGB", (cam.width, cam.height), (90, 120, 150)).save(folder / f"r_{i}.png")
+        frames.append({"file_path": f"r_{i}", "transform_matrix": cam.to_blender_c2w().tolist()})
+    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": front.fov_x, "frames": frames}))
+    photos = compaction_inputs(cloud, source=src, images=folder, image_height=20)
+    assert len(photos.images) == 3 and photos.images.cameras[0].height == 20 and photos.cameras is None
+    assert photos.notes == [f"fine-tuning on 3 photos of {folder} at 20 px"] and not photos.found
+    held = compaction_inputs(cloud, images=folder, test_every=3, image_height=20)  # every 3rd held out
+    assert len(held.images) == 2

@@ -38,7 +38,7 @@ PACKAGE = "gvae_core"
 #: floor and those below it.
 FLOORS: tuple[tuple[str, frozenset[str]], ...] = tuple((name, frozenset(rooms.split())) for name, rooms in (
     # conventions and plain helpers that know no Gaussians
-    ("ground", "conventions camera atomic resources parallel quaternions losses plateau progress"),
+    ("ground", "conventions camera atomic resources parallel progress quaternions losses plateau"),
     # the cloud, its transforms and what says how it is drawn (anti-aliasing sizes, octaves)
     ("cloud", "cloud transform antialias octaves"),
     # files: splat formats, images and captures, generated scenes and examples

@@ -98,3 +98,14 @@ def test_render_with_training_cameras_or_resolution(tmp_path, capsys):
     assert "--train-resolution" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["render", str(ply), "--out", str(tmp_path / "o"), "--antialias", "msaa"])
+
+
+def test_a_render_too_large_for_memory_is_refused_before_any_work(tmp_path, capsys):
+    ply = write_ply(_cloud(), tmp_path / "c.ply")
+    out = tmp_path / "huge"
+    assert main(["render", str(ply), "--out", str(out), "--orbit", "2", "--height", "1000000"]) == 2
+    err = capsys.readouterr().err
+    assert "rendering 40 Gaussians at 1000000x1000000 px needs about" in err and "GiB is available" in err
+    fits = int(err.split("--height ")[1].split(")")[0])
+    assert 1000 < fits < 1000000
+    assert not out.exists()  # nothing written

@@ -16,8 +16,8 @@ from PIL import Image
 from gvae_core.capture import read_capture
 from gvae_core.capture.dataset import find_photos, triangulated_folder
 from gvae_core.capture import sfm
-from gvae_core.capture.sfm import (SfMCancelled, SfMError, SfMOptions, ensure_capture, needs_sfm, pose_pairs,
-                                   run_sfm, sequential_pairs)
+from gvae_core.capture.sfm import (SfMCancelled, SfMError, SfMOptions, ensure_capture, needs_sfm, pending_work,
+                                   pose_pairs, run_sfm, sequential_pairs)
 from gvae_core.cli import build_parser, main
 from gvae_core.cli.sfm import sfm_options
 from gvae_core.datasets import DatasetError
@@ -99,10 +99,30 @@ def test_sfm_recovers_the_cameras_up_to_a_similarity(solved):
     assert abs(capture.cameras[0].fx / CAMERAS[0].fx - 1) < 0.02  # the focal length found, not the guess
 
 
+def test_pending_work_says_what_ensure_capture_would_run(photos, tmp_path):
+    """Photos without cameras: structure from motion; posed photos over a transparent background
+    (an object that starts from its masks' hull) need no points; neither imports pycolmap."""
+    assert pending_work(photos) == "structure from motion" == pending_work(photos, points=False)
+    folder = tmp_path / "object"
+    folder.mkdir()
+    cam = CAMERAS[0]
+    rgba = np.zeros((cam.height, cam.width, 4), np.uint8)
+    rgba[40:80, 40:80] = 200  # an opaque square on a transparent background
+    Image.fromarray(rgba, "RGBA").save(folder / "a.png")
+    meta = {"fl_x": cam.fx, "fl_y": cam.fy, "cx": cam.cx, "cy": cam.cy, "w": cam.width, "h": cam.height,
+            "frames": [{"file_path": "a.png", "transform_matrix": cam.to_blender_c2w().tolist()}]}
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    assert pending_work(folder) is None
+    with pytest.raises(DatasetError):
+        pending_work(tmp_path / "missing")
+
+
 def test_a_solved_folder_is_reused_not_redone(solved):
     folder, report, _ = solved
     before = {p: p.stat().st_mtime_ns for p in folder.rglob("*")}
     assert not needs_sfm(folder) and ensure_capture(folder) is None
+    with pytest.warns(UserWarning, match="zz_elsewhere.png"):  # (reading the capture says what SfM left out)
+        assert pending_work(folder) is None
     assert {p: p.stat().st_mtime_ns for p in folder.rglob("*")} == before
     with pytest.raises(DatasetError, match="already"):
         run_sfm(folder)
@@ -122,7 +142,9 @@ def test_triangulation_with_known_cameras_puts_the_points_on_the_surface(photos,
             "frames": frames}
     (folder / "transforms.json").write_text(json.dumps(meta))
     assert read_capture(folder).points is None
+    assert pending_work(folder) == "triangulation" and pending_work(folder, points=False) is None
     assert ensure_capture(folder, OPTIONS, points=True) is None
+    assert pending_work(folder) is None
     points = read_capture(folder).points
     assert points is not None and len(points) > 50
     # Within a few tenths of a percent of the scene: the splats' texture itself sits that far off the

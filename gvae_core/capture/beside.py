@@ -1,7 +1,6 @@
 """The cameras a splat file's training left beside it, for the commands that score a cloud from
 views (compaction) when no capture is given: the capture's own cameras look where the photos did,
-placed views can only guess (on three trainings of the project's real capture, compacting to half
-from placed views cost 0.8-1.1 dB on its held-out photos, from its training cameras 0.2-0.3).
+placed views can only guess (which costs more on the photos held out: docs/benchmarks/compact.md).
 
 Where they are looked for, the first found wins:
 - the reference 3DGS's model folder: `cameras.json` beside the splat or up to two folders above it

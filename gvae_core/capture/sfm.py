@@ -25,7 +25,7 @@ with progress and cancellation, checks what came out and writes it where every 3
   agree.
 - `ensure_capture(path)`: what every command calls first: SfM when `path` is a folder of photos
   with no model (and, with `points`, triangulation when it has poses and no points); nothing when
-  there is nothing to do (the model is reused, not redone).
+  there is nothing to do (the model is reused, not redone). `pending_work(path)` says which, before.
 
 Progress: `progress(stage, fraction, message)` during every stage; `cancel()` is polled a few
 times a second and stops pycolmap inside a stage (`SfMCancelled`). pycolmap is imported only when
@@ -53,7 +53,8 @@ from ..datasets import DatasetError, resize_rgba
 from .dataset import PHOTO_SUFFIXES, TRIANGULATED, find_capture, find_photos, read_capture, triangulated_folder
 
 __all__ = ["SfMOptions", "SfMReport", "SfMError", "SfMCancelled", "MATCHERS", "CAMERA_MODES", "EXHAUSTIVE_UP_TO",
-           "MIN_REGISTERED", "SFM_IMAGE_SIZE", "TRIANGULATED", "needs_sfm", "run_sfm", "ensure_capture", "triangulate",
+           "MIN_REGISTERED", "SFM_IMAGE_SIZE", "TRIANGULATED", "needs_sfm", "needs_points", "pending_work", "run_sfm",
+           "ensure_capture", "triangulate",
            "pose_pairs", "PYCOLMAP_VERSION"]
 
 #: The pycolmap release this module is written and tested against (pyproject pins it).
@@ -627,17 +628,35 @@ def _posed_reconstruction(pycolmap, database: Path, cams, names: list[str]):
 
 # ------------------------------------------------------------------ the one call before reading
 
+def needs_points(capture) -> bool:
+    """Whether a capture read (`read_capture`) gets its points by triangulation: it has poses and
+    photos but no points, and is no NeRF-Synthetic object or other capture with transparency
+    (those start from their masks' hull instead)."""
+    return capture.points is None and capture.kind != "nerf-synthetic" and capture.opaque()
+
+
+def pending_work(path, points: bool = True) -> str | None:
+    """What `ensure_capture(path, points=points)` would run: "structure from motion" (a folder of
+    photos with no cameras), "triangulation" (`needs_points`) or None. Cheap: reads the capture's
+    cameras and one photo, imports no pycolmap; an unreadable capture raises as `read_capture` does."""
+    if needs_sfm(path):
+        return "structure from motion"
+    if points and needs_points(read_capture(path)):
+        return "triangulation"
+    return None
+
+
 def ensure_capture(path, options: SfMOptions | None = None, *, points: bool = False,
                    progress: Progress | None = None, cancel: Callable[[], bool] | None = None) -> SfMReport | None:
     """Make `path` a capture `read_capture` reads: SfM when it is a folder of photos with no
     cameras (`run_sfm`; the report returned), nothing when it has cameras (None). With `points`,
-    a capture with poses, photos and no points (no transparency: objects over a transparent
-    background start from their masks' hull instead) also gets triangulated points (`triangulate`)."""
+    a capture that `needs_points` also gets triangulated points (`triangulate`). What it will run
+    is `pending_work`."""
     if needs_sfm(path):
         return run_sfm(path, options, progress=progress, cancel=cancel)
     if points:
         capture = read_capture(path)
-        if capture.points is None and capture.kind != "nerf-synthetic" and capture.opaque():
+        if needs_points(capture):
             options = options or SfMOptions()
             triangulate(capture, max_image_size=options.max_image_size, threads=options.threads, progress=progress,
                         cancel=cancel)

@@ -114,8 +114,7 @@ def parse_keep(text: str) -> float:
 
 
 def run_compact(args: argparse.Namespace) -> int:
-    from ..capture import load_cameras, training_cameras  # noqa: PLC0415 - torch-free
-    from ..compaction import compact, distill_iterations, fine_tune_images  # noqa: PLC0415
+    from ..compaction import compact, compaction_inputs, distill_iterations  # noqa: PLC0415
     from ..formats import output_format, read_splat_file, write_splat_file  # noqa: PLC0415
 
     output_format(args.output)  # a name it cannot write is refused before any work
@@ -130,13 +129,13 @@ def run_compact(args: argparse.Namespace) -> int:
         prepare_capture(capture_path)
     t0 = time.perf_counter()
     cloud = read_splat_file(args.input, sanitize=args.sanitize)
-    cameras = load_cameras(args.cameras, args.test_every) if args.cameras is not None else None
-    if cameras is None and args.images is None and not args.placed_views:
-        cameras, lines = training_cameras(args.input, cloud)
-        for line in lines:
-            tail = " (--placed-views to place views instead)" if line.startswith("scoring from") else ""
-            print(f"gvae compact: {line}{tail}", flush=True)
-    images = None if args.images is None else fine_tune_images(cloud, args.images, args.test_every, args.image_height)
+    given = compaction_inputs(cloud, source=args.input, cameras=args.cameras, images=args.images,
+                              placed_views=args.placed_views, test_every=args.test_every,
+                              image_height=args.image_height)
+    for line in given.notes:
+        tail = " (--placed-views to place views instead)" if given.found and line.startswith("scoring from") else ""
+        print(f"gvae compact: {line}{tail}", flush=True)
+    cameras, images = given.cameras, given.images
     t_read = time.perf_counter() - t0
     progress = progress_lines()
     result = compact(cloud, keep=keep, count=args.count, tolerance=args.tolerance, cameras=cameras, views=args.views,
@@ -149,10 +148,7 @@ def run_compact(args: argparse.Namespace) -> int:
     write_splat_file(result.cloud, args.output)
     t_write = time.perf_counter() - t0
     size_in, size_out = args.input.stat().st_size, args.output.stat().st_size
-    print(f"read {args.input} in {t_read:.2f} s"
-          + (f"; {len(cameras)} capture cameras from {args.cameras}" if cameras is not None else "")
-          + (f"; {len(images)} images at {images.cameras[0].height} px from {args.images}" if images is not None
-             else ""))
+    print(f"read {args.input} in {t_read:.2f} s")
     print(result.summary())
     for k, r in enumerate(result.rounds, 1):
         print(f"  round {k}: {r['count']:,} Gaussians, fine-tuned {r['seconds']:.1f} s ({r['iterations']:,} "

@@ -111,21 +111,15 @@ def run(args: argparse.Namespace) -> int:
         background = cloud.background or (0.0, 0.0, 0.0)
         print(f"background {','.join(f'{v:g}' for v in background)} ("
               + ("the one the cloud was trained over)" if cloud.background else "the file does not say; black)"))
-    if args.cameras is not None:
-        capture = read_capture(args.cameras, images=False)
-        cams, names = capture.cameras, capture.names
-        if args.height:
-            cams = [c.scaled(args.height) for c in cams]
-    else:
-        cams = orbit_cameras(np.asarray(cloud.means, np.float64), 8 if args.orbit is None else args.orbit,
-                             args.height or 400, args.elevation)
-        names = [f"orbit_{i:03d}" for i in range(len(cams))]
+    cams, names = _cameras(args, cloud)
     if train_cams is not None or args.train_resolution is not None:
         train_cams = cameras_at_height(cams if train_cams is None else train_cams, args.train_resolution)
         cloud = with_training_cameras(cloud, train_cams, trained=args.trained)
         key = FILTER_KEY if args.trained == "mip" else DILATION_KEY
         print(f"{key} from {len(train_cams)} training camera(s) at {train_cams[0].width}x{train_cams[0].height}")
     settings = RenderSettings() if args.antialias is None else RenderSettings(antialias=args.antialias)
+    if device.type == "cpu":  # (on a GPU its own memory is the limit, which torch reports)
+        check_views_memory(cloud, cams, settings, args.sh_degree)
     cloud = cloud.to_torch(device=device)
     from PIL import Image
 
@@ -135,7 +129,60 @@ def run(args: argparse.Namespace) -> int:
         start = time.perf_counter()
         out = render(cloud, cam, background=background, sh_degree=args.sh_degree, settings=settings)
         pixels = (out.image.clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+        del out
         target = args.out / f"{i:0{width}d}_{Path(name).stem}.png"
         atomic_write(target, lambda f, p=pixels: Image.fromarray(p).save(f, format="PNG"))
         print(f"{target} ({cam.width}x{cam.height}, {time.perf_counter() - start:.2f} s)")
     return 0
+
+
+def _cameras(args: argparse.Namespace, cloud) -> tuple[list[Camera], list[str]]:
+    """The cameras to render and their names: the capture's (--cameras; at --height), else --orbit's."""
+    if args.cameras is not None:
+        capture = read_capture(args.cameras, images=False)
+        cams, names = capture.cameras, capture.names
+        if args.height:
+            cams = [c.scaled(args.height) for c in cams]
+        return cams, names
+    cams = orbit_cameras(np.asarray(cloud.means, np.float64), 8 if args.orbit is None else args.orbit,
+                         args.height or 400, args.elevation)
+    return cams, [f"orbit_{i:03d}" for i in range(len(cams))]
+
+
+#: The heights of the two small renders whose tile pairs say how many pairs a larger one makes.
+PROBE_HEIGHTS = (512, 1024)
+
+
+def check_views_memory(cloud, cams: list[Camera], settings, sh_degree: int | None = None) -> None:
+    """Refuse (`resources.NotEnoughMemoryError`, saying the largest height that fits) views too
+    large to render in the memory available now, before any is drawn: each size once, estimated
+    for a dense cloud, and where that does not fit, again with the pairs this cloud makes."""
+    from ..rendering.compiled import use_compiled
+    from ..resources import NotEnoughMemoryError, check_render_memory
+
+    degree = cloud.sh_degree if sh_degree is None else min(int(sh_degree), cloud.sh_degree)
+    extra = sum(int(np.prod(np.shape(v)[1:], dtype=np.int64)) for v in cloud.extra.values())
+    sizes = {(c.height, c.width): c for c in cams}
+    how = {"extra_values": extra, "compiled": use_compiled(settings.kernels, "cpu", settings.dtype)}
+    for (h, w), cam in sorted(sizes.items(), key=lambda kv: -kv[0][0] * kv[0][1]):
+        try:
+            check_render_memory(len(cloud), h, w, degree, **how)
+        except NotEnoughMemoryError:
+            check_render_memory(len(cloud), h, w, degree, pairs_per_pixel=_pairs_per_pixel(cloud, cam, settings,
+                                                                                            sh_degree), **how)
+
+
+def _pairs_per_pixel(cloud, cam: Camera, settings, sh_degree: int | None) -> float:
+    """Gaussian-tile pairs per pixel that `cloud` makes seen through `cam`, from the pairs of two
+    small renders (binned, not drawn): the rise in pairs per pixel between them, which falls as
+    the image grows, carried to `cam`'s size (so an overestimate beyond them)."""
+    from ..rendering import prepare_view
+
+    counts = []
+    for height in PROBE_HEIGHTS:
+        view = cam.scaled(height)
+        counts.append((view.width * view.height, prepare_view(cloud, view, settings, sh_degree=sh_degree)[1].num_pairs))
+    (px1, p1), (px2, p2) = counts
+    rise = max(p2 - p1, 0) / max(px2 - px1, 1)
+    pixels = cam.width * cam.height
+    return max(p2 + rise * (pixels - px2) - len(cloud), 0.0) / pixels

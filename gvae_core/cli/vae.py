@@ -8,11 +8,17 @@ import time
 from pathlib import Path
 
 from ..capture import DEFAULT_RESOLUTION, DEFAULT_VIEWS
+from ..progress import progress_bar
 from . import progress_lines
 from .sfm import prepare_capture
 
 
 def register(subparsers) -> None:
+    _register_fit(subparsers)
+    _register_refine(subparsers)
+
+
+def _register_fit(subparsers) -> None:
     p = subparsers.add_parser(
         "fit-vae", help="train the geometry and appearance lineage VAEs from training runs",
         description="Train both lineage VAEs on the stage transitions of one or more progressive "
@@ -36,6 +42,8 @@ def register(subparsers) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_fit)
 
+
+def _register_refine(subparsers) -> None:
     r = subparsers.add_parser(
         "refine", help="refine a 3DGS PLY past its training resolution",
         description="detail (default): the detail model says how each Gaussian changes per octave above its "
@@ -65,6 +73,15 @@ def register(subparsers) -> None:
                    "IN.ply's are used")
     r.add_argument("--stage", type=int, default=None, metavar="K",
                    help="the lineage stage IN.ply is (default: found from its gvae_id values and positions)")
+    _add_hessian_arguments(r)
+    _add_image_arguments(r)
+    r.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
+    r.add_argument("--sanitize", action="store_true", help="drop non-finite Gaussians of IN.ply first")
+    r.set_defaults(func=run_refine)
+
+
+def _add_hessian_arguments(r) -> None:
+    """refine's options of the Hessian scoring (--method vae) and of the fidelity check."""
     r.add_argument("--cameras", type=Path, default=None, metavar="PATH",
                    help="the capture's cameras for the Hessian: a transforms*.json file or a COLMAP sparse model "
                    "(folder with cameras/images .bin or .txt); default: views placed around the cloud")
@@ -77,6 +94,10 @@ def register(subparsers) -> None:
                    help="largest colour change (0..1) a refined lineage may make at the training sampling rate; "
                    "those above are put back as they were (default: the method's, fidelity.DEFAULT_TOLERANCES; "
                    "off: keep everything the models did)")
+
+
+def _add_image_arguments(r) -> None:
+    """refine's options of the fit to the capture's images (--images)."""
     r.add_argument("--images", type=Path, default=None, metavar="DATASET",
                    help="detail: the capture's training images (a COLMAP capture, a transforms.json with its images "
                    "or a NeRF-Synthetic folder: what gvae train reads): every Gaussian's changes per octave are fitted "
@@ -99,9 +120,6 @@ def register(subparsers) -> None:
                    "more off; on exact cameras it costs a little)")
     r.add_argument("--exposure-correction", action="store_true",
                    help="with --images: fit an affine colour per image (exposure or white balance that varies)")
-    r.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
-    r.add_argument("--sanitize", action="store_true", help="drop non-finite Gaussians of IN.ply first")
-    r.set_defaults(func=run_refine)
 
 
 def run_fit(args: argparse.Namespace) -> int:
@@ -124,22 +142,16 @@ def run_fit(args: argparse.Namespace) -> int:
           f"({len(args.runs)} run(s){', + synthetic' if args.synthetic > 0 else ''}); "
           f"{len(args.holdout)} held-out run(s)")
     config = FitConfig(steps=args.steps, batch=args.batch, lr=args.lr, seed=args.seed)
-    bar = None
-    if not args.quiet:
-        from tqdm import tqdm
-
-        bar = tqdm(total=config.steps, desc="fit-vae", unit="step")
+    bar = progress_bar(config.steps, "fit-vae", enabled=not args.quiet, unit="step")
 
     def progress(step: int, total: int, record: dict) -> None:
-        if bar is not None:
-            bar.update(1)
-            if step % 50 == 0 or step == total:
-                bar.set_postfix(loss=f"{record['total']:.4g}", mse=f"{record['mse']:.3g}",
-                                pos=f"{record['position_rmse']:.3g}")
+        if step % 50 == 0 or step == total:
+            bar.set_postfix(loss=f"{record['total']:.4g}", mse=f"{record['mse']:.3g}",
+                            pos=f"{record['position_rmse']:.3g}")
+        bar.update(1)
 
-    result = fit(train, config, model=model, progress=progress)
-    if bar is not None:
-        bar.close()
+    with bar:
+        result = fit(train, config, model=model, progress=progress)
     model = result.model
     t0 = time.perf_counter()
     metrics = {"train": evaluate(model, train)}

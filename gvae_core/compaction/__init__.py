@@ -60,6 +60,7 @@ from .finetune import (AUTO_DISTILL, AUTO_DISTILL_MAX, AUTO_DISTILL_SECONDS, CHE
                        compact_with_images, fine_tune_height, fine_tune_images, own_renders, set_aside,
                        still_gaining)
 from .graph import NEIGHBOURS, owner_root
+from .inputs import CompactInputs, compaction_inputs
 from .merge import merge_groups, merge_groups_reference, ordered
 from .moments import COLOUR_WEIGHT
 from .removal import PRUNE_FRACTION, REMOVALS, removal_groups, target_count
@@ -68,7 +69,8 @@ from .scoring import SCORES, UNSEEN, compaction_scores, pixel_hits, pixel_hits_r
 from .tolerance import tolerance_count
 from .views import CompactionViews, compaction_views, compare, sight
 
-__all__ = ["SCORES", "REMOVALS", "CompactResult", "CompactionViews", "compact", "compaction_scores",
+__all__ = ["SCORES", "REMOVALS", "CompactInputs", "CompactResult", "CompactionViews", "compact", "compaction_inputs",
+           "compaction_scores",
            "compaction_views", "default_iterations", "default_method", "distill_iterations", "fine_tune_height",
            "fine_tune_images", "merge_groups", "merge_groups_reference", "own_renders", "owner_root", "pixel_hits",
            "pixel_hits_reference", "removal_groups", "set_aside", "target_count", "TuningOptions", "AUTO_DISTILL",

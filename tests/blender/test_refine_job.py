@@ -150,5 +150,5 @@ def test_compact_scores_from_the_cameras_found_beside_the_imported_file(extensio
     assert res["got"] == [[3, None, "merge"], [None, None, "merge"], [2, None, "merge"], [None, 4, None]]
     assert "scoring from 3 training cameras from" in res["notes"][0][-1] and res["notes"][1] == []
     assert res["notes"][2] == [f"scoring from 2 cameras of {tmp_path / 'two.json'}"]
-    assert res["notes"][3][0].startswith(f"fine-tuned on 4 photos of {photos} at ")
+    assert res["notes"][3][0].startswith(f"fine-tuning on 4 photos of {photos} at ")
     assert res["tuned"][:3] == [[], [], []] and res["tuned"][3][0]["psnr_after"] == 21.5
