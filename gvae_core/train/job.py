@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..capture import Capture, open_capture, read_capture
-from ..capture.sfm import SfMOptions, needs_sfm
+from ..capture.sfm import SfMOptions, pending_work
 from ..progress import say
 from .config import TrainConfig
 from .data import training_data
@@ -56,9 +56,10 @@ def train_capture(path, config: TrainConfig, out_dir, *, downscale: float | None
     the whole job) and "message". `cancel()`, polled as it goes: True
     stops it (`TrainingCancelled`; what `out_dir` holds resumes)."""
     points = init_points is None and config.init in ("auto", "sfm")
-    share = SFM_SHARE if needs_sfm(path) else 0.0
+    work = pending_work(path, points)
+    share = SFM_SHARE if work else 0.0
     emit = on_progress or (lambda event: None)
-    capture = _prepared(path, sfm, threads, points, progress, emit, share, cancel)
+    capture = _prepared(path, sfm, threads, points, progress, emit, work, cancel)
     if downscale is not None:
         if not downscale >= 1:
             raise ValueError(f"downscale must be 1 or more, got {downscale}")
@@ -83,12 +84,15 @@ def train_capture(path, config: TrainConfig, out_dir, *, downscale: float | None
     return CaptureTraining(result, config, cameras, capture.sfm_report)
 
 
-def _prepared(path, sfm: SfMOptions | None, threads: int | None, points: bool, progress: bool, emit, share: float,
-              cancel) -> Capture:
-    """The capture at `path`, made one first where it needs structure from motion (said)."""
-    work = "structure from motion" if share else "points for the photos' poses"
-    if share and progress:
+def _prepared(path, sfm: SfMOptions | None, threads: int | None, points: bool, progress: bool, emit,
+              work: str | None, cancel) -> Capture:
+    """The capture at `path`, made one first where it needs structure from motion or triangulation
+    (`work`, said)."""
+    share = SFM_SHARE if work else 0.0
+    if work == "structure from motion" and progress:
         say(f"{path}: photos and no cameras: structure from motion (pycolmap, CPU)")
+    elif work and progress:
+        say(f"{path}: poses and no points: points triangulated with the poses (pycolmap, CPU)")
     options = sfm or SfMOptions(threads=threads)
     last = [0.0, ""]
 

@@ -28,7 +28,7 @@ from ..initialization import coverage, initial_cloud, start_points
 from ..lineage import Lineage
 from ..progress import progress_bar, say
 from ..rendering import RenderSettings, resolve_device
-from ..resources import current_rss_mb, estimate_train_memory, peak_rss_mb, reset_peak_rss
+from ..resources import check_train_memory, current_rss_mb, estimate_train_memory, peak_rss_mb, reset_peak_rss
 from .config import TrainConfig
 from .data import TrainingData, split_validation, training_data
 from .evaluation import stage_scores, training_targets
@@ -174,6 +174,10 @@ def _train_stage(run: _Run, s: int) -> None:
     if all_views is None or len(all_views) == 0:
         raise ValueError("train_progressive: no training views")
     views, validation = split_validation(all_views, config.validation_views)
+    if s == run.lineage.n_stages:  # the first stage this call trains: will the last one fit?
+        last = views.cameras[0].scaled(config.resolutions[-1])
+        check_train_memory(gaussian_limit(config, len(all_views), last)[0], len(all_views), last.height, last.width,
+                           config.sh_degree)
     rng = np.random.default_rng([config.seed, s])
     gen = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
     model, start = _stage_model(run, s, views, validation)
