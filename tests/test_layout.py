@@ -27,6 +27,7 @@ gvae_core, gvae_addon or tools outside `conventions.py`, but where `SIGMOID_ELSE
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from collections import defaultdict
 from pathlib import Path
@@ -266,8 +267,14 @@ def sigmoid_files(root: Path = ROOT) -> list[Path]:
 
 # ------------------------------------------------------------------------------ tests
 
+@functools.lru_cache(maxsize=1)
+def _graph() -> tuple[dict[str, set[str]], list[tuple[str, str, str]]]:
+    """The project's import graph, read once for all the tests below (none of them changes it)."""
+    return import_graph()
+
+
 def test_every_module_has_a_floor():
-    edges, _ = import_graph()
+    edges, _ = _graph()
     homeless = sorted({room(m) for m in edges} - set(FLOOR_OF))
     assert not homeless, f"rooms of gvae_core that FLOORS does not place: {homeless}"
     assert not set(FLOOR_OF) - {room(m) for m in edges}, "FLOORS names rooms that do not exist"
@@ -275,18 +282,18 @@ def test_every_module_has_a_floor():
 
 def test_no_upward_import():
     """Rendering knows nothing of the Hessian, training or refinement, and so on up the house."""
-    found = upward(import_graph()[0])
+    found = upward(_graph()[0])
     assert not found, "imports of a higher floor (FLOORS in tests/test_layout.py):\n" + "\n".join(found)
 
 
 def test_no_import_circle():
-    edges, _ = import_graph()
+    edges, _ = _graph()
     assert circles(room_graph(edges)) == [], "rooms that import each other"
     assert circles(edges) == [], "modules that import each other (function-local imports count)"
 
 
 def test_no_private_name_across_rooms():
-    _, private = import_graph()
+    _, private = _graph()
     assert not private, "private names imported from another room:\n" + "\n".join(map(str, private))
 
 
