@@ -1,4 +1,4 @@
-"""A real capture trained from its photos alone and from its poses without points (issue 49's figures,
+"""A real capture trained from its photos alone and from its poses without points (the figures of
 docs/benchmarks/training.md "From a folder of photos"): builds the two folders from a COLMAP capture,
 then runs `gvae sfm` (timed alone) and `gvae train` on each in its own process, and tabulates the
 held-out PSNR / SSIM per stage with wall and CPU seconds and the load.

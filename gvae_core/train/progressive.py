@@ -76,7 +76,7 @@ class _Run:
     lineage: Lineage
     log: list[dict[str, Any]]
     next_id: int
-    started: float = field(default_factory=time.perf_counter)
+    started: float  # time.perf_counter() when the call began (the time budget counts from there)
     stage_paths: list[Path] = field(default_factory=list)
     carried: dict | None = None  # Adam's state at the end of the previous stage
     final_size: np.ndarray | None = None
@@ -106,21 +106,20 @@ def train_progressive(data, config: TrainConfig | None = None, *, out_dir=None, 
     config, started = config or TrainConfig(), time.perf_counter()
     with torch_threads(threads):
         run = _begin(training_data(data, test, config.test_every), config, out_dir, init_points, resume, progress,
-                     resolve_device(device), on_progress)
-        run.started = started
+                     resolve_device(device), on_progress, started)
         for s in range(run.lineage.n_stages, len(config.resolutions)):
             _train_stage(run, s)
         return _result(run)
 
 
 def _begin(data: TrainingData, config: TrainConfig, out_dir, init_points, resume: bool, progress: bool,
-           device: torch.device, hook: ProgressHook | None) -> _Run:
+           device: torch.device, hook: ProgressHook | None, started: float) -> _Run:
     folder = RunFolder(out_dir) if out_dir is not None else None
     if folder is not None:
         folder.start(restart=not resume)
     state = folder.resume(config) if folder is not None else None
     lineage, log, next_id = state if state else (Lineage(), [], 0)
-    run = _Run(data, config, folder, device, progress, hook, init_points, lineage, log, next_id)
+    run = _Run(data, config, folder, device, progress, hook, init_points, lineage, log, next_id, started)
     if folder is not None:
         run.stage_paths = [folder.stage_path(s) for s in range(lineage.n_stages)]
     run.say(data.description)
