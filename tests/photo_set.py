@@ -77,15 +77,24 @@ def scene_cloud(seed: int = 0, spacing: float = 0.025) -> GaussianCloud:
                          sh_rest=np.zeros((n, 0, 3), np.float32))
 
 
-def ring_cameras(count: int = 20, width: int = 400, height: int = 300) -> list[Camera]:
-    """`count` cameras on a ring around the box at two heights, each looking near its centre."""
+def ring_cameras(count: int = 20, width: int = 400, height: int = 300, *, roll: float = 0.0,
+                 principal_point: tuple[float, float] = (0.0, 0.0)) -> list[Camera]:
+    """`count` cameras on a ring around the box at two heights, each looking near its centre, turned
+    about its axis by up to `roll` degrees (a hand-held camera's tilt), its principal point moved by
+    `principal_point` times the image's width and height from the centre (a phone's lens)."""
     cams = []
     for k in range(count):
         a = 2 * math.pi * k / count
         r, z = (3.2, 1.8) if k % 2 == 0 else (3.0, 1.3)
         target = (0.15 * math.cos(3 * a), 0.15 * math.sin(2 * a), 0.2)
-        cams.append(Camera.look_at((r * math.cos(a), r * math.sin(a), z), target, width=width, height=height,
-                                   fov_x=math.radians(62)))
+        cam = Camera.look_at((r * math.cos(a), r * math.sin(a), z), target, width=width, height=height,
+                             fov_x=math.radians(62))
+        t = math.radians(roll) * math.sin(1.7 * k)
+        turn = np.array([[math.cos(t), -math.sin(t), 0.0], [math.sin(t), math.cos(t), 0.0], [0.0, 0.0, 1.0]])
+        w2c = cam.world_to_cam.copy()
+        w2c[:3] = turn @ w2c[:3]
+        cams.append(Camera(w2c, cam.fx, cam.fy, cam.cx + principal_point[0] * width,
+                           cam.cy + principal_point[1] * height, width, height))
     return cams
 
 

@@ -69,6 +69,11 @@ EXHAUSTIVE_UP_TO = 200
 #: poses of a splat trained at a quarter of a phone photo or less, and 2-4x faster to match than at
 #: COLMAP's own 3200 (photos larger than that for SIFT give more features than the matcher needs).
 SFM_IMAGE_SIZE = 1000
+#: A principal point found further than this share of the image's size from its centre is not
+#: believed (the model keeps the centre).
+PRINCIPAL_POINT_LIMIT = 0.15
+#: ... and one that lowers the mean reprojection error by less than this share is not either.
+PRINCIPAL_POINT_GAIN = 0.02
 #: Fewer registered photos than this is no capture.
 MIN_REGISTERED = 3
 #: What to try when SfM does not register the photos (said in every such error).
@@ -441,6 +446,9 @@ def run_sfm(path, options: SfMOptions | None = None, *, progress: Progress | Non
         models = _map(pycolmap, database, folder, work / "sparse", len(names), options, progress, cancel)
         seconds["mapping"] = time.perf_counter() - t0
         rec = _largest(models, folder, names)
+        t0 = time.perf_counter()
+        rec = refine_intrinsics(pycolmap, rec, options)
+        seconds["mapping"] += time.perf_counter() - t0
         if progress is not None:
             progress("mapping", 1.0, f"mapping: {rec.num_reg_images()} of {len(names)} photos placed")
         model = work / "model"
@@ -458,6 +466,25 @@ def run_sfm(path, options: SfMOptions | None = None, *, progress: Progress | Non
         warnings.warn(f"{folder}: {len(report.left_out)} of {len(names)} photos could not be registered and are left "
                       f"out: {_names(report.left_out)}", stacklevel=2)
     return report
+
+
+def refine_intrinsics(pycolmap, rec, options: SfMOptions):
+    """`rec` after a final bundle adjustment that also frees every camera's principal point
+    (incremental mapping holds it at the image centre, where a phone's is not, and the rotations and
+    the distortion then absorb the offset), kept when it lowers the mean reprojection error by
+    PRINCIPAL_POINT_GAIN or more (the photos constrain it; a centred one gains almost nothing) and
+    every principal point stays within PRINCIPAL_POINT_LIMIT of its image's size from the centre;
+    else `rec` as mapped."""
+    refined = pycolmap.Reconstruction(rec)
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_principal_point = True
+    ba.ceres.solver_options.num_threads = _threads(options)
+    pycolmap.bundle_adjustment(refined, ba)
+    before, after = rec.compute_mean_reprojection_error(), refined.compute_mean_reprojection_error()
+    plausible = all(abs(c.principal_point_x / c.width - 0.5) <= PRINCIPAL_POINT_LIMIT
+                    and abs(c.principal_point_y / c.height - 0.5) <= PRINCIPAL_POINT_LIMIT
+                    for c in refined.cameras.values())
+    return refined if plausible and after <= (1.0 - PRINCIPAL_POINT_GAIN) * before else rec
 
 
 def _largest(models: dict, folder: Path, names: list[str]):
