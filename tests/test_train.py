@@ -548,3 +548,29 @@ def test_cli_trains_a_colmap_capture_with_held_out_views(tmp_path):
     assert [(e["stage"], e["more"], e["n_gaussians"]) for e in more] == [(1, 20, len(cloud))]
     assert read_ply(out / "stage_1_more_20.ply").background == pytest.approx((0.35, 0.4, 0.45))
     assert more[0]["test_psnr"] > log[-1]["test_psnr"] - 1.0
+    assert more[0]["test_psnr_before"] == log[-1]["test_psnr"]  # (what the held-out photos did: before, after)
+
+
+def test_the_last_stage_ends_on_the_average_of_its_iterates():
+    """With `average`, the last stage keeps the running average of its iterates from the end of its
+    densification (the rows fixed from there) and its validation photos judge that average; without
+    it, the last iterate. The earlier stages are the same either way."""
+    from gvae_core.train.loop import Stage, run_stage  # noqa: PLC0415
+
+    pytest.importorskip("gvae_core.rendering")
+    config = _converging(validation_views=8, min_gain=100.0, average=0.9)
+    plain = train_progressive(synthetic_views, dataclasses.replace(config, average=None), progress=False, threads=1)
+    averaged = train_progressive(synthetic_views, config, progress=False, threads=1)
+    assert plain.log[0]["test_psnr"] == averaged.log[0]["test_psnr"]  # (the coarse stage: no average)
+    assert not np.array_equal(plain.cloud.means, averaged.cloud.means)
+    assert len(plain.cloud) == len(averaged.cloud)  # (densification is over when the average begins)
+    views = synthetic_views("train", 12)
+    model = GaussianModel.fresh(averaged.cloud.replace(extra={}), config.learning_rates(1.0), 1.0)
+    stage = Stage(model, views.cameras, torch.from_numpy(views.composite((0, 0, 0))), config, 30,
+                  np.random.default_rng(0), torch.Generator(), lambda it: 1, average_from=21, average_decay=0.9)
+    assert stage.result_params() is model.params
+    run_stage(stage)
+    assert stage.average is not None and stage.average.steps == 9  # begun at 21, then 22..30
+    assert stage.result_params() is stage.average.values
+    with pytest.raises(ValueError, match="average"):
+        TrainConfig(average=1.5)

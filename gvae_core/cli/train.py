@@ -139,6 +139,8 @@ def _run_more(args: argparse.Namespace) -> int:
     result = train_more(args.scene, args.more, progress=not args.quiet, threads=args.threads, device=args.device)
     e = result.entry
     test = "n/a" if e["test_psnr"] is None else f"{e['test_psnr']:.2f} dB, SSIM {e['test_ssim']:.4f}"
+    if e["test_psnr"] is not None and e.get("test_psnr_before") is not None:
+        test = f"{e['test_psnr_before']:.2f} -> {test} (SSIM {e['test_ssim_before']:.4f} before)"
     print(f"stage {e['stage']} at {e['resolution']} px, {e['more']} more iterations in {e['seconds']:.1f} s: "
           f"{e['n_gaussians']} Gaussians, training views {e['train_psnr']:.2f} dB, held-out views {test}")
     print(f"wrote {result.path}")

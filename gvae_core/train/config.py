@@ -31,7 +31,7 @@ PROFILES: dict[str, dict[str, Any]] = {
     "default": dict(),
     # fixed iterations, no validation photos, no budget, the learning rate and Adam afresh per stage
     "legacy": dict(iterations=(600, 400, 400), validation_views=0, converge=False, gaussians_per_pixel=None,
-                   lr_schedule="stage", carry_optimizer=False, opacity_resets=True),
+                   lr_schedule="stage", carry_optimizer=False, opacity_resets=True, average=None),
     # the reference's schedule
     "full": dict(resolutions=(100, 200, 400, 800), iterations=(7000, 7000, 7000, 30000),
                  init="random", init_count=100_000, max_gaussians=None),
@@ -124,6 +124,10 @@ class TrainConfig:
                                    "its planned iterations are done)", flag="--minutes", metavar="M")
     gaussians_per_pixel: float | None = _f(1.0, "a budget of this many Gaussians per pixel of one training photo in "
                                            "each stage (0: none)", zero_is_none=True, metavar="F")
+    average: float | None = _f(0.99, "the last stage ends on the running average of its iterates, from the end of "
+                               "its densification, with this decay (about the last 1 / (1 - decay) steps), and its "
+                               "validation photos judge the average (0: the last iterate)", zero_is_none=True,
+                               metavar="DECAY")
     # across stages
     lr_schedule: str = _f("run", "the position learning rate decays over the whole run, or afresh in each stage",
                           choices=LR_SCHEDULES, advanced=True)
@@ -162,6 +166,8 @@ class TrainConfig:
         for name in ("max_minutes", "gaussians_per_pixel"):
             if getattr(self, name) is not None and not getattr(self, name) > 0:
                 bad(f"{name} must be positive or None, got {getattr(self, name)}")
+        if self.average is not None and not 0.0 < self.average < 1.0:
+            bad(f"average must be a decay in (0, 1) or None, got {self.average}")
 
     @classmethod
     def profile(cls, name: str = "default", **overrides) -> TrainConfig:

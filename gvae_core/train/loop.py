@@ -34,9 +34,10 @@ class Stage:
     iteration offset + it of a decay over horizon iterations (`lr_window`, default the stage's own
     iterations), staying at its final value after; `degree_at(it)` the SH degree at the stage's
     iteration `it` (1-based). `rng` draws the order of the views, `generator` densification's
-    children. `strategy` (None: the Gaussians stay the same rows), `average` (takes in every step)
-    and `filter_every` (with `config.antialias` "mip": iterations between refreshes of the 3D
-    filter, which also follows every change of count)."""
+    children. `strategy` (None: the Gaussians stay the same rows), `average` (takes in every step;
+    or, with `average_from`, one of decay `average_decay` begun at that iteration, once the rows no
+    longer change) and `filter_every` (with `config.antialias` "mip": iterations between refreshes of
+    the 3D filter, which also follows every change of count)."""
 
     model: GaussianModel
     cameras: list[Camera]
@@ -49,6 +50,8 @@ class Stage:
     lr_window: tuple[int, int] | None = None
     strategy: DensifyStrategy | None = None
     average: ParameterAverage | None = None
+    average_from: int | None = None
+    average_decay: float = 0.99
     filter_every: int = 100
     settings: RenderSettings = field(init=False)
     state: DensifyState | None = field(init=False, default=None)
@@ -74,6 +77,11 @@ class Stage:
         """The model as a step draws it: with the 3D filter when training with the Mip filters."""
         current = self.model.cloud()
         return current if self.filter is None else current.replace(extra={FILTER_KEY: self.filter})
+
+    def result_params(self) -> dict[str, torch.Tensor]:
+        """The parameters the stage's result is made of so far: the running average once it has one,
+        else the current iterate (shared, not copied)."""
+        return self.average.values if self.average is not None else self.model.params
 
 
 @dataclass
@@ -106,6 +114,8 @@ def train_step(stage: Stage, it: int) -> tuple[torch.Tensor, torch.Tensor, int]:
         model.optimizer.zero_grad(set_to_none=True)
         if stage.average is not None:
             stage.average.update(model)
+        elif stage.average_from is not None and it >= stage.average_from:
+            stage.average = ParameterAverage(model, stage.average_decay)
         if stage.strategy is not None:
             done = stage.strategy.step_post_backward(model, stage.state, result, camera, it, stage.generator)
             for k, n in (done or {}).items():

@@ -101,8 +101,10 @@ def train_more(run_dir, iterations: int, *, stage: int | None = None, progress: 
     """Train a finished stage of the run in `run_dir` (the last by default) `iterations` more
     iterations on its training views at its resolution (without the validation photos it set
     aside), the run's configuration, without density control (`fine_tune`: the same Gaussians; the
-    control a refinement at the same count is judged against). Writes `stage_<s>_more_<iterations>.ply`
-    and appends the entry to `more.json`. `on_progress`: as `train_progressive`'s."""
+    control a refinement at the same count is judged against), ending on the average of its iterates
+    as the run's last stage did (`TrainConfig.average`). Writes `stage_<s>_more_<iterations>.ply` and
+    appends the entry to `more.json`, with the stage's own held-out figures before it
+    (`test_psnr_before`, `test_ssim_before`). `on_progress`: as `train_progressive`'s."""
     folder = RunFolder(run_dir)
     state = folder.finished()
     config, done = state.config, state.stages_done
@@ -129,15 +131,18 @@ def train_more(run_dir, iterations: int, *, stage: int | None = None, progress: 
     t0 = time.perf_counter()
     try:
         with torch_threads(threads):
-            tuned = fine_tune(cloud, views, n, config=config, seed=config.seed, progress=advance, device=device)
+            tuned = fine_tune(cloud, views, n, config=config, seed=config.seed, progress=advance, device=device,
+                              average=config.average)
     finally:
         bar.close()
     seconds = time.perf_counter() - t0
     tuned = tuned.replace(background=config.background)
     scores = stage_scores(tuned.to_torch(device=resolve_device(device)), config, tuned.sh_degree,
                           RenderSettings(antialias=config.antialias), views, validation, data.views("test", height))
+    before = next((e for e in folder.log() if e.get("stage") == stage), {})
     entry = {"stage": stage, "resolution": height, "more": n, "seconds": round(seconds, 3),
-             "n_gaussians": len(tuned), **scores}
+             "n_gaussians": len(tuned), **scores, "test_psnr_before": before.get("test_psnr"),
+             "test_ssim_before": before.get("test_ssim")}
     path = folder.save_more(stage, n, tuned, entry)
     entry["file"] = path.name
     report(n, f"stage {stage + 1}: {n} more iterations done", **scores)

@@ -189,11 +189,13 @@ def _train_stage(run: _Run, s: int) -> None:
     converging = config.converge and s == n_stages - 1 and validation is not None
     n_max = max(config.max_iterations, planned) if converging else planned
     first = sum(config.iterations[:s])
+    strategy = DensifyStrategy.for_stage(config, s, limit, last=n_max)
+    averaged = config.average is not None and s == n_stages - 1  # (from the end of densification: the same rows)
     stage = Stage(model, views.cameras, training_targets(views, config.background).to(run.device), config, n_max,
                   rng, gen, lambda it: config.sh_degree_at(first + it - 1),
                   lr_window=(first, sum(config.iterations)) if config.lr_schedule == "run" else (0, planned),
-                  strategy=DensifyStrategy.for_stage(config, s, limit, last=n_max),
-                  filter_every=config.stage_schedule(s)["densify_every"])
+                  strategy=strategy, average_from=strategy.stop + 1 if averaged else None,
+                  average_decay=config.average or 0.99, filter_every=config.stage_schedule(s)["densify_every"])
     watch = None if validation is None else Validation(
         config, validation, views.cameras, stage.settings, run.started, planned, converging, run.say,
         run.data.views("test", height) if converging else None)
@@ -201,6 +203,8 @@ def _train_stage(run: _Run, s: int) -> None:
     outcome, seconds, cpu_seconds, memory = _optimise(run, stage, watch, report, s, converging)
     if watch is not None and watch.best_params is not None and converging:
         model.load_params(watch.best_params)  # the state the validation photos liked best
+    elif stage.average is not None:
+        model.load_params(stage.average.values)
     run.carried = model.optimizer_state() if config.carry_optimizer and s < n_stages - 1 else None
     timing = {"iterations": outcome.iterations, "seconds": round(seconds, 3),
               "seconds_per_iteration": round(seconds / max(outcome.iterations, 1), 5),
@@ -223,7 +227,7 @@ def _optimise(run: _Run, stage: Stage, watch: Validation | None, report: Reporte
     check = None
     if watch is not None:
         def check(it: int) -> str | None:
-            return watch.check(stage.model, it, stage.degree_at(it), report)
+            return watch.check(stage.result_params(), it, stage.degree_at(it), report)
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         outcome = run_stage(stage, bar=bar, progress=lambda it: report(it, f"stage {s + 1}/{n_stages}: step {it}"),

@@ -33,7 +33,7 @@ RUN_FORMAT = 2
 FORMAT_1_LEFT_OUT: dict[str, Any] = {
     "antialias": "classic", "test_every": None, "validation_views": 0, "converge": False, "max_iterations": 30_000,
     "validation_every": 100, "patience": 600, "min_gain": 0.05, "max_minutes": None, "gaussians_per_pixel": None,
-    "lr_schedule": "stage", "carry_optimizer": False, "opacity_resets": True,
+    "lr_schedule": "stage", "carry_optimizer": False, "opacity_resets": True, "average": None,
 }
 
 
@@ -97,7 +97,7 @@ class RunFolder:
         if state.stages_done == 0:
             return None
         lineage = Lineage.load(self.file("lineage.npz"))
-        log = json.loads(self.file("log.json").read_text(encoding="utf-8"))
+        log = self.log()
         done = state.stages_done
         if lineage.n_stages < done or len(log) < done:
             raise ValueError(f"{self.path}: run.json says {done} stage(s) are done but lineage.npz has "
@@ -107,6 +107,11 @@ class RunFolder:
             snap = lineage.snapshots[s]
             kept.add_stage(snap.cloud, snap.ids, snap.parents, lineage.resolutions[s])
         return kept, log[:done], state.next_id
+
+    def log(self) -> list[dict]:
+        """log.json's entries (one per finished stage); none without it."""
+        path = self.file("log.json")
+        return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else []
 
     def adam(self) -> dict[str, np.ndarray] | None:
         """Adam's state at the end of the last finished stage, when it was kept."""

@@ -9,15 +9,17 @@ import math
 import time
 from typing import Any
 
+import torch
+
 from ..antialias import FILTER_KEY
 from ..camera import Camera
+from ..cloud import GaussianCloud
 from ..datasets import Views
 from ..plateau import Plateau
 from ..rendering import RenderSettings
 from .config import TrainConfig
 from .evaluation import evaluate_psnr
 from .loop import centres_filter
-from .model import GaussianModel
 
 __all__ = ["Validation"]
 
@@ -38,21 +40,22 @@ class Validation:
         self.curve: list[tuple[int, float]] = []
         self.best, self.best_step, self.best_params = -math.inf, 0, None
 
-    def check(self, model: GaussianModel, it: int, degree: int, report) -> str | None:
-        """The validation PSNR at iteration `it` (said, reported, on the curve); a reason to stop, or None."""
-        current = model.cloud().detach()
+    def check(self, params: dict[str, torch.Tensor], it: int, degree: int, report) -> str | None:
+        """The validation PSNR at iteration `it` of the Gaussians `params` (the stage's result so far:
+        `Stage.result_params`; said, reported, on the curve); a reason to stop, or None."""
+        current = GaussianCloud(**params).detach()
         if self.settings.antialias == "mip":  # drawn as training draws it: with the training cameras' filter
-            current = current.replace(extra={FILTER_KEY: centres_filter(model.params["means"].detach(), self.cameras)})
+            current = current.replace(extra={FILTER_KEY: centres_filter(current.means, self.cameras)})
         value = evaluate_psnr(current, self.views, self.background, degree, None, self.settings)
         self.curve.append((it, round(value, 4)))
-        message = f"step {it}: validation photos {value:.2f} dB, {len(model)} Gaussians"
+        message = f"step {it}: validation photos {value:.2f} dB, {len(current)} Gaussians"
         self.say(message)
         report(it, message, validation_psnr=round(value, 4))
         if not self.converging:
             return None
         if it >= self.planned and value > self.best:  # (the best state once densification is over)
             self.best, self.best_step = value, it
-            self.best_params = {n: p.detach().clone() for n, p in model.params.items()}
+            self.best_params = {n: p.detach().clone() for n, p in params.items()}
         if it < self.planned:
             return None
         if self.test_at_planned is None and self.test_views is not None:  # said in the log, never decides
