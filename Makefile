@@ -22,25 +22,34 @@ $(STAMP): pyproject.toml
 lint: install
 	$(PY) -m ruff check .
 
-# Four streams keep the 2 cores busy to the end, each suite in its own temporary folder, the logs of
-# the three in the background following: the tests that never render (file formats, the Blender-made
-# scenes, the documents) start at once, beside the compiled CPU kernels being made ready (compiled
-# once per machine, ~20 s on one core; then loaded), so that no later process compiles its own; then
-# the rest of the core suite, and beside it the Blender tests in two halves (what Cycles and EEVEE
-# show; the rest).
+# Four streams of about equal CPU time keep the 2 cores busy to the end, each suite in its own
+# temporary folder, the logs of the three in the background following: the tests that never render
+# (file formats, the Blender-made scenes, the documents), then a part of the core suite; beside them
+# the compiled CPU kernels made ready (compiled once per machine, ~20 s on one core; then loaded) so
+# that no later process compiles its own, then the rest of the core suite; the Blender tests in two
+# halves (what Cycles and EEVEE show; the rest). One thread per process: four processes on two cores
+# spend less CPU than four that each spin two threads.
 NO_RENDER := tests/test_splat_transform.py tests/test_scenes.py tests/test_ply.py tests/test_formats.py \
 	tests/test_sog.py tests/test_docs.py
+CORE_LATE := tests/test_kernels.py tests/test_sfm.py tests/test_hessian.py
 BLENDER_DISPLAY := tests/blender/test_display.py
+test: export OMP_NUM_THREADS := 1
+test: export OPENBLAS_NUM_THREADS := 1
+test: export MKL_NUM_THREADS := 1
+test: export NUMBA_NUM_THREADS := 1
 test: install
 	@mkdir -p build
-	@$(PY) -m pytest -q --basetemp=build/pytest-files $(NO_RENDER) > build/test-files.log 2>&1 & b0=$$!; \
+	@($(PY) -m pytest -q --basetemp=build/pytest-files $(NO_RENDER); first=$$?; \
+	  $(PY) -m pytest -q --basetemp=build/pytest-late $(CORE_LATE) && test $$first -eq 0) \
+		> build/test-files.log 2>&1 & b0=$$!; \
 	$(PY) -c "from gvae_core.warmup import main; main()"; \
 	$(PY) -m pytest -q --basetemp=build/pytest-blender tests/blender --ignore=$(BLENDER_DISPLAY) \
 		> build/test-blender.log 2>&1 & b1=$$!; \
 	$(PY) -m pytest -q --basetemp=build/pytest-display $(BLENDER_DISPLAY) > build/test-display.log 2>&1 & b2=$$!; \
-	$(PY) -m pytest -q --basetemp=build/pytest-core --ignore=tests/blender $(NO_RENDER:%=--ignore=%); core=$$?; \
+	$(PY) -m pytest -q --basetemp=build/pytest-core --ignore=tests/blender $(NO_RENDER:%=--ignore=%) \
+		$(CORE_LATE:%=--ignore=%); core=$$?; \
 	wait $$b0; files=$$?; wait $$b1; blender=$$?; wait $$b2; display=$$?; \
-	echo "--- $(NO_RENDER) and tests/blender (ran beside the above):"; \
+	echo "--- $(NO_RENDER) $(CORE_LATE) and tests/blender (ran beside the above):"; \
 	cat build/test-files.log build/test-blender.log build/test-display.log; \
 	test $$core -eq 0 && test $$files -eq 0 && test $$blender -eq 0 && test $$display -eq 0
 
