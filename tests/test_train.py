@@ -315,7 +315,7 @@ def test_validation_photos_are_set_aside_evenly():
 def _converging(**changes):
     return TrainConfig(**{**TINY, "resolutions": (12, 18), "iterations": (60, 60), "validation_views": 8,
                           "converge": True, "validation_every": 20, "patience": 40, "max_iterations": 400,
-                          **changes})
+                          "cool_down": 0, **changes})
 
 
 def test_the_last_stage_trains_until_the_validation_photo_stops_improving():
@@ -574,3 +574,46 @@ def test_the_last_stage_ends_on_the_average_of_its_iterates():
     assert stage.result_params() is stage.average.values
     with pytest.raises(ValueError, match="average"):
         TrainConfig(average=1.5)
+
+
+def test_a_converged_last_stage_cools_down_and_keeps_what_the_validation_photos_like():
+    """With `cool_down`, a converged last stage trains that many more iterations (Adam afresh, the
+    position rate decaying again, ending on their average); the validation photos judge the average
+    against the stage's best and the better one is the result (the log says which)."""
+    pytest.importorskip("gvae_core.rendering")
+    plain = train_progressive(synthetic_views, _converging(min_gain=100.0), progress=False, threads=1)
+    cooled = train_progressive(synthetic_views, _converging(min_gain=100.0, cool_down=40), progress=False,
+                               threads=1)
+    before, last = plain.log[-1], cooled.log[-1]
+    assert last["iterations"] == before["iterations"] + 40 and last["cool_down"] == 40
+    assert last["validation_curve"][:-1] == before["validation_curve"]
+    step, value = last["validation_curve"][-1]
+    assert step == last["iterations"]
+    best = max(v for s, v in before["validation_curve"] if s >= 60)
+    assert last["cool_down_kept"] == (value > best)
+    if last["cool_down_kept"]:
+        assert last["best_step"] == step and not np.array_equal(cooled.cloud.means, plain.cloud.means)
+    else:
+        assert last["best_step"] == before["best_step"]
+        np.testing.assert_array_equal(cooled.cloud.means, plain.cloud.means)
+    assert (plain.log[0]["test_psnr"], plain.log[0]["n_gaussians"]) == (cooled.log[0]["test_psnr"],
+                                                                     cooled.log[0]["n_gaussians"])
+    with pytest.raises(ValueError, match="cool_down"):
+        TrainConfig(cool_down=-1)
+
+
+def test_validation_keeps_only_a_state_its_photos_like_better():
+    """`Validation.judge`: a state the photos like better becomes the best; a worse one (faded) does not."""
+    from gvae_core.train.model import PARAMS  # noqa: PLC0415
+    from gvae_core.train.validation import Validation  # noqa: PLC0415
+
+    config = _converging()
+    views = synthetic_views("train", 12)
+    trained = train_progressive(synthetic_views, config, progress=False, threads=1).cloud
+    watch = Validation(config, views, views.cameras, RenderSettings(), 0.0, 0, True, lambda message: None)
+    good = {n: torch.as_tensor(getattr(trained, n)) for n in PARAMS}
+    faded = {**good, "opacities": good["opacities"] - 8.0}
+    assert watch.judge(good, 10, 1) and watch.best_step == 10
+    assert not watch.judge(faded, 20, 1) and watch.best_step == 10
+    assert torch.equal(watch.best_params["opacities"], good["opacities"])
+    assert [s for s, _ in watch.curve] == [10, 20] and watch.curve[1][1] < watch.curve[0][1]

@@ -31,7 +31,7 @@ PROFILES: dict[str, dict[str, Any]] = {
     "default": dict(),
     # fixed iterations, no validation photos, no budget, the learning rate and Adam afresh per stage
     "legacy": dict(iterations=(600, 400, 400), validation_views=0, converge=False, gaussians_per_pixel=None,
-                   lr_schedule="stage", carry_optimizer=False, opacity_resets=True, average=None),
+                   lr_schedule="stage", carry_optimizer=False, opacity_resets=True, average=None, cool_down=0),
     # the reference's schedule
     "full": dict(resolutions=(100, 200, 400, 800), iterations=(7000, 7000, 7000, 30000),
                  init="random", init_count=100_000, max_gaussians=None),
@@ -128,6 +128,9 @@ class TrainConfig:
                                "its densification, with this decay (about the last 1 / (1 - decay) steps), and its "
                                "validation photos judge the average (0: the last iterate)", zero_is_none=True,
                                metavar="DECAY")
+    cool_down: int = _f(1000, "once the last stage has converged, this many more iterations with Adam afresh and the "
+                        "position learning rate decaying again from its start, ending on their running average; "
+                        "kept when the validation photos like it better (0: none)", metavar="N")
     # across stages
     lr_schedule: str = _f("run", "the position learning rate decays over the whole run, or afresh in each stage",
                           choices=LR_SCHEDULES, advanced=True)
@@ -166,6 +169,8 @@ class TrainConfig:
         for name in ("max_minutes", "gaussians_per_pixel"):
             if getattr(self, name) is not None and not getattr(self, name) > 0:
                 bad(f"{name} must be positive or None, got {getattr(self, name)}")
+        if self.cool_down < 0:
+            bad(f"cool_down must be >= 0, got {self.cool_down}")
         if self.average is not None and not 0.0 < self.average < 1.0:
             bad(f"average must be a decay in (0, 1) or None, got {self.average}")
 

@@ -97,6 +97,10 @@ class GaussianModel:
                 for key, value in state.items() if key.split(".", 1)[0] == name}
         return True
 
+    def reset_optimizer_state(self) -> None:
+        """Adam afresh: its moments and step counts dropped (made again at the next step)."""
+        self.optimizer.state.clear()
+
     def snapshot(self) -> GaussianCloud:
         """A detached numpy copy with int64 extras `gvae_id` and `gvae_parent`."""
         c = GaussianCloud(**{n: p.detach().cpu() for n, p in self.params.items()}).numpy().copy()

@@ -32,6 +32,7 @@ from ..resources import check_train_memory, current_rss_mb, estimate_train_memor
 from .config import TrainConfig
 from .data import TrainingData, split_validation, training_data
 from .evaluation import stage_scores, training_targets
+from .average import ParameterAverage
 from .loop import Stage, StageOutcome, run_stage
 from .model import GaussianModel
 from .reporting import ProgressHook, Reporter, torch_threads
@@ -205,12 +206,36 @@ def _train_stage(run: _Run, s: int) -> None:
         model.load_params(watch.best_params)  # the state the validation photos liked best
     elif stage.average is not None:
         model.load_params(stage.average.values)
+    cooled = {}
+    if converging and config.cool_down > 0:
+        t0, c0 = time.perf_counter(), time.process_time()
+        cooled = _cool_down(stage, watch, outcome.iterations, report)
+        seconds, cpu_seconds = seconds + time.perf_counter() - t0, cpu_seconds + time.process_time() - c0
     run.carried = model.optimizer_state() if config.carry_optimizer and s < n_stages - 1 else None
-    timing = {"iterations": outcome.iterations, "seconds": round(seconds, 3),
-              "seconds_per_iteration": round(seconds / max(outcome.iterations, 1), 5),
+    iterations = outcome.iterations + cooled.get("cool_down", 0)
+    timing = {"iterations": iterations, "seconds": round(seconds, 3),
+              "seconds_per_iteration": round(seconds / max(iterations, 1), 5),
               "cpu_seconds": round(cpu_seconds, 3)}
-    _finish_stage(run, s, model, (views, validation), (timing, {"gaussian_limit": limit, **start, **memory}),
+    _finish_stage(run, s, model, (views, validation),
+                  (timing, {"gaussian_limit": limit, **start, **memory, **cooled}),
                   outcome, watch, converging, report)
+
+
+def _cool_down(stage: Stage, watch: Validation, done: int, report: Reporter) -> dict:
+    """After a converged stage (`done` iterations, its best state loaded): `config.cool_down` more
+    iterations of its model with Adam afresh and the position learning rate decaying again from its
+    start over them, ending on their running average (as `gvae train RUN --more` trains); kept when
+    the validation photos like the average better than the stage's best, else the best again. What
+    the log says of it."""
+    config, model = stage.config, stage.model
+    n, degree = config.cool_down, stage.degree_at(done)
+    model.reset_optimizer_state()
+    cool = Stage(model, stage.cameras, stage.targets, config, n, stage.rng, stage.generator, lambda it: degree,
+                 average=ParameterAverage(model, config.average or 0.99), filter_every=stage.filter_every)
+    run_stage(cool, progress=lambda it: report(done + it, f"cool-down: step {it}/{n}"))
+    kept = watch.judge(cool.average.values, done + n, degree)
+    model.load_params(watch.best_params)
+    return {"cool_down": n, "cool_down_kept": kept}
 
 
 def _optimise(run: _Run, stage: Stage, watch: Validation | None, report: Reporter, s: int,

@@ -33,7 +33,7 @@ RUN_FORMAT = 2
 FORMAT_1_LEFT_OUT: dict[str, Any] = {
     "antialias": "classic", "test_every": None, "validation_views": 0, "converge": False, "max_iterations": 30_000,
     "validation_every": 100, "patience": 600, "min_gain": 0.05, "max_minutes": None, "gaussians_per_pixel": None,
-    "lr_schedule": "stage", "carry_optimizer": False, "opacity_resets": True, "average": None,
+    "lr_schedule": "stage", "carry_optimizer": False, "opacity_resets": True, "average": None, "cool_down": 0,
 }
 
 

@@ -43,9 +43,7 @@ class Validation:
     def check(self, params: dict[str, torch.Tensor], it: int, degree: int, report) -> str | None:
         """The validation PSNR at iteration `it` of the Gaussians `params` (the stage's result so far:
         `Stage.result_params`; said, reported, on the curve); a reason to stop, or None."""
-        current = GaussianCloud(**params).detach()
-        if self.settings.antialias == "mip":  # drawn as training draws it: with the training cameras' filter
-            current = current.replace(extra={FILTER_KEY: centres_filter(current.means, self.cameras)})
+        current = self.drawn(params)
         value = evaluate_psnr(current, self.views, self.background, degree, None, self.settings)
         self.curve.append((it, round(value, 4)))
         message = f"step {it}: validation photos {value:.2f} dB, {len(current)} Gaussians"
@@ -66,6 +64,25 @@ class Validation:
         if self.deadline is not None and time.perf_counter() > self.deadline:
             return "stopped by the time budget (max_minutes)"
         return None
+
+    def drawn(self, params: dict[str, torch.Tensor]) -> GaussianCloud:
+        """The Gaussians `params` as training draws them (with the training cameras' filter in "mip")."""
+        current = GaussianCloud(**params).detach()
+        if self.settings.antialias == "mip":
+            current = current.replace(extra={FILTER_KEY: centres_filter(current.means, self.cameras)})
+        return current
+
+    def judge(self, params: dict[str, torch.Tensor], it: int, degree: int) -> bool:
+        """Whether the validation photos like `params` (at iteration `it`, on the curve) better than the
+        best state so far; if so it becomes the best."""
+        value = evaluate_psnr(self.drawn(params), self.views, self.background, degree, None, self.settings)
+        self.curve.append((it, round(value, 4)))
+        self.say(f"step {it}: validation photos {value:.2f} dB after the cool-down")
+        if value <= self.best:
+            return False
+        self.best, self.best_step = value, it
+        self.best_params = {n: p.detach().clone() for n, p in params.items()}
+        return True
 
     def summary(self, stopped: str | None, iterations: int) -> dict[str, Any]:
         """The log's record of the validation: the curve and, converging, why it stopped and the state kept."""
