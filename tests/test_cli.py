@@ -240,6 +240,8 @@ def test_train_flags_are_made_from_the_configuration(capsys, monkeypatch):
     assert config.resolutions == (120, 180, 240) and config.iterations == (50, 50, 50) and not config.converge
     assert config.gaussians_per_pixel is None and config.patience == 900 and not config.carry_optimizer
     assert config_of(parse(["train", "x", "--profile", "tiny"])) == TrainConfig.profile("tiny")
+    counted = config_of(parse(["train", "x", "--iterations", "150", "150", "1000", "--converge"]))
+    assert counted.iterations == (150, 150, 1000) and counted.converge  # (the last count then the planned one)
 
 
 def test_train_refine_and_compact_warn_nothing_from_the_project(tmp_path, capsys):

@@ -237,7 +237,7 @@ def configure(profile: str = "default", *, resolutions=None, image_height: int |
     """The configuration `gvae train` and Blender's New from Photos ask for: a profile with the
     stage heights given (`resolutions`) or the last one (`image_height`, the others in the profile's
     proportions); `iterations` (one count, or one per stage) fixes the counts (no training on to
-    convergence); with other heights and no iterations, the profile's counts where they fit, else
+    convergence, unless `converge` is given too: then the last count is its planned one); with other heights and no iterations, the profile's counts where they fit, else
     its last count for every stage. Other `fields` override the profile's (None: the profile's);
     the fields named in `none` are set to None (a budget or cap of none)."""
     base = TrainConfig.profile(profile)
@@ -252,7 +252,8 @@ def configure(profile: str = "default", *, resolutions=None, image_height: int |
         its = its * n if len(its) == 1 else its
         if len(its) != n:
             raise ValueError(f"iterations: needs 1 or {n} numbers, got {len(its)}")
-        values.update(iterations=its, converge=False)  # the counts asked for
+        values["iterations"] = its
+        values.setdefault("converge", False)  # the counts asked for, unless training on is asked for too
     elif resolutions is not None and len(base.iterations) != n:
         values["iterations"] = (base.iterations[-1],) * n
     config = TrainConfig.profile(profile, **values)
