@@ -237,8 +237,9 @@ def configure(profile: str = "default", *, resolutions=None, image_height: int |
     """The configuration `gvae train` and Blender's New from Photos ask for: a profile with the
     stage heights given (`resolutions`) or the last one (`image_height`, the others in the profile's
     proportions); `iterations` (one count, or one per stage) fixes the counts (no training on to
-    convergence, unless `converge` is given too: then the last count is its planned one); with other heights and no iterations, the profile's counts where they fit, else
-    its last count for every stage. Other `fields` override the profile's (None: the profile's);
+    convergence, unless `converge` is given too: then the last count is its planned one); with
+    other heights and no iterations, the profile's counts where they fit, else its last count for
+    every stage. Other `fields` override the profile's (None: the profile's);
     the fields named in `none` are set to None (a budget or cap of none)."""
     base = TrainConfig.profile(profile)
     if image_height is not None:

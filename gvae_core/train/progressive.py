@@ -29,10 +29,10 @@ from ..lineage import Lineage
 from ..progress import progress_bar, say
 from ..rendering import RenderSettings, resolve_device
 from ..resources import check_train_memory, current_rss_mb, estimate_train_memory, peak_rss_mb, reset_peak_rss
+from .average import ParameterAverage
 from .config import TrainConfig
 from .data import TrainingData, split_validation, training_data
 from .evaluation import stage_scores, training_targets
-from .average import ParameterAverage
 from .loop import Stage, StageOutcome, run_stage
 from .model import GaussianModel
 from .reporting import ProgressHook, Reporter, torch_threads

@@ -77,7 +77,7 @@ class Validation:
         best state so far; if so it becomes the best."""
         value = evaluate_psnr(self.drawn(params), self.views, self.background, degree, None, self.settings)
         self.curve.append((it, round(value, 4)))
-        self.say(f"step {it}: validation photos {value:.2f} dB after the cool-down")
+        self.say(f"step {it}: validation photos {value:.2f} dB (the best so far {self.best:.2f})")
         if value <= self.best:
             return False
         self.best, self.best_step = value, it
