@@ -44,16 +44,14 @@ class Validation:
         """The validation PSNR at iteration `it` of the Gaussians `params` (the stage's result so far:
         `Stage.result_params`; said, reported, on the curve); a reason to stop, or None."""
         current = self.drawn(params)
-        value = evaluate_psnr(current, self.views, self.background, degree, None, self.settings)
-        self.curve.append((it, round(value, 4)))
+        value = self._score(current, it, degree)
         message = f"step {it}: validation photos {value:.2f} dB, {len(current)} Gaussians"
         self.say(message)
         report(it, message, validation_psnr=round(value, 4))
         if not self.converging:
             return None
         if it >= self.planned and value > self.best:  # (the best state once densification is over)
-            self.best, self.best_step = value, it
-            self.best_params = {n: p.detach().clone() for n, p in params.items()}
+            self._keep(params, it, value)
         if it < self.planned:
             return None
         if self.test_at_planned is None and self.test_views is not None:  # said in the log, never decides
@@ -75,14 +73,23 @@ class Validation:
     def judge(self, params: dict[str, torch.Tensor], it: int, degree: int) -> bool:
         """Whether the validation photos like `params` (at iteration `it`, on the curve) better than the
         best state so far; if so it becomes the best."""
-        value = evaluate_psnr(self.drawn(params), self.views, self.background, degree, None, self.settings)
-        self.curve.append((it, round(value, 4)))
+        value = self._score(self.drawn(params), it, degree)
         self.say(f"step {it}: validation photos {value:.2f} dB (the best so far {self.best:.2f})")
         if value <= self.best:
             return False
+        self._keep(params, it, value)
+        return True
+
+    def _score(self, cloud: GaussianCloud, it: int, degree: int) -> float:
+        """The validation PSNR of `cloud`, put on the curve at iteration `it`."""
+        value = evaluate_psnr(cloud, self.views, self.background, degree, None, self.settings)
+        self.curve.append((it, round(value, 4)))
+        return value
+
+    def _keep(self, params: dict[str, torch.Tensor], it: int, value: float) -> None:
+        """`params` (a copy) as the best state, at iteration `it` with PSNR `value`."""
         self.best, self.best_step = value, it
         self.best_params = {n: p.detach().clone() for n, p in params.items()}
-        return True
 
     def summary(self, stopped: str | None, iterations: int) -> dict[str, Any]:
         """The log's record of the validation: the curve and, converging, why it stopped and the state kept."""
