@@ -341,23 +341,25 @@ def test_distortion_is_undone_to_a_twentieth_of_a_pixel(tmp_path, kind):
 
 def _write_points(folder, xyz, rgb, err, binary):
     """points3D as COLMAP writes it: text (ID X Y Z R G B ERROR TRACK[]) or binary (uint64 count, then
-    per point uint64 id, double xyz, uint8 rgb, double error, uint64 track length, (int32, int32)s)."""
+    per point uint64 id, double xyz, uint8 rgb, double error, uint64 track length, (uint32 image id,
+    uint32 feature)s). Each point's track: image 1 and image 2 (even points) or 3 (odd ones)."""
     if binary:
         data = struct.pack("<Q", len(xyz))
         for i, (p, c, e) in enumerate(zip(xyz, rgb, err)):
-            data += struct.pack("<Q3d3BdQ", 100 + i, *p, *c, e, 2) + struct.pack("<4i", 1, 0, 2, 5)
+            data += struct.pack("<Q3d3BdQ", 100 + i, *p, *c, e, 2) + struct.pack("<4I", 1, 0, 2 + i % 2, 5)
         (folder / "points3D.bin").write_bytes(data)
     else:
         lines = ["# 3D point list with one line of data per point:"]
-        lines += [f"{100 + i} {p[0]!r} {p[1]!r} {p[2]!r} {c[0]} {c[1]} {c[2]} {e!r} 1 0 2 5"
+        lines += [f"{100 + i} {p[0]!r} {p[1]!r} {p[2]!r} {c[0]} {c[1]} {c[2]} {e!r} 1 0 {2 + i % 2} 5"
                   for i, (p, c, e) in enumerate(zip(xyz, rgb, err))]
         (folder / "points3D.txt").write_text("\n".join(lines) + "\n")
 
 
 @pytest.mark.parametrize("writer", [_write_binary, _write_text])
 def test_sfm_points_held_out_views_and_scaled_copies(tmp_path, writer):
-    """A COLMAP capture's SfM points read exactly; --test-every holds out every n-th image by name;
-    images stored at a fraction of the model's size are read with the cameras scaled to them."""
+    """A COLMAP capture's SfM points read exactly, with the photos that observe each; --test-every
+    holds out every n-th image by name; images stored at a fraction of the model's size are read
+    with the cameras scaled to them."""
     cams = _cameras()[:1] * 9  # nine frames of one camera size
     model = writer(tmp_path / "sparse" / "0", cams)
     rng = np.random.default_rng(1)
@@ -371,6 +373,11 @@ def test_sfm_points_held_out_views_and_scaled_copies(tmp_path, writer):
     np.testing.assert_array_equal(capture.points.xyz, xyz)
     np.testing.assert_allclose(capture.points.rgb, rgb / 255.0, atol=1e-7)
     np.testing.assert_array_equal(capture.points.error, err)
+    # the tracks: which photos observe each point (image id 1 + i is names[i])
+    np.testing.assert_array_equal(capture.points.observed_by(names[0]), np.arange(7))
+    np.testing.assert_array_equal(capture.points.observed_by(names[1]), [0, 2, 4, 6])
+    np.testing.assert_array_equal(capture.points.observed_by(names[2]), [1, 3, 5])
+    assert len(capture.points.observed_by(names[3])) == 0
     order = sorted(range(len(names)), key=lambda i: names[i])
     assert [capture.splits[i] for i in order] == ["test", "train", "train", "train"] * 2 + ["test"]
     assert len(load_cameras(tmp_path, test_every=4)) == 6

@@ -4,8 +4,8 @@ Images: world-to-camera rotation (quaternion w, x, y, z) and translation, OpenCV
 already, pixel centres at +0.5 like ours, in image-id order. Cameras: SIMPLE_PINHOLE and PINHOLE
 as they are; SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV as their pinhole part with their
 `Lens` (undone when the images are read, `capture.lens`); fisheye and other models are refused
-with how to undistort the capture first. Points: position, colour and reprojection error (tracks
-are skipped). Files that cannot be read raise `DatasetError` naming the file and the problem.
+with how to undistort the capture first. Points: position, colour, reprojection error and which
+images observe each (its track). Files that cannot be read raise `DatasetError` naming the file and the problem.
 """
 
 from __future__ import annotations
@@ -44,9 +44,17 @@ class SfMPoints:
     rgb: np.ndarray
     error: np.ndarray
     source: str = "SfM points"
+    observers: dict[str, np.ndarray] | None = None  # image name stem -> the points it observes (tracks)
 
     def __len__(self) -> int:
         return len(self.xyz)
+
+    def observed_by(self, name: str) -> np.ndarray | None:
+        """Indices of the points the image `name` observes (matched features of its own: visible
+        there), or None where the tracks are unknown."""
+        if self.observers is None:
+            return None
+        return self.observers.get(Path(name).stem, np.zeros(0, np.int64))
 
 
 @dataclass
@@ -75,14 +83,14 @@ def colmap_files(folder: Path) -> tuple[Path, Path] | None:
 def read_colmap(cameras_file: Path, images_file: Path) -> ColmapModel:
     """A sparse model from its cameras and images files, with points3D beside them when present."""
     intrinsics = read_colmap_cameras(cameras_file)
-    poses, names, cam_ids = _read_images(images_file)
+    poses, names, cam_ids, image_ids = _read_images(images_file)
     cams, lenses = [], []
     for (what, q, t), cam_id in zip(poses, cam_ids):
         fx, fy, cx, cy, width, height, lens = _intrinsics(cameras_file, cam_id, intrinsics)
         cams.append(_camera(images_file, what, q, t, (fx, fy, cx, cy, width, height)))
         lenses.append(lens)
     points_file = images_file.with_name("points3D" + images_file.suffix)
-    points = read_colmap_points(points_file) if points_file.is_file() else None
+    points = read_colmap_points(points_file, dict(zip(image_ids, names))) if points_file.is_file() else None
     return ColmapModel(cams, lenses, names, points, images_file)
 
 
@@ -167,10 +175,12 @@ def read_colmap_cameras(path) -> dict[int, tuple[str, int, int, np.ndarray]]:
     return out
 
 
-def read_colmap_points(path) -> SfMPoints:
-    """COLMAP `points3D.bin` or `points3D.txt`: positions, colours and errors (tracks skipped)."""
+def read_colmap_points(path, image_names: dict[int, str] | None = None) -> SfMPoints:
+    """COLMAP `points3D.bin` or `points3D.txt`: positions, colours, errors and, given the model's
+    image names by image id, which images observe each point (`SfMPoints.observers`; None for a
+    model stored without tracks)."""
     path = Path(path)
-    xyz, rgb, err = [], [], []
+    xyz, rgb, err, tracks = [], [], [], []
     if path.suffix == ".bin":
         r = _Reader(path)
         count = r.count("points")
@@ -180,7 +190,9 @@ def read_colmap_points(path) -> SfMPoints:
             rgb.append(values[4:7])
             err.append(values[7])
             (track,) = r.read("Q", "a point's track length")
-            r.skip(8 * track, "a point's track")
+            if track > len(r.data):
+                raise DatasetError(f"{path}: corrupt: a track of {track} observations")
+            tracks.append(r.read(f"{2 * track}I", "a point's track")[0::2])
         r.finish(count, "points")
     else:
         for lineno, line in _text_lines(path):
@@ -189,6 +201,7 @@ def read_colmap_points(path) -> SfMPoints:
                 xyz.append([float(v) for v in parts[1:4]])
                 rgb.append([int(v) for v in parts[4:7]])
                 err.append(float(parts[7]) if len(parts) > 7 else float("nan"))
+                tracks.append([int(v) for v in parts[8::2]])
             except (IndexError, ValueError):
                 raise DatasetError(f"{path}: line {lineno}: expected POINT3D_ID X Y Z R G B ERROR TRACK..., got "
                                    f"{line[:80]!r}") from None
@@ -201,7 +214,24 @@ def read_colmap_points(path) -> SfMPoints:
         raise DatasetError(f"{path}: non-finite point positions")
     if ((rgb_a < 0) | (rgb_a > 255)).any():
         raise DatasetError(f"{path}: point colours outside 0..255")
-    return SfMPoints(xyz_a, (rgb_a / 255.0).astype(np.float32), np.asarray(err, np.float64))
+    observers = None if image_names is None or not any(len(t) for t in tracks) else _observers(tracks, image_names)
+    return SfMPoints(xyz_a, (rgb_a / 255.0).astype(np.float32), np.asarray(err, np.float64), observers=observers)
+
+
+def _observers(tracks: list, image_names: dict[int, str]) -> dict[str, np.ndarray]:
+    """Image name stem -> the indices of the points whose tracks name that image (ids the model
+    has no image for are ignored)."""
+    lengths = np.array([len(t) for t in tracks], np.int64)
+    point = np.repeat(np.arange(len(tracks), dtype=np.int64), lengths)
+    image = np.fromiter((i for t in tracks for i in t), np.int64, int(lengths.sum()))
+    order = np.lexsort((point, image))
+    point, image = point[order], image[order]
+    bounds = np.flatnonzero(np.diff(image)) + 1
+    out = {}
+    for ids, pts in zip(np.split(image, bounds), np.split(point, bounds)):
+        if len(ids) and int(ids[0]) in image_names:
+            out[Path(image_names[int(ids[0])]).stem] = np.unique(pts)
+    return out
 
 
 def _text_lines(path: Path):
@@ -257,9 +287,9 @@ def _camera(path: Path, what: str, q, t, intr) -> Camera:
         raise DatasetError(f"{path}: {what}: {exc}") from None
 
 
-def _read_images(path: Path) -> tuple[list[tuple[str, list, list]], list[str], list[int]]:
+def _read_images(path: Path) -> tuple[list[tuple[str, list, list]], list[str], list[int], list[int]]:
     """COLMAP `images.bin` or `images.txt`: per image in image-id order, (what to call it in an error,
-    quaternion, translation), its name and its camera id."""
+    quaternion, translation), its name, its camera id and its image id."""
     found: list[tuple[int, tuple, str, int]] = []
     if path.suffix == ".bin":
         r = _Reader(path)
@@ -297,7 +327,7 @@ def _read_images(path: Path) -> tuple[list[tuple[str, list, list]], list[str], l
     if not found:
         raise DatasetError(f"{path}: no images")
     found.sort(key=lambda item: item[0])
-    return [f[1] for f in found], [f[2] for f in found], [f[3] for f in found]
+    return [f[1] for f in found], [f[2] for f in found], [f[3] for f in found], [f[0] for f in found]
 
 
 def _pose_line(line: str):

@@ -31,7 +31,8 @@ PROFILES: dict[str, dict[str, Any]] = {
     "default": dict(),
     # fixed iterations, no validation photos, no budget, the learning rate and Adam afresh per stage
     "legacy": dict(iterations=(600, 400, 400), validation_views=0, converge=False, gaussians_per_pixel=None,
-                   lr_schedule="stage", carry_optimizer=False, opacity_resets=True, average=None, cool_down=0),
+                   lr_schedule="stage", carry_optimizer=False, opacity_resets=True, average=None, cool_down=0,
+                   depth_weight=0.0),
     # the reference's schedule
     "full": dict(resolutions=(100, 200, 400, 800), iterations=(7000, 7000, 7000, 30000),
                  init="random", init_count=100_000, max_gaussians=None),
@@ -67,6 +68,9 @@ class TrainConfig:
     scaling_lr: float = _f(5e-3, "learning rate of the log-scales", advanced=True)
     rotation_lr: float = _f(1e-3, "learning rate of the quaternions", advanced=True)
     lambda_dssim: float = _f(0.2, "weight of 1 - SSIM in the loss (the rest is L1)", advanced=True)
+    depth_weight: float = _f(0.0, "weight in the loss of the rendered depth's relative error at the SfM points "
+                             "each training photo sees (0: none; a capture without points has none)",
+                             metavar="W")
     # spherical harmonics
     sh_degree: int = _f(3, "largest SH degree", choices=(0, 1, 2, 3))
     sh_interval: int = _f(1000, "the SH degree rises by one every this many reference iterations", advanced=True)
@@ -169,8 +173,8 @@ class TrainConfig:
         for name in ("max_minutes", "gaussians_per_pixel"):
             if getattr(self, name) is not None and not getattr(self, name) > 0:
                 bad(f"{name} must be positive or None, got {getattr(self, name)}")
-        if self.cool_down < 0:
-            bad(f"cool_down must be >= 0, got {self.cool_down}")
+        if self.cool_down < 0 or not self.depth_weight >= 0:
+            bad(f"cool_down and depth_weight must be >= 0, got {self.cool_down}, {self.depth_weight}")
         if self.average is not None and not 0.0 < self.average < 1.0:
             bad(f"average must be a decay in (0, 1) or None, got {self.average}")
 

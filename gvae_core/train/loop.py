@@ -1,10 +1,11 @@
 """The optimisation: one training step (`train_step`) and the stage of steps around it (`run_stage`).
 
 A step is the reference 3DGS's: the position learning rate set for the step, the next view of a
-random order without repetition, its render, 0.8·L1 + 0.2·(1 − SSIM) against its photo, the
-backward, Adam's step; then the running average and the densification strategy's hook (its
-statistics, density control, opacity reset: `train.strategy`) where the stage has them, and, when
-it trains with Mip-Splatting's filters, the 3D filter of the training cameras kept up to date.
+random order without repetition, its render, 0.8·L1 + 0.2·(1 − SSIM) against its photo (and,
+weighted by `depth_weight`, the depth error at its SfM points: `train.depth`), the backward, Adam's
+step; then the running average and the densification strategy's hook (its statistics, density
+control, opacity reset: `train.strategy`) where the stage has them, and, when it trains with
+Mip-Splatting's filters, the 3D filter of the training cameras kept up to date.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from ..losses import photometric_loss, psnr
 from ..rendering import RenderSettings, render
 from .average import ParameterAverage
 from .config import TrainConfig, position_lr
+from .depth import DepthTargets, depth_loss
 from .model import GaussianModel
 from .strategy import DensifyState, DensifyStrategy
 
@@ -37,7 +39,8 @@ class Stage:
     children. `strategy` (None: the Gaussians stay the same rows), `average` (takes in every step;
     or, with `average_from`, one of decay `average_decay` begun at that iteration, once the rows no
     longer change) and `filter_every` (with `config.antialias` "mip": iterations between refreshes of
-    the 3D filter, which also follows every change of count)."""
+    the 3D filter, which also follows every change of count). `depth`: the SfM points' depths each
+    view sees, added to the loss with `config.depth_weight` (None: none)."""
 
     model: GaussianModel
     cameras: list[Camera]
@@ -53,6 +56,7 @@ class Stage:
     average_from: int | None = None
     average_decay: float = 0.99
     filter_every: int = 100
+    depth: DepthTargets | None = None
     settings: RenderSettings = field(init=False)
     state: DensifyState | None = field(init=False, default=None)
     filter: torch.Tensor | None = field(init=False, default=None)
@@ -108,6 +112,8 @@ def train_step(stage: Stage, it: int) -> tuple[torch.Tensor, torch.Tensor, int]:
     if stage.strategy is not None:
         stage.strategy.step_pre_backward(result)
     loss = photometric_loss(result.image, stage.targets[v], config.lambda_dssim)
+    if stage.depth is not None and config.depth_weight > 0:
+        loss = loss + config.depth_weight * depth_loss(result.depth, stage.depth, v)
     loss.backward()
     with torch.no_grad():
         model.optimizer.step()

@@ -16,6 +16,7 @@ import torch
 
 from ..antialias import FILTER_KEY, DILATION_KEY
 from ..camera import scene_extent
+from ..capture import SfMPoints
 from ..cloud import GaussianCloud
 from ..datasets import Views
 from ..ply import read_ply
@@ -24,6 +25,7 @@ from ..rendering import RenderSettings, resolve_device
 from .average import ParameterAverage
 from .config import TrainConfig
 from .data import split_validation, training_data
+from .depth import depth_targets
 from .evaluation import stage_scores, training_targets
 from .loop import Stage, centres_filter, run_stage
 from .model import GaussianModel
@@ -37,7 +39,7 @@ __all__ = ["fine_tune", "train_more", "MoreResult"]
 def fine_tune(cloud: GaussianCloud, views: Views, iterations: int, *, config: TrainConfig | None = None,
               seed: int = 0, progress: Callable[[float, str], None] | None = None, device=None,
               should_stop: Callable[[int, GaussianCloud], bool] | None = None,
-              check_every: int = 100, average: float | None = None) -> GaussianCloud:
+              check_every: int = 100, average: float | None = None, points: SfMPoints | None = None) -> GaussianCloud:
     """`cloud` trained on `views` (at their resolution) for `iterations` more iterations with
     the trainer's recipe and one stage's schedule (`train.loop`: its learning rates, the position
     rate decaying over the iterations, the anti-aliasing of `config.antialias`), without density
@@ -49,7 +51,8 @@ def fine_tune(cloud: GaussianCloud, views: Views, iterations: int, *, config: Tr
     cloud)` every `check_every` iterations, with the current cloud (torch, detached, as it is
     drawn while training): True ends the fine-tune there (for example a `gvae_core.plateau.Plateau`
     on a validation PSNR). `average` (a decay in (0, 1)): the result, and what `should_stop` sees,
-    is the running average of the iterates (`ParameterAverage`) instead of the last one."""
+    is the running average of the iterates (`ParameterAverage`) instead of the last one. `points`:
+    the capture's SfM points, whose depths join the loss with `config.depth_weight` (`train.depth`)."""
     iterations = int(iterations)
     if iterations < 0:
         raise ValueError(f"fine_tune: iterations must be >= 0, got {iterations}")
@@ -68,7 +71,8 @@ def fine_tune(cloud: GaussianCloud, views: Views, iterations: int, *, config: Tr
     mean = None if average is None else ParameterAverage(model, average)
     stage = Stage(model, views.cameras, training_targets(views, config.background).to(dev), config, iterations,
                   rng, gen, lambda it: src.sh_degree, average=mean,
-                  filter_every=config.stage_schedule(0)["densify_every"])
+                  filter_every=config.stage_schedule(0)["densify_every"],
+                  depth=depth_targets(points, views, dev) if config.depth_weight > 0 else None)
     say = (lambda it: progress(it / max(iterations, 1), f"fine-tuning {it}/{iterations}")) if progress else None
     check = None
     if should_stop is not None:
@@ -132,7 +136,7 @@ def train_more(run_dir, iterations: int, *, stage: int | None = None, progress: 
     try:
         with torch_threads(threads):
             tuned = fine_tune(cloud, views, n, config=config, seed=config.seed, progress=advance, device=device,
-                              average=config.average)
+                              average=config.average, points=data.points)
     finally:
         bar.close()
     seconds = time.perf_counter() - t0

@@ -32,6 +32,7 @@ from ..resources import check_train_memory, current_rss_mb, estimate_train_memor
 from .average import ParameterAverage
 from .config import TrainConfig
 from .data import TrainingData, split_validation, training_data
+from .depth import depth_targets
 from .evaluation import stage_scores, training_targets
 from .loop import Stage, StageOutcome, run_stage
 from .model import GaussianModel
@@ -196,7 +197,8 @@ def _train_stage(run: _Run, s: int) -> None:
                   rng, gen, lambda it: config.sh_degree_at(first + it - 1),
                   lr_window=(first, sum(config.iterations)) if config.lr_schedule == "run" else (0, planned),
                   strategy=strategy, average_from=strategy.stop + 1 if averaged else None,
-                  average_decay=config.average or 0.99, filter_every=config.stage_schedule(s)["densify_every"])
+                  average_decay=config.average or 0.99, filter_every=config.stage_schedule(s)["densify_every"],
+                  depth=depth_targets(run.data.points, views, run.device) if config.depth_weight > 0 else None)
     watch = None if validation is None else Validation(
         config, validation, views.cameras, stage.settings, run.started, planned, converging, run.say,
         run.data.views("test", height) if converging else None)
@@ -231,7 +233,8 @@ def _cool_down(stage: Stage, watch: Validation, done: int, report: Reporter) -> 
     n, degree = config.cool_down, stage.degree_at(done)
     model.reset_optimizer_state()
     cool = Stage(model, stage.cameras, stage.targets, config, n, stage.rng, stage.generator, lambda it: degree,
-                 average=ParameterAverage(model, config.average or 0.99), filter_every=stage.filter_every)
+                 average=ParameterAverage(model, config.average or 0.99), filter_every=stage.filter_every,
+                 depth=stage.depth)
     run_stage(cool, progress=lambda it: report(done + it, f"cool-down: step {it}/{n}"))
     kept = watch.judge(cool.average.values, done + n, degree)
     model.load_params(watch.best_params)
