@@ -65,9 +65,7 @@ def depth_targets(points: SfMPoints | None, views: Views, device=None) -> DepthT
 
 def visible_points(xyz: np.ndarray, camera: Camera) -> np.ndarray:
     """Indices of the points of `xyz` a coarse z-buffer of them keeps in `camera` (module docstring)."""
-    uv, z = camera.project(xyz)
-    inside = np.flatnonzero((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0)
-                            & (uv[:, 1] < camera.height))
+    inside, uv, z = _in_image(camera, xyz)
     if len(inside) == 0:
         return inside
     cell = camera.height / GRID_ROWS
@@ -80,11 +78,17 @@ def visible_points(xyz: np.ndarray, camera: Camera) -> np.ndarray:
 
 def _pixels(camera: Camera, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(flat pixel indices, camera depths) of the points of `xyz` that fall inside `camera`'s image."""
+    inside, uv, z = _in_image(camera, xyz)
+    col, row = np.floor(uv[inside, 0]).astype(np.int64), np.floor(uv[inside, 1]).astype(np.int64)
+    return row * camera.width + col, z[inside]
+
+
+def _in_image(camera: Camera, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(indices of the points in front of `camera` and inside its image, pixel coordinates, depths)."""
     uv, z = camera.project(xyz)
-    col, row = np.floor(uv[:, 0]), np.floor(uv[:, 1])
-    ok = (z > 0) & (col >= 0) & (col < camera.width) & (row >= 0) & (row < camera.height)
-    flat = row[ok].astype(np.int64) * camera.width + col[ok].astype(np.int64)
-    return flat, z[ok]
+    with np.errstate(invalid="ignore"):  # (NaN pixels behind the camera)
+        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    return np.flatnonzero(ok), uv, z
 
 
 def depth_loss(depth: torch.Tensor, targets: DepthTargets, view: int) -> torch.Tensor:
