@@ -4,7 +4,8 @@ structure from motion whose true cameras and surface are known.
 The scene: a box (1.2 x 0.8 x 0.6) standing on a 3.2 x 3.2 floor, every face covered by small flat
 Gaussians coloured by smooth random noise at four scales (SIFT finds blobs and corners at each).
 `photo_set(folder)` writes PNG photos taken from a ring of cameras around it and returns the
-cameras; `on_surface(points)` is each point's distance to the scene's surfaces."""
+cameras; `on_surface(points)` is each point's distance to the scene's surfaces; `similarity` the
+best similarity between two sets of camera centres."""
 
 from __future__ import annotations
 
@@ -118,3 +119,14 @@ def on_surface(points: np.ndarray) -> np.ndarray:
     q = np.abs(p - [0, 0, BOX[2]]) - BOX  # signed distance to the box
     box = np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(1), 0)
     return np.minimum(floor, np.abs(box))
+
+
+def similarity(a: np.ndarray, b: np.ndarray):
+    """s, R, t with b ≈ s R a + t (Umeyama's least squares)."""
+    ma, mb = a.mean(0), b.mean(0)
+    u, sv, vt = np.linalg.svd((b - mb).T @ (a - ma) / len(a))
+    d = np.eye(3)
+    d[2, 2] = np.sign(np.linalg.det(u @ vt))
+    r = u @ d @ vt
+    s = np.trace(np.diag(sv) @ d) / ((a - ma) ** 2).sum(1).mean()
+    return s, r, mb - s * r @ ma

@@ -22,7 +22,7 @@ from gvae_core.cli import build_parser, main
 from gvae_core.cli.sfm import sfm_options
 from gvae_core.datasets import DatasetError
 
-from .photo_set import SCENE_SIZE, on_surface, photo_set, ring_cameras
+from .photo_set import SCENE_SIZE, on_surface, photo_set, ring_cameras, similarity
 
 #: Small photos: SIFT and matching in seconds.
 CAMERAS = ring_cameras(20, 320, 240)
@@ -58,17 +58,6 @@ def _unrelated(path, width, height, seed=3):
     Image.fromarray((np.kron(small, np.ones((10, 10, 1))) * 255).astype(np.uint8)).save(path)
 
 
-def _similarity(a, b):
-    """s, R, t with b ≈ s R a + t (Umeyama's least squares)."""
-    ma, mb = a.mean(0), b.mean(0)
-    u, sv, vt = np.linalg.svd((b - mb).T @ (a - ma) / len(a))
-    d = np.eye(3)
-    d[2, 2] = np.sign(np.linalg.det(u @ vt))
-    r = u @ d @ vt
-    s = np.trace(np.diag(sv) @ d) / ((a - ma) ** 2).sum(1).mean()
-    return s, r, mb - s * r @ ma
-
-
 def test_sfm_recovers_the_cameras_up_to_a_similarity(solved):
     folder, report, said = solved
     assert report.registered == [f"view_{k:02d}.png" for k in range(len(CAMERAS))]
@@ -90,7 +79,7 @@ def test_sfm_recovers_the_cameras_up_to_a_similarity(solved):
     true = {f"view_{k:02d}": cam for k, cam in enumerate(CAMERAS)}
     got = np.stack([c.center for c in capture.cameras])
     want = np.stack([true[n].center for n in capture.names])
-    s, r, t = _similarity(got, want)
+    s, r, t = similarity(got, want)
     centre_error = np.linalg.norm(s * got @ r.T + t - want, axis=1) / SCENE_SIZE
     assert centre_error.max() < 0.01, centre_error
     for cam, name in zip(capture.cameras, capture.names):
@@ -124,6 +113,27 @@ def test_sfm_finds_a_principal_point_off_the_centre(tmp_path):
     assert abs(photo.cx - cams[0].cx) < 1.0 and abs(photo.cy - cams[0].cy) < 1.0, (photo.cx, photo.cy)
     errors = relative_rotation_errors(capture, {f"view_{k:02d}": c for k, c in enumerate(cams)})
     assert np.median(errors) < 0.5, np.median(errors)
+
+
+@pytest.mark.parametrize("mapper", ["incremental", "global"])
+def test_past_a_few_dozen_photos_retrieval_matches_fewer_pairs_for_the_same_cameras(mapper, photos, tmp_path,
+                                                                                    monkeypatch):
+    """Above EXHAUSTIVE_UP_TO photos `auto` matches each photo only with those a vocabulary tree of
+    the photos' own features retrieves (here the 6 most alike of 20, where every pair is 190): every
+    photo still registered and the cameras the true ones, by either mapper."""
+    import pycolmap  # noqa: PLC0415 - SfM's own dependency, for the database it wrote
+
+    monkeypatch.setattr(sfm, "EXHAUSTIVE_UP_TO", 10)
+    folder = tmp_path / "retrieved"
+    shutil.copytree(photos, folder)
+    report = run_sfm(folder, SfMOptions(threads=2, mapper=mapper, retrieved=6))
+    assert report.matcher == "vocabtree" and len(report.registered) == len(CAMERAS)
+    with pycolmap.Database.open(folder / "database.db") as db:
+        pairs = db.num_matched_image_pairs()
+    assert len(CAMERAS) <= pairs <= 6 * len(CAMERAS) < len(CAMERAS) * (len(CAMERAS) - 1) // 2
+    errors = relative_rotation_errors(read_capture(folder, images=False),
+                                      {f"view_{k:02d}": c for k, c in enumerate(CAMERAS)})
+    assert np.median(errors) < 1.0, np.median(errors)
 
 
 def test_a_centred_lens_keeps_its_centre(solved):

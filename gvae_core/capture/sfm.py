@@ -9,8 +9,9 @@ with progress and cancellation, checks what came out and writes it where every 3
   images, points3D, binary) and `folder/database.db`, COLMAP's own layout, so the next run, COLMAP's
   GUI, gsplat and nerfstudio read it (the reference 3DGS's train.py wants undistorted PINHOLE
   cameras: `colmap image_undistorter` first; this project undistorts on load, `capture.lens`).
-  Matching: exhaustive up to `EXHAUSTIVE_UP_TO` photos, else a vocabulary tree built from the
-  photos' own descriptors (no download); `sequential` for the frames of a video in name order.
+  Matching: exhaustive up to `EXHAUSTIVE_UP_TO` photos, else each photo with the `RETRIEVED` most
+  like it by a vocabulary tree built from the photos' own descriptors (no download);
+  `sequential` for the frames of a video in name order. Mapping: incremental, or global (GLOMAP).
   One shared camera when the photos share a size and lens (EXIF make, model, focal length), one
   per photo otherwise or when asked. The model with the most photos is kept; fewer than all
   registered is a warning naming the rest (training then uses the registered ones); fewer than
@@ -52,19 +53,25 @@ from ..camera import look_target
 from ..datasets import DatasetError, resize_rgba
 from .dataset import PHOTO_SUFFIXES, TRIANGULATED, find_capture, find_photos, read_capture, triangulated_folder
 
-__all__ = ["SfMOptions", "SfMReport", "SfMError", "SfMCancelled", "MATCHERS", "CAMERA_MODES", "EXHAUSTIVE_UP_TO",
-           "MIN_REGISTERED", "SFM_IMAGE_SIZE", "TRIANGULATED", "needs_sfm", "needs_points", "pending_work", "run_sfm",
-           "ensure_capture", "triangulate",
-           "pose_pairs", "PYCOLMAP_VERSION"]
+__all__ = ["SfMOptions", "SfMReport", "SfMError", "SfMCancelled", "MATCHERS", "MAPPERS", "CAMERA_MODES",
+           "EXHAUSTIVE_UP_TO", "RETRIEVED", "MIN_REGISTERED", "SFM_IMAGE_SIZE", "TRIANGULATED", "needs_sfm",
+           "needs_points", "pending_work", "run_sfm", "ensure_capture", "triangulate", "pose_pairs",
+           "PYCOLMAP_VERSION"]
 
 #: The pycolmap release this module is written and tested against (pyproject pins it).
 PYCOLMAP_VERSION = "4.2.1"
 #: What `--matcher` takes: auto (exhaustive up to EXHAUSTIVE_UP_TO photos, vocabtree beyond).
 MATCHERS = ("auto", "exhaustive", "sequential", "vocabtree")
+#: What `--mapper` takes: COLMAP's incremental mapping, or global mapping (GLOMAP: rotation
+#: averaging, then all positions at once; one bundle adjustment instead of one per added photo).
+MAPPERS = ("incremental", "global")
 #: What `--camera` takes: auto (one shared camera when the photos share size and lens), single, per-image.
 CAMERA_MODES = ("auto", "single", "per-image")
-#: `auto` matches every pair up to this many photos (~5k pairs at 100, ~20k at 200).
-EXHAUSTIVE_UP_TO = 200
+#: `auto` matches every pair up to this many photos (1,225 pairs at 50, ~5k at 100, ~45k at 300)...
+EXHAUSTIVE_UP_TO = 50
+#: ... and beyond, each photo with the `RETRIEVED` photos most like it by a vocabulary tree (pairs
+#: growing with the photos, not their square; docs/benchmarks/training.md measures the cameras).
+RETRIEVED = 25
 #: Features are found on photos scaled to at most this many pixels on the long side: plenty for the
 #: poses of a splat trained at a quarter of a phone photo or less, and 2-4x faster to match than at
 #: COLMAP's own 3200 (photos larger than that for SIFT give more features than the matcher needs).
@@ -93,13 +100,16 @@ class SfMCancelled(RuntimeError):
 
 @dataclass
 class SfMOptions:
-    """How SfM runs. `matcher`: one of MATCHERS; `camera`: one of CAMERA_MODES; `max_image_size`:
+    """How SfM runs. `matcher`: one of MATCHERS; `mapper`: one of MAPPERS; `camera`: one of
+    CAMERA_MODES; `retrieved`: photos matched with each by the vocabulary tree; `max_image_size`:
     features are found at most this many pixels on the long side (the photo is scaled down for
     them; the model keeps the photo's size); `max_features` per photo; `threads` (None: all
     cores); `seed`: pycolmap's random seed (the same photos give the same model)."""
 
     matcher: str = "auto"
+    mapper: str = "incremental"
     camera: str = "auto"
+    retrieved: int = RETRIEVED
     max_image_size: int = SFM_IMAGE_SIZE
     max_features: int = 8192
     threads: int | None = None
@@ -108,8 +118,12 @@ class SfMOptions:
     def __post_init__(self):
         if self.matcher not in MATCHERS:
             raise ValueError(f"SfM matcher must be one of {', '.join(MATCHERS)}, got {self.matcher!r}")
+        if self.mapper not in MAPPERS:
+            raise ValueError(f"SfM mapper must be one of {', '.join(MAPPERS)}, got {self.mapper!r}")
         if self.camera not in CAMERA_MODES:
             raise ValueError(f"SfM camera mode must be one of {', '.join(CAMERA_MODES)}, got {self.camera!r}")
+        if int(self.retrieved) < 2:
+            raise ValueError(f"SfM retrieval needs at least 2 photos per photo, got {self.retrieved}")
         if int(self.max_image_size) < 64:
             raise ValueError(f"SfM image size must be at least 64 px, got {self.max_image_size}")
 
@@ -335,7 +349,7 @@ def _match(pycolmap, database: Path, pairs: list[tuple[str, str]] | None, option
         t0 = time.perf_counter()
         vocab = pycolmap.VocabTreePairingOptions()
         vocab.vocab_tree_path = _build_vocab_tree(pycolmap, database, work / "vocab_tree.bin", options)
-        vocab.num_images = 50
+        vocab.num_images = int(options.retrieved)
         vocab.num_threads = _threads(options)
         if progress is not None:
             progress("matching", 0.0, "matching: the pairs a vocabulary tree of the photos' features retrieves")
@@ -356,10 +370,11 @@ def _match(pycolmap, database: Path, pairs: list[tuple[str, str]] | None, option
     return _in_chunks("matching", _chunks(pairs, 40, 50), call, "pairs", progress, cancel)
 
 
-def _build_vocab_tree(pycolmap, database: Path, path: Path, options: SfMOptions, sample: int = 500_000) -> Path:
+def _build_vocab_tree(pycolmap, database: Path, path: Path, options: SfMOptions, sample: int = 100_000) -> Path:
     """A visual-word index of up to `sample` of the photos' own SIFT descriptors (what COLMAP's
-    vocab_tree_builder makes; about 40 descriptors a word, 256 to 65,536 words), so retrieval
-    needs no downloaded tree."""
+    vocab_tree_builder makes; about 100 descriptors a word, 256 to 4,096 words), so retrieval needs
+    no downloaded tree. Ten k-means iterations in one round: seconds, where COLMAP's three rounds of
+    100 take minutes, and fine enough to rank a few hundred photos."""
     rng = np.random.default_rng(options.seed)
     with pycolmap.Database.open(database) as db:
         images = db.read_all_images()
@@ -371,7 +386,9 @@ def _build_vocab_tree(pycolmap, database: Path, path: Path, options: SfMOptions,
     descriptors = np.concatenate(chunks).astype(np.float32)
     index = pycolmap.VisualIndex.create(descriptors.shape[1], 64)
     build = pycolmap.VisualIndex.BuildOptions()
-    build.num_visual_words = int(min(65536, max(256, 2 ** int(math.log2(max(len(descriptors) // 40, 256))))))
+    build.num_visual_words = int(min(4096, max(256, 2 ** int(math.log2(max(len(descriptors) // 100, 256))))))
+    build.num_iterations = 10
+    build.num_rounds = 1
     build.num_threads = _threads(options)
     index.build(build, pycolmap.FeatureDescriptorsFloat(pycolmap.FeatureExtractorType.SIFT, descriptors))
     index.write(path)
@@ -379,7 +396,9 @@ def _build_vocab_tree(pycolmap, database: Path, path: Path, options: SfMOptions,
 
 
 def _map(pycolmap, database: Path, folder: Path, out: Path, n: int, options: SfMOptions, progress, cancel):
-    """Incremental mapping; the reconstructions it made (id -> Reconstruction)."""
+    """Incremental or global mapping (`options.mapper`); the reconstructions made (id -> Reconstruction)."""
+    if options.mapper == "global":
+        return _map_global(pycolmap, database, folder, out, n, options, progress, cancel)
     mapping = pycolmap.IncrementalPipelineOptions()
     mapping.num_threads = _threads(options)
     mapping.random_seed = int(options.seed)
@@ -398,6 +417,19 @@ def _map(pycolmap, database: Path, folder: Path, out: Path, n: int, options: SfM
     out.mkdir(parents=True, exist_ok=True)
     return _stage("mapping", lambda token: pycolmap.incremental_mapping(
         database, folder, out, mapping, next_image_callback=next_image, cancellation_token=token), cancel, poll)
+
+
+def _map_global(pycolmap, database: Path, folder: Path, out: Path, n: int, options: SfMOptions, progress, cancel):
+    """Global mapping (pycolmap's GLOMAP). It takes no cancellation token: a cancel is seen when it
+    returns; in several threads its model is not the same from run to run."""
+    mapping = pycolmap.GlobalPipelineOptions()
+    mapping.num_threads = mapping.mapper.num_threads = _threads(options)
+    mapping.random_seed = mapping.mapper.random_seed = int(options.seed)
+    mapping.min_model_size = min(mapping.min_model_size, max(MIN_REGISTERED, n // 4))
+    if progress is not None:
+        progress("mapping", 0.0, f"mapping: {n} photos at once (global)")
+    out.mkdir(parents=True, exist_ok=True)
+    return _stage("mapping", lambda token: pycolmap.global_mapping(database, folder, out, mapping), cancel)
 
 
 # ------------------------------------------------------------------ SfM of a folder of photos

@@ -21,8 +21,11 @@ def add_sfm_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--matcher", choices=("auto", "exhaustive", "sequential", "vocabtree"), default="auto",
                    help="which photo pairs are matched: every pair (exhaustive), each frame with its next ones by "
                         "name (sequential: the frames of a video), or the most similar ones by a vocabulary tree of "
-                        "the photos' own features; auto: exhaustive up to 200 photos, vocabtree beyond "
+                        "the photos' own features; auto: exhaustive up to 50 photos, vocabtree beyond "
                         "(default: %(default)s)")
+    g.add_argument("--mapper", choices=("incremental", "global"), default="incremental",
+                   help="incremental mapping (COLMAP's: photo by photo) or global mapping (GLOMAP: every photo at "
+                        "once) (default: %(default)s)")
     g.add_argument("--camera", choices=("auto", "single", "per-image"), default="auto", dest="sfm_camera",
                    help="one camera shared by all photos, or one per photo; auto: shared when the photos have one "
                         "size and lens (default: %(default)s)")
@@ -34,7 +37,8 @@ def add_sfm_arguments(parser: argparse.ArgumentParser) -> None:
 def sfm_options(args: argparse.Namespace):
     from ..capture.sfm import SfMOptions
 
-    return SfMOptions(matcher=getattr(args, "matcher", "auto"), camera=getattr(args, "sfm_camera", "auto"),
+    return SfMOptions(matcher=getattr(args, "matcher", "auto"), mapper=getattr(args, "mapper", "incremental"),
+                      camera=getattr(args, "sfm_camera", "auto"),
                       max_image_size=getattr(args, "sfm_image_size", SFM_IMAGE_SIZE),
                       threads=getattr(args, "threads", None))
 
