@@ -1,8 +1,9 @@
 """Every compiled CPU kernel made ready before the first real job: the renderer's and the Hessian's
 (`rendering.compiled.compile_kernels`), the detail model's (its inputs and its network on a tiny
-cloud) and compaction's (a tiny compact), called with the argument types real jobs give them. The
-first run on a machine compiles them (about a minute on one core) and says so; later runs load them
-from the on-disk cache (`rendering.kernels.kernel_cache_dir`). `make test` runs `main` first, so that no test process
+cloud), compaction's (a tiny compact) and the training loss's (`train.photometric`), called with
+the argument types real jobs give them. The first run on a machine compiles them (about a minute on
+one core) and says so; later runs load them from the on-disk cache
+(`rendering.kernels.kernel_cache_dir`). `make test` runs `main` first, so that no test process
 compiles its own; Blender's Refine and Compact call `compile_kernels` with their progress."""
 
 from __future__ import annotations
@@ -10,12 +11,15 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
+import numpy as np
+
 from .antialias import with_dilation_3d
 from .capture import default_views
 from .compaction import compact
 from .detail import detail_inputs, load_detail
 from .examples import example_cloud
 from .rendering import compiled
+from .train.photometric import loss_and_gradient
 
 
 def kernels_cached() -> bool:
@@ -25,8 +29,9 @@ def kernels_cached() -> bool:
     from .compaction import kernels as compaction_kernels  # noqa: PLC0415 - these import Numba
     from .detail import kernels as detail_kernels  # noqa: PLC0415
     from .rendering import kernels  # noqa: PLC0415
+    from .train import photometric_kernels  # noqa: PLC0415
 
-    return all(kernels.is_cached(d) for room in (kernels, detail_kernels, compaction_kernels)
+    return all(kernels.is_cached(d) for room in (kernels, detail_kernels, compaction_kernels, photometric_kernels)
                for d in kernels.module_kernels(room))
 
 
@@ -44,6 +49,7 @@ def compile_kernels(progress: Callable[[float, str], None] | None = None) -> flo
     drawn = with_dilation_3d(tiny, default_views(tiny, 2, 64))
     model.changes(detail_inputs(drawn, None, neighbours=model.config.inputs_neighbours))
     compact(tiny, keep=0.5, distill=0, check_memory=False)
+    loss_and_gradient(np.zeros((16, 16, 3), np.float32), np.ones((16, 16, 3), np.float32), 0.2)
     return time.perf_counter() - t0
 
 

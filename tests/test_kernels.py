@@ -202,27 +202,34 @@ from gvae_core.compaction import compact, kernels as compaction_kernels
 from gvae_core.detail import kernels as detail_kernels
 from gvae_core.examples import example_cloud
 from gvae_core.refinement import refine
-from gvae_core.rendering import kernels
+from gvae_core import Camera
+from gvae_core.rendering import kernels, render
+from gvae_core.train import photometric_kernels
+from gvae_core.train.photometric import photometric_loss
 warmup.compile_kernels()
 def signatures():
     return {f"{m.__name__}.{d.__name__}": len(d.signatures)
-            for m in (kernels, detail_kernels, compaction_kernels) for d in kernels.module_kernels(m)}
+            for m in (kernels, detail_kernels, compaction_kernels, photometric_kernels)
+            for d in kernels.module_kernels(m)}
 ready = signatures()
 cloud = example_cloud(300, seed=3)
 refine(cloud)
 compact(cloud, keep=0.5, distill=0)
+image = render(cloud.to_torch(), Camera.look_at((2, 1, 1), width=40, height=30)).image.requires_grad_()
+photometric_loss(image, image.detach().flip(0)).backward()
 print(json.dumps([ready, signatures()]))
 """
 
 
 def test_the_warm_up_makes_ready_what_refine_and_compact_run():
     """`warmup.compile_kernels` alone (in a fresh process) makes every room's kernels ready (the
-    renderer's, the detail model's, compaction's) with the argument types a real refine and compact
-    give them: neither compiles another signature afterwards (compaction's hit counts, which only
-    the LightGaussian score and a sight of unseen rows run, stay unloaded)."""
+    renderer's, the detail model's, compaction's, the training loss's) with the argument types a real
+    refine, compact and training step give them: none compiles another signature afterwards
+    (compaction's hit counts, which only the LightGaussian score and a sight of unseen rows run,
+    stay unloaded)."""
     proc = subprocess.run([sys.executable, "-c", _ALL_WARMED], capture_output=True, text=True, check=True)
     ready, after = json.loads(proc.stdout.strip().splitlines()[-1])
-    for room in ("rendering", "detail", "compaction"):
+    for room in ("rendering", "detail", "compaction", "train"):
         assert sum(n for name, n in ready.items() if f".{room}." in name) >= 2, (room, ready)
     assert max(ready.values()) == 1 and after == ready, (ready, after)
 

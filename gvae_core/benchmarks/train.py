@@ -100,7 +100,8 @@ def _timed_renderer(spent: dict[str, float], clock):
 
 
 def profile_step(cloud, views, *, steps: int = 20, sh_degree: int = 3, densify_every: int = 25,
-                 config=None, seed: int = 0, fused_adam: bool = True) -> dict[str, float]:
+                 config=None, seed: int = 0, fused_adam: bool = True,
+                 compiled_loss: bool = True) -> dict[str, float]:
     """CPU seconds of this thread per training step, part by part (`STEP_PARTS`), over `steps`
     steps of the trainer's recipe on `cloud` and the training `views` (one view a step, in a seeded
     order): the renderer's stages forward and backward (timed inside the compiled path: run it with
@@ -113,7 +114,7 @@ def profile_step(cloud, views, *, steps: int = 20, sh_degree: int = 3, densify_e
     import torch  # noqa: PLC0415
 
     from ..camera import scene_extent  # noqa: PLC0415
-    from ..losses import photometric_loss  # noqa: PLC0415
+    from ..train.photometric import photometric_loss  # noqa: PLC0415
     from ..rendering import RenderSettings, render  # noqa: PLC0415
     from ..train.evaluation import training_targets  # noqa: PLC0415
     from ..train.model import GaussianModel  # noqa: PLC0415
@@ -140,7 +141,7 @@ def profile_step(cloud, views, *, steps: int = 20, sh_degree: int = 3, densify_e
                             settings=settings)
             result.means2d.retain_grad()
             t = clock()
-            loss = photometric_loss(result.image, targets[v], config.lambda_dssim)
+            loss = photometric_loss(result.image, targets[v], config.lambda_dssim, compiled=compiled_loss)
             spent["loss"] += clock() - t
             t = clock()
             inner = spent["composite backward"] + spent["project backward"]
@@ -185,15 +186,19 @@ def main(argv=None) -> int:
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--plain-adam", action="store_true",
                    help="torch's Adam looping over the parameters (what the trainer used before its fused Adam)")
+    p.add_argument("--torch-loss", action="store_true",
+                   help="the loss and its backward by torch (what the trainer used before its compiled loss)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     views = read_capture(args.capture).held_out(args.test_every).load("train", args.height)
     cloud = read_ply(args.cloud)
-    profile_step(cloud, views, steps=args.warmup, fused_adam=not args.plain_adam)  # kernels loaded, memory touched
+    kw = {"fused_adam": not args.plain_adam, "compiled_loss": not args.torch_loss}
+    profile_step(cloud, views, steps=args.warmup, **kw)  # kernels loaded, memory touched
     load = os.getloadavg()[0]
-    out = profile_step(cloud, views, steps=args.steps, fused_adam=not args.plain_adam)
+    out = profile_step(cloud, views, steps=args.steps, **kw)
     print(f"{len(cloud)} Gaussians, {len(views)} views of {views.cameras[0].width}x{views.cameras[0].height}, "
-          f"{args.steps} steps, 1 thread, {'plain' if args.plain_adam else 'fused'} Adam, load {load:.1f} at start, "
+          f"{args.steps} steps, 1 thread, {'plain' if args.plain_adam else 'fused'} Adam, "
+          f"{'torch' if args.torch_loss else 'compiled'} loss, load {load:.1f} at start, "
           f"{os.getloadavg()[0]:.1f} at end")
     print("| part | CPU ms per step | share |")
     print("|---|---:|---:|")

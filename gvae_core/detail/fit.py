@@ -27,9 +27,9 @@ import torch
 from ..camera import Camera
 from ..cloud import GaussianCloud
 from ..datasets import Views
-from ..losses import photometric_loss
 from ..octaves import with_octaves
 from ..rendering import RenderSettings, render
+from ..train.photometric import photometric_loss
 from .features import DetailInputs
 from .model import DetailModel
 
@@ -113,7 +113,7 @@ def _through_renderer(examples: Sequence[Example], changes_of: Callable[[int, Ex
             target = target[y0:y0 + config.patch, x0:x0 + config.patch]
         cloud = with_octaves(ex.torch_cloud(), changes_of(i, ex))
         out = render(cloud, cam, background=ex.background, settings=settings)
-        loss = photometric_loss(out.image, target, config.lambda_dssim)
+        loss = photometric_loss(out.image, target, config.lambda_dssim, compiled=settings.kernels != "torch")
         if extra_loss is not None:
             loss = loss + extra_loss(ex)
         loss.backward()

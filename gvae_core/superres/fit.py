@@ -51,9 +51,10 @@ from ..conventions import activate_opacities
 from ..datasets import Views, every_nth
 from ..densify import g_scale
 from ..detail.fit import ORACLE_LEARNING_RATES, crop
-from ..losses import photometric_loss, psnr
+from ..losses import psnr
 from ..octaves import FIELDS, REFINED_SIZE_CHANGE, SIZE, with_octaves
 from ..rendering import RenderOutput, RenderSettings, render
+from ..train.photometric import photometric_loss
 from ..train.strategy import DensifyStrategy
 from .children import CHILD_LOGIT, densify
 from .guards import ExposureCorrection, PoseCorrection
@@ -608,7 +609,7 @@ def _fit_view(state: _FitState, scale: int, plan: _Schedule, images: _Images, co
     drawn, out = _draw(cloud_now, big, scale, images.bg, images.settings, pose, exposure, v)
     if plan.densify_steps:
         out.means2d.retain_grad()
-    loss = photometric_loss(drawn, target, config.lambda_dssim)
+    loss = photometric_loss(drawn, target, config.lambda_dssim, compiled=images.settings.kernels != "torch")
     total_loss = loss / plan.per_step
     if pose is not None:
         total_loss = total_loss + pose.penalty() / plan.per_step

@@ -18,12 +18,13 @@ import torch
 
 from ..antialias import FILTER_KEY, filter_3d
 from ..camera import Camera
-from ..losses import photometric_loss, psnr
+from ..losses import psnr
 from ..rendering import RenderSettings, render
 from .average import ParameterAverage
 from .config import TrainConfig, position_lr
 from .depth import DepthTargets, depth_loss
 from .model import GaussianModel
+from .photometric import photometric_loss
 from .strategy import DensifyState, DensifyStrategy
 
 __all__ = ["Stage", "StageOutcome", "train_step", "run_stage", "centres_filter"]
@@ -111,7 +112,8 @@ def train_step(stage: Stage, it: int) -> tuple[torch.Tensor, torch.Tensor, int]:
                     settings=stage.settings)
     if stage.strategy is not None:
         stage.strategy.step_pre_backward(result)
-    loss = photometric_loss(result.image, stage.targets[v], config.lambda_dssim)
+    loss = photometric_loss(result.image, stage.targets[v], config.lambda_dssim,
+                            compiled=stage.settings.kernels != "torch")
     if stage.depth is not None and config.depth_weight > 0:
         loss = loss + config.depth_weight * depth_loss(result.depth, stage.depth, v)
     loss.backward()
