@@ -27,6 +27,7 @@ from gvae_core.camera import scene_extent
 from gvae_core.train import (PROGRESS_KEYS, ParameterAverage, RunFolder, TrainConfig, evaluate_psnr, gaussian_limit,
                              fine_tune, position_lr, split_validation, train_progressive)
 from gvae_core.train.model import GaussianModel
+from gvae_core.train.unseen import seen_by_any
 from gvae_core.train.run_folder import FORMAT_1_LEFT_OUT
 
 
@@ -124,6 +125,24 @@ def test_psnr_rises_from_stage_to_stage(tiny_run):
     assert len(test_psnr) == 3
     assert test_psnr[0] < test_psnr[1] < test_psnr[2], test_psnr
     assert test_psnr[2] > 21.0
+
+
+def test_a_stage_keeps_only_what_its_training_photos_draw(tiny_run):
+    """Every Gaussian of every stage's result is drawn by one of that stage's training cameras (the
+    log says how many were left out); `seen_by_any` tells a Gaussian in view from one behind every
+    camera and one beside them all."""
+    result, _ = tiny_run
+    settings = RenderSettings(antialias=TrainConfig(**TINY).antialias)
+    for s, snap in enumerate(result.lineage.snapshots):
+        cams = synthetic_views("train", TINY["resolutions"][s]).cameras
+        assert seen_by_any(snap.cloud.to_torch(), cams, settings).all(), s
+        assert result.log[s]["unseen_removed"] >= 0
+    cams = synthetic_views("train", 24).cameras
+    far = 50.0 * cams[0].center  # far behind the first camera, and past all the others
+    cloud = GaussianCloud(means=np.float32([[0, 0, 0], far, [0, 0, 40.0]]), scales=np.full((3, 3), -3.0, np.float32),
+                          quats=np.tile(np.float32([1, 0, 0, 0]), (3, 1)), opacities=np.full(3, 3.0, np.float32),
+                          sh_dc=np.zeros((3, 3), np.float32))
+    assert seen_by_any(cloud.to_torch(), cams, settings).tolist() == [True, False, False]
 
 
 def test_lineage_invariants_of_a_run(tiny_run):

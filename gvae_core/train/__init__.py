@@ -4,7 +4,8 @@
 - `model`: `GaussianModel`, the trainable Gaussians and the edits densification makes;
 - `strategy`: densification as a strategy (`DensifyStrategy`): its schedule, gradient statistics,
   opacity reset and budget, called by the loop before and after the backward;
-- `loop`: one training step and the stage of steps around it;
+- `loop`: one training step and the stage of steps around it; `photometric`: its loss, compiled;
+- `unseen`: the Gaussians no training photo draws, which a stage's result leaves out;
 - `validation`: the photos set aside and the rule that stops the last stage;
 - `evaluation`: PSNR / SSIM of a cloud on views (training, compaction and refine report it);
 - `average`: the running average of the iterates;

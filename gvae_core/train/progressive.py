@@ -2,7 +2,8 @@
 
 Each stage trains at one image height (`train.loop`), starting from the previous stage's
 Gaussians, with densification as its strategy (`train.strategy`) and, for the last stage of a run
-that converges, its validation photos deciding when to stop (`train.validation`). Every Gaussian
+that converges, its validation photos deciding when to stop (`train.validation`); a stage's result
+keeps only the Gaussians some training photo of the stage draws (`train.unseen`). Every Gaussian
 carries a persistent id and the id of its nearest ancestor alive at the previous stage boundary; at
 each boundary every live Gaussian is snapshotted into a `Lineage`. With an output folder, each
 finished stage is written there (`train.run_folder`) and an interrupted run resumes after its last
@@ -39,6 +40,7 @@ from .model import GaussianModel
 from .reporting import ProgressHook, Reporter, torch_threads
 from .run_folder import RunFolder
 from .strategy import DensifyStrategy, gaussian_limit
+from .unseen import seen_by_any
 from .validation import Validation
 
 __all__ = ["train_progressive", "TrainResult", "anti_aliasing_size"]
@@ -213,13 +215,17 @@ def _train_stage(run: _Run, s: int) -> None:
         t0, c0 = time.perf_counter(), time.process_time()
         cooled = _cool_down(stage, watch, outcome.iterations, report)
         seconds, cpu_seconds = seconds + time.perf_counter() - t0, cpu_seconds + time.process_time() - c0
+    seen = seen_by_any(stage.drawn(), views.cameras, stage.settings).to(model.device)
+    unseen = int((~seen).sum())
+    if unseen:  # no photo of the stage draws them: nothing trained them (`train.unseen`)
+        model.keep(seen)
     run.carried = model.optimizer_state() if config.carry_optimizer and s < n_stages - 1 else None
     iterations = outcome.iterations + cooled.get("cool_down", 0)
     timing = {"iterations": iterations, "seconds": round(seconds, 3),
               "seconds_per_iteration": round(seconds / max(iterations, 1), 5),
               "cpu_seconds": round(cpu_seconds, 3)}
     _finish_stage(run, s, model, (views, validation),
-                  (timing, {"gaussian_limit": limit, **start, **memory, **cooled}),
+                  (timing, {"gaussian_limit": limit, **start, **memory, **cooled, "unseen_removed": unseen}),
                   outcome, watch, converging, report)
 
 
