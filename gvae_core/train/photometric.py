@@ -16,7 +16,7 @@ import torch
 
 from ..losses import gaussian_window
 from ..losses import photometric_loss as torch_photometric_loss
-from ..parallel import count, run
+from ..parallel import run
 from ..rendering.compiled import use_compiled
 
 __all__ = ["photometric_loss", "loss_and_gradient"]
@@ -32,22 +32,18 @@ def _kernels():
 
 
 def _in_rows(height: int, work) -> None:
-    tasks = [lambda a=a: work(a, min(a + _ROWS, height)) for a in range(0, height, _ROWS)]
-    if count() == 1 or len(tasks) == 1:
-        for t in tasks:
-            t()
-    else:
-        run(tasks, "gvae-loss")
+    """work(a, b) for runs of `_ROWS` rows covering 0..height, in threads (`parallel.run`)."""
+    run([lambda a=a: work(a, min(a + _ROWS, height)) for a in range(0, height, _ROWS)], "gvae-loss")
 
 
 def loss_and_gradient(pred: np.ndarray, target: np.ndarray, lambda_dssim: float,
                       window_size: int = 11, sigma: float = 1.5) -> tuple[float, np.ndarray]:
-    """The loss of two float32 (H, W, C) images and its gradient with respect to `pred`."""
+    """The loss of two float32 (H, W, C) images (any strides) and its gradient with respect to `pred`."""
     k = _kernels()
     h, w, c = pred.shape
     planes = np.empty((2, h, w * c), np.float32)
-    planes[0] = pred.reshape(h, w * c)
-    planes[1] = target.reshape(h, w * c)
+    planes[0].reshape(h, w, c)[...] = pred  # (one copy each, into the rows the kernels read)
+    planes[1].reshape(h, w, c)[...] = target
     window = gaussian_window(window_size, sigma).numpy().astype(np.float32)
     hsums = np.empty((5, h, w * c), np.float32)
     derivs = np.empty((3, h, w * c), np.float32)
@@ -66,8 +62,7 @@ def loss_and_gradient(pred: np.ndarray, target: np.ndarray, lambda_dssim: float,
 class _PhotometricFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, pred, target, lambda_dssim):
-        loss, grad = loss_and_gradient(pred.detach().contiguous().numpy(), target.detach().contiguous().numpy(),
-                                       float(lambda_dssim))
+        loss, grad = loss_and_gradient(pred.detach().numpy(), target.detach().numpy(), float(lambda_dssim))
         ctx.save_for_backward(torch.from_numpy(grad))
         return pred.new_tensor(loss)
 
