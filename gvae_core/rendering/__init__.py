@@ -31,8 +31,8 @@ from .projection import Projected, project
 from .rasterize import composite, pack, tiles_to_image
 from .tiles import Binning, bin_gaussians
 
-__all__ = ["render", "prepare_view", "RenderOutput", "RenderSettings", "ANTIALIAS_MODES", "antialias_parts",
-           "resolve_device"]
+__all__ = ["render", "project_view", "prepare_view", "RenderOutput", "RenderSettings", "ANTIALIAS_MODES",
+           "antialias_parts", "resolve_device"]
 
 
 @dataclass
@@ -108,10 +108,11 @@ def _size(cloud: GaussianCloud, key: str, device) -> torch.Tensor:
     return size.reshape(-1)
 
 
-def prepare_view(cloud: GaussianCloud, camera: Camera, settings: RenderSettings, *, sh_degree: int | None = None,
-                 device=None) -> tuple[Projected, Binning, torch.Tensor]:
-    """What `render` (same arguments) composites: every Gaussian of `cloud` projected through
-    `camera` with the anti-aliasing of `settings`, its tile lists and the packed table."""
+def project_view(cloud: GaussianCloud, camera: Camera, settings: RenderSettings, *, sh_degree: int | None = None,
+                 device=None) -> tuple[Projected, torch.Tensor]:
+    """Every Gaussian of `cloud` projected through `camera` with the anti-aliasing of `settings`
+    (`render`'s arguments), and the packed table `render` composites: `prepare_view` without the
+    tile lists (what is visible, and where)."""
     if not isinstance(camera, Camera):
         raise ValueError(f"render: camera must be a gvae_core.Camera, got {type(camera).__name__}")
     degree = cloud.sh_degree if sh_degree is None else int(sh_degree)
@@ -133,16 +134,26 @@ def prepare_view(cloud: GaussianCloud, camera: Camera, settings: RenderSettings,
     if compiled.use_compiled(settings.kernels, dev, settings.dtype):
         proj, table = compiled.project(*fields, camera, degree, filter_3d=filter_3d, mip_2d=mode == "mip",
                                        dilation_3d=dilation_3d)
-        binning = compiled.bin_gaussians(table, proj.footprint, proj.visible, camera.width, camera.height,
-                                         settings.tile_size, exact=settings.exact_tiles)
         if table.requires_grad:  # the centres as a view of their own, so that gradients reach means2d
             table = torch.cat([torch.cat([proj.means2d, proj.means2d.new_zeros(1, 2)]), table[:, 2:]], 1)
-        return proj, binning, table
+        return proj, table
     proj = project(*fields, camera, degree, dtype=settings.dtype, filter_3d=filter_3d, mip_2d=mode == "mip",
                    dilation_3d=dilation_3d)
-    binning = bin_gaussians(proj.means2d, proj.footprint, proj.depths, proj.visible, camera.width, camera.height,
-                            settings.tile_size, exact=settings.exact_tiles)
-    return proj, binning, pack(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
+    return proj, pack(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
+
+
+def prepare_view(cloud: GaussianCloud, camera: Camera, settings: RenderSettings, *, sh_degree: int | None = None,
+                 device=None) -> tuple[Projected, Binning, torch.Tensor]:
+    """What `render` (same arguments) composites: `project_view`'s projection and packed table, and
+    the tile lists."""
+    proj, table = project_view(cloud, camera, settings, sh_degree=sh_degree, device=device)
+    if compiled.use_compiled(settings.kernels, table.device, settings.dtype):
+        binning = compiled.bin_gaussians(table, proj.footprint, proj.visible, camera.width, camera.height,
+                                         settings.tile_size, exact=settings.exact_tiles)
+    else:
+        binning = bin_gaussians(proj.means2d, proj.footprint, proj.depths, proj.visible, camera.width,
+                                camera.height, settings.tile_size, exact=settings.exact_tiles)
+    return proj, binning, table
 
 
 def render(cloud: GaussianCloud, camera: Camera, *, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,

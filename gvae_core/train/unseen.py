@@ -13,17 +13,16 @@ import torch
 
 from ..camera import Camera
 from ..cloud import GaussianCloud
-from ..rendering import RenderSettings, prepare_view
+from ..rendering import RenderSettings, project_view
 
 __all__ = ["seen_by_any"]
 
 
 def seen_by_any(cloud: GaussianCloud, cameras: list[Camera], settings: RenderSettings) -> torch.Tensor:
     """(N,) bool: whether any of `cameras` draws each Gaussian of `cloud` (as `render` with
-    `settings` would project it)."""
+    `settings` would project it: `rendering.project_view`, no tile lists)."""
     seen = torch.zeros(len(cloud), dtype=torch.bool)
     with torch.no_grad():
         for camera in cameras:
-            proj = prepare_view(cloud, camera, settings)[0]
-            seen |= proj.visible.cpu()
+            seen |= project_view(cloud, camera, settings)[0].visible.cpu()
     return seen
