@@ -5,7 +5,8 @@ The scene: a box (1.2 x 0.8 x 0.6) standing on a 3.2 x 3.2 floor, every face cov
 Gaussians coloured by smooth random noise at four scales (SIFT finds blobs and corners at each).
 `photo_set(folder)` writes PNG photos taken from a ring of cameras around it and returns the
 cameras; `on_surface(points)` is each point's distance to the scene's surfaces; `similarity` the
-best similarity between two sets of camera centres."""
+best similarity between two sets of camera centres, `relative_rotation_errors` how far recovered
+cameras turn from true ones."""
 
 from __future__ import annotations
 
@@ -130,3 +131,16 @@ def similarity(a: np.ndarray, b: np.ndarray):
     r = u @ d @ vt
     s = np.trace(np.diag(sv) @ d) / ((a - ma) ** 2).sum(1).mean()
     return s, r, mb - s * r @ ma
+
+
+def relative_rotation_errors(capture, true: dict) -> np.ndarray:
+    """Degrees between the recovered and the true relative rotation of every pair of the capture's
+    cameras that `true` (name -> Camera) holds."""
+    rot = {n: c.rotation for n, c in zip(capture.names, capture.cameras)}
+    names = [n for n in capture.names if n in true]
+    out = []
+    for i in range(len(names)):
+        for j in range(i + 1, len(names)):
+            d = (true[names[j]].rotation @ true[names[i]].rotation.T) @ (rot[names[j]] @ rot[names[i]].T).T
+            out.append(math.degrees(math.acos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
+    return np.array(out)

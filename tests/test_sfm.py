@@ -22,7 +22,7 @@ from gvae_core.cli import build_parser, main
 from gvae_core.cli.sfm import sfm_options
 from gvae_core.datasets import DatasetError
 
-from .photo_set import SCENE_SIZE, on_surface, photo_set, ring_cameras, similarity
+from .photo_set import SCENE_SIZE, on_surface, photo_set, relative_rotation_errors, ring_cameras, similarity
 
 #: Small photos: SIFT and matching in seconds.
 CAMERAS = ring_cameras(20, 320, 240)
@@ -86,18 +86,6 @@ def test_sfm_recovers_the_cameras_up_to_a_similarity(solved):
         rel = true[name].rotation @ (cam.rotation @ r.T).T
         assert math.degrees(math.acos(np.clip((np.trace(rel) - 1) / 2, -1, 1))) < 1.0, name
     assert abs(capture.cameras[0].fx / CAMERAS[0].fx - 1) < 0.02  # the focal length found, not the guess
-
-
-def relative_rotation_errors(capture, true: dict) -> np.ndarray:
-    """Degrees between the recovered and the true relative rotation of every pair of cameras."""
-    rot = {n: c.rotation for n, c in zip(capture.names, capture.cameras)}
-    names = capture.names
-    out = []
-    for i in range(len(names)):
-        for j in range(i + 1, len(names)):
-            d = (true[names[j]].rotation @ true[names[i]].rotation.T) @ (rot[names[j]] @ rot[names[i]].T).T
-            out.append(math.degrees(math.acos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
-    return np.array(out)
 
 
 def test_sfm_finds_a_principal_point_off_the_centre(tmp_path):

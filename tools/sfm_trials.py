@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import re
 import resource
@@ -32,7 +31,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from gvae_core.capture import read_capture  # noqa: E402
-from tests.photo_set import similarity  # noqa: E402
+from tests.photo_set import relative_rotation_errors, similarity  # noqa: E402
 
 
 def compare(model_folder: Path, reference_folder: Path) -> dict:
@@ -41,11 +40,7 @@ def compare(model_folder: Path, reference_folder: Path) -> dict:
     ref = dict(zip(want.names, want.cameras))
     names = [n for n in got.names if n in ref]
     mine = dict(zip(got.names, got.cameras))
-    rot = []
-    for i, a in enumerate(names):
-        for b in names[i + 1:]:
-            d = (ref[b].rotation @ ref[a].rotation.T) @ (mine[b].rotation @ mine[a].rotation.T).T
-            rot.append(math.degrees(math.acos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
+    rot = relative_rotation_errors(got, ref)
     c_got = np.stack([mine[n].center for n in names])
     c_want = np.stack([ref[n].center for n in names])
     s, r, t = similarity(c_got, c_want)
