@@ -3,7 +3,8 @@
 hand-held tilts) rendered from COUNT known cameras, then `tools/sfm_trials.py`'s variants on it,
 timed, their cameras compared with the true ones.
 
-Usage: python tools/sfm_scaling.py --out RUNS [--count 300] [--width 1000 --height 750] [--variant ...]
+Usage: python tools/sfm_scaling.py --out RUNS [--count 300] [--width 1000 --height 750] [--roll 15]
+           [--principal-point X Y] [--variant ...]
 e.g.   python tools/sfm_scaling.py --out runs/sfm-300 --count 300 --variant auto= --variant global="--mapper global"
 The photos and every finished variant are reused (a long job: run it in the background, log on disk).
 """
@@ -41,11 +42,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--width", type=int, default=1000)
     p.add_argument("--height", type=int, default=750)
     p.add_argument("--roll", type=float, default=15.0, help="hand-held tilt, degrees at most")
+    p.add_argument("--principal-point", type=float, nargs=2, default=(0.0, 0.0), metavar=("X", "Y"),
+                   help="the lens's principal point off the centre, in shares of the width and height")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--variant", action="append", default=[], metavar='NAME="FLAGS"')
     args = p.parse_args(argv)
     photos, truth = args.out / "photos", args.out / "truth"
-    cameras = ring_cameras(args.count, args.width, args.height, roll=args.roll)
+    cameras = ring_cameras(args.count, args.width, args.height, roll=args.roll,
+                           principal_point=tuple(args.principal_point))
     if not (photos.is_dir() and len(list(photos.glob("*.png"))) == args.count):
         print(f"rendering {args.count} photos of {args.width} x {args.height}", flush=True)
         photo_set(photos, cameras)

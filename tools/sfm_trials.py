@@ -3,8 +3,9 @@ docs/benchmarks/training.md "Structure from motion that scales"): each variant r
 capture's photos in its own folder and process (timed: wall and CPU seconds, the load), and its model
 is compared with a reference model of the same photos (the capture's own sparse/0, or `--reference`):
 photos registered, points, reprojection error, the median relative rotation between every pair of
-cameras against the reference's, and the camera centres after the best similarity, as a share of the
-reference centres' extent (their bounding box's diagonal).
+cameras against the reference's, the camera centres after the best similarity, as a share of the
+reference centres' extent (their bounding box's diagonal), and how far the first photo's principal
+point is from the reference's.
 
 Usage: python tools/sfm_trials.py CAPTURE --out RUNS [--threads 2] [--variant NAME="--matcher vocabtree" ...]
 e.g.   python tools/sfm_trials.py ../shared/captures/plush --out runs/sfm-trials \\
@@ -46,7 +47,9 @@ def compare(model_folder: Path, reference_folder: Path) -> dict:
     s, r, t = similarity(c_got, c_want)
     extent = float(np.linalg.norm(c_want.max(0) - c_want.min(0)))
     centre = np.linalg.norm(s * c_got @ r.T + t - c_want, axis=1) / extent
-    return {"compared": len(names), "rotation_median_deg": round(float(np.median(rot)), 3),
+    pp = (got.photo_cameras[0].cx - want.photo_cameras[0].cx, got.photo_cameras[0].cy - want.photo_cameras[0].cy)
+    return {"compared": len(names), "principal_point_off_px": [round(float(v), 2) for v in pp],
+            "rotation_median_deg": round(float(np.median(rot)), 3),
             "rotation_p90_deg": round(float(np.percentile(rot, 90)), 3),
             "centre_median_pct": round(100 * float(np.median(centre)), 3),
             "centre_max_pct": round(100 * float(centre.max()), 3)}
@@ -101,13 +104,14 @@ def main(argv: list[str] | None = None) -> int:
         args.out.mkdir(parents=True, exist_ok=True)
         summary_file.write_text(json.dumps(rows, indent=2))
     print("\n| variant | registered (points, px) | features / matching / mapping s | wall s (CPU s) | load | "
-          "rotation median (p90) deg | centres median (max) % |\n|---|---:|---|---|---|---|---|")
+          "rotation median (p90) deg | centres median (max) % | principal point off (px) |\n"
+          "|---|---:|---|---|---|---|---|---|")
     for name, r in rows.items():
         print(f"| {name} (`{r['flags']}`) | {r.get('registered')} ({r.get('points')}, {r.get('reprojection_px')}) | "
               f"{r.get('features_s')} / {r.get('matching_s')} / "
               f"{r.get('mapping_s')} | {r['wall_s']} ({r['cpu_s']}) | {r['load_at_start']} | "
               f"{r['rotation_median_deg']} ({r['rotation_p90_deg']}) | {r['centre_median_pct']} "
-              f"({r['centre_max_pct']}) |")
+              f"({r['centre_max_pct']}) | {r['principal_point_off_px']} |")
     return 0
 
 
