@@ -372,7 +372,7 @@ def _match(pycolmap, database: Path, pairs: list[tuple[str, str]] | None, option
 
 def _build_vocab_tree(pycolmap, database: Path, path: Path, options: SfMOptions, sample: int = 100_000) -> Path:
     """A visual-word index of up to `sample` of the photos' own SIFT descriptors (what COLMAP's
-    vocab_tree_builder makes; about 100 descriptors a word, 256 to 4,096 words), so retrieval needs
+    vocab_tree_builder makes; 100 to 200 descriptors a word, 256 to 4,096 words), so retrieval needs
     no downloaded tree. Ten k-means iterations in one round: seconds, where COLMAP's three rounds of
     100 take minutes, and fine enough to rank a few hundred photos."""
     rng = np.random.default_rng(options.seed)

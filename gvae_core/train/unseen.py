@@ -3,7 +3,7 @@ Gaussian visible when it lies in front of the camera and its footprint touches t
 no training camera marks gets no gradient from any photo, so its place, size and opacity are
 whatever it had when it left their view (a clone or a split child pushed past the cameras, an SfM
 point behind them). From a viewpoint the photos do not cover it can stand right in front of the
-camera (an opaque Gaussian a few centimetres before a held-out camera draws that photo at 6 dB).
+camera (such Gaussians drew a held-out photo of the plush at 6 dB).
 A stage's result keeps only the Gaussians some training photo sees.
 """
 
