@@ -167,13 +167,17 @@ def render(cloud: GaussianCloud, camera: Camera, *, background=(0.0, 0.0, 0.0), 
     dev = proj.means2d.device
     h, w = camera.height, camera.width
     acc = composite(table, binning, block=s.block, budget=s.budget, backward=s.backward, kernels=s.kernels)
-    acc = tiles_to_image(acc, binning, h, w)
-    bg = torch.as_tensor(background, dtype=s.dtype, device=dev).reshape(3)
-    alpha = acc[..., 4]
-    image = acc[..., :3] + (1.0 - alpha)[..., None] * bg
-    drawn = alpha > 1e-6
-    depth = torch.where(drawn, acc[..., 3] / torch.where(drawn, alpha, torch.ones_like(alpha)),
-                        torch.zeros_like(alpha))
+    learned_bg = isinstance(background, torch.Tensor) and background.requires_grad
+    if compiled.use_compiled(s.kernels, acc.device, acc.dtype) and not learned_bg:
+        image, alpha, depth = compiled.assemble(acc, binning, h, w, background)
+    else:
+        acc = tiles_to_image(acc, binning, h, w)
+        bg = torch.as_tensor(background, dtype=s.dtype, device=dev).reshape(3)
+        alpha = acc[..., 4]
+        image = acc[..., :3] + (1.0 - alpha)[..., None] * bg
+        drawn = alpha > 1e-6
+        depth = torch.where(drawn, acc[..., 3] / torch.where(drawn, alpha, torch.ones_like(alpha)),
+                            torch.zeros_like(alpha))
     return RenderOutput(image=image, alpha=alpha, depth=depth, radii=proj.radii, visible=proj.visible,
                         means2d=proj.means2d, num_pairs=binning.num_pairs,
                         num_evaluations=binning.evaluations, tile_size=s.tile_size)

@@ -265,6 +265,56 @@ def composite_backward(table: torch.Tensor, binning: Binning, acc: torch.Tensor,
     return torch.from_numpy(grad_table)
 
 
+def _tile_ranges(binning: Binning) -> list[tuple[int, int]]:
+    """Ranges of tiles of equal size for a pass over every pixel."""
+    ntiles = binning.tiles_x * binning.tiles_y
+    return chunks(ntiles, float(ntiles * binning.tile_size ** 2), _SMALL)
+
+
+class AssembleFunction(torch.autograd.Function):
+    """acc (tiles, 5, P) -> (image (H, W, 3), alpha (H, W), depth (H, W)) over `background`, with
+    the compiled backward: `render`'s last step in one pass each way (`kernels.assemble_forward`)."""
+
+    @staticmethod
+    def forward(ctx, acc, binning: Binning, height: int, width: int, background: np.ndarray):
+        k = kernels()
+        acc_np = acc.detach().numpy()
+        image, alpha, depth = (np.empty((height, width, 3), np.float32), np.empty((height, width), np.float32),
+                               np.empty((height, width), np.float32))
+        run([lambda a=a, b=b: k.assemble_forward(acc_np, binning.tiles_x, binning.tile_size, background, a, b, image,
+                                                  alpha, depth)
+              for a, b in _tile_ranges(binning)])
+        ctx.save_for_backward(acc)
+        ctx.set_materialize_grads(False)
+        ctx.binning, ctx.background, ctx.size = binning, background, (height, width)
+        return torch.from_numpy(image), torch.from_numpy(alpha), torch.from_numpy(depth)
+
+    @staticmethod
+    def backward(ctx, g_image, g_alpha, g_depth):
+        k = kernels()
+        (acc,) = ctx.saved_tensors
+        binning = ctx.binning
+        acc_np = acc.numpy()
+        h, w = ctx.size
+        none = np.zeros((0, 0), np.float32)
+        gi = np.zeros((h, w, 3), np.float32) if g_image is None else np.ascontiguousarray(g_image.numpy(), np.float32)
+        ga, gd = (none if g is None else np.ascontiguousarray(g.numpy(), np.float32) for g in (g_alpha, g_depth))
+        g_acc = np.empty(acc_np.shape, np.float32)
+        run([lambda a=a, b=b: k.assemble_backward(acc_np, binning.tiles_x, binning.tile_size, ctx.background, a, b, h,
+                                                   w, gi, ga, gd, g_acc)
+              for a, b in _tile_ranges(binning)])
+        return torch.from_numpy(g_acc), None, None, None, None
+
+
+def assemble(acc: torch.Tensor, binning: Binning, height: int, width: int,
+             background) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(image, alpha, depth) of the compositing's acc (tiles, 5, P) float32 over `background` (3
+    floats), as `render` makes them with torch (`rasterize.tiles_to_image`, then the background and
+    the depth's division), in one compiled pass; differentiable in acc."""
+    bg = np.ascontiguousarray(np.asarray(background, np.float32).reshape(3))
+    return AssembleFunction.apply(acc.contiguous(), binning, height, width, bg)
+
+
 # ------------------------------------------------------------------------------ the Gauss-Newton sweep
 
 def gauss_newton_moments(table: torch.Tensor, binning: Binning, acc: torch.Tensor, width: int, height: int,
@@ -368,6 +418,9 @@ def compile_kernels(progress: Callable[[float, str], None] | None = None) -> flo
     acc = composite_forward(table, binning)
     # (a scalar's backward: torch imports sympy, a second, for a backward given its gradient)
     (table * composite_backward(table, binning, acc, torch.ones_like(acc))).sum().backward()
+    image, alpha, depth = assemble(acc.detach().clone().requires_grad_(), binning, cam.height, cam.width,
+                                   (0.0, 0.0, 0.0))
+    (image.sum() + alpha.sum() + depth.sum()).backward()
     moments = np.zeros((n, kernels().NMOM), np.float32)
     gauss_newton_moments(table, binning, acc, cam.width, cam.height, moments)
     blocks = np.zeros((n, 21), np.float64)  # a packed 6x6 block each

@@ -878,6 +878,53 @@ def pair_grads_to_table(pair_grads, ids, table, c_lo, c_hi, grad_table):
             grad_table[g, OP] = grad_table[g, OP] / o if o > _ZERO else _ZERO
 
 
+#: Accumulated alpha above which a pixel has a depth (`render`'s rule).
+DRAWN = f32(1e-6)
+
+
+@kernel
+def assemble_forward(acc, tiles_x, ts, bg, t_lo, t_hi, image, alpha, depth):
+    """Tiles t_lo..t_hi-1 of the compositing's acc (tiles, 5, P) as pixels: image (H, W, 3) = colour +
+    (1 - alpha) bg, alpha (H, W), depth (H, W) = the weighted depth / alpha where alpha > 1e-6, else
+    0; the padded border tiles' pixels outside the image are dropped."""
+    height, width = alpha.shape
+    for t in range(t_lo, t_hi):
+        x0, y0 = (t % tiles_x) * ts, (t // tiles_x) * ts
+        for p in range(ts * ts):
+            y, x = y0 + p // ts, x0 + p % ts
+            if y >= height or x >= width:
+                continue
+            a = acc[t, 4, p]
+            for c in range(3):
+                image[y, x, c] = acc[t, c, p] + (_ONE - a) * bg[c]
+            alpha[y, x] = a
+            depth[y, x] = acc[t, 3, p] / a if a > DRAWN else _ZERO
+
+
+@kernel
+def assemble_backward(acc, tiles_x, ts, bg, t_lo, t_hi, height, width, g_image, g_alpha, g_depth, g_acc):
+    """The gradient of `assemble_forward` with respect to acc, for tiles t_lo..t_hi-1 of g_acc
+    (tiles, 5, P), from the gradients of its outputs (g_alpha, g_depth empty: no gradient there;
+    0 for the padded pixels)."""
+    with_alpha, with_depth = g_alpha.size > 0, g_depth.size > 0
+    for t in range(t_lo, t_hi):
+        x0, y0 = (t % tiles_x) * ts, (t // tiles_x) * ts
+        for p in range(ts * ts):
+            y, x = y0 + p // ts, x0 + p % ts
+            if y >= height or x >= width:
+                for c in range(5):
+                    g_acc[t, c, p] = _ZERO
+                continue
+            ga = g_alpha[y, x] if with_alpha else _ZERO
+            for c in range(3):
+                g_acc[t, c, p] = g_image[y, x, c]
+                ga -= g_image[y, x, c] * bg[c]
+            a = acc[t, 4, p]
+            gd = g_depth[y, x] / a if (with_depth and a > DRAWN) else _ZERO
+            g_acc[t, 3, p] = gd
+            g_acc[t, 4, p] = ga - gd * acc[t, 3, p] / a if gd != _ZERO else ga
+
+
 # ----------------------------------------------------------------------------- the Hessian's sweep
 
 #: Values per pair of `gauss_newton_moments`: 15 moments of s = sum_c e_c² by the pixel-offset
@@ -1260,5 +1307,6 @@ def logdet_scores(rows, lam, lo, hi, out):
 
 #: Every kernel of this module (what `compiled.compile_kernels` makes ready).
 KERNELS = ("project_forward", "project_backward", "radix_order", "gather_footprints", "bin_count", "bin_fill",
-           "composite_forward", "composite_backward", "pair_grads_to_table", "gauss_newton_moments", "add_moments",
+           "composite_forward", "composite_backward", "pair_grads_to_table", "assemble_forward",
+           "assemble_backward", "gauss_newton_moments", "add_moments",
            "gaussian_blocks", "logdet_scores")
