@@ -32,9 +32,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from gvae_core.camera import Camera  # noqa: E402
 from gvae_core.cloud import GaussianCloud  # noqa: E402
+from gvae_core.benchmarks.kernels import FIELDS  # noqa: E402
 from gvae_core.rendering import RenderSettings, compiled, render  # noqa: E402
 
-FIELDS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 STAGES = ("project_arrays", "bin_gaussians", "composite_forward", "composite_backward")
 
 

@@ -164,7 +164,6 @@ def render(cloud: GaussianCloud, camera: Camera, *, background=(0.0, 0.0, 0.0), 
     (`gvae_core.antialias`: "filter_3D" in the "mip" mode, "gvae_dilation_3D" in "matched")."""
     s = settings or RenderSettings()
     proj, binning, table = prepare_view(cloud, camera, s, sh_degree=sh_degree, device=device)
-    dev = proj.means2d.device
     h, w = camera.height, camera.width
     acc = composite(table, binning, block=s.block, budget=s.budget, backward=s.backward, kernels=s.kernels)
     learned_bg = isinstance(background, torch.Tensor) and background.requires_grad
@@ -172,7 +171,7 @@ def render(cloud: GaussianCloud, camera: Camera, *, background=(0.0, 0.0, 0.0), 
         image, alpha, depth = compiled.assemble(acc, binning, h, w, background)
     else:
         acc = tiles_to_image(acc, binning, h, w)
-        bg = torch.as_tensor(background, dtype=s.dtype, device=dev).reshape(3)
+        bg = torch.as_tensor(background, dtype=s.dtype, device=acc.device).reshape(3)
         alpha = acc[..., 4]
         image = acc[..., :3] + (1.0 - alpha)[..., None] * bg
         drawn = alpha > 1e-6

@@ -920,9 +920,12 @@ def assemble_backward(acc, tiles_x, ts, bg, t_lo, t_hi, height, width, g_image, 
                 g_acc[t, c, p] = g_image[y, x, c]
                 ga -= g_image[y, x, c] * bg[c]
             a = acc[t, 4, p]
-            gd = g_depth[y, x] / a if (with_depth and a > DRAWN) else _ZERO
-            g_acc[t, 3, p] = gd
-            g_acc[t, 4, p] = ga - gd * acc[t, 3, p] / a if gd != _ZERO else ga
+            g_acc[t, 3, p] = _ZERO
+            if with_depth and a > DRAWN:  # depth = acc_3 / a
+                gd = g_depth[y, x] / a
+                g_acc[t, 3, p] = gd
+                ga -= gd * acc[t, 3, p] / a
+            g_acc[t, 4, p] = ga
 
 
 # ----------------------------------------------------------------------------- the Hessian's sweep
